@@ -1,0 +1,88 @@
+// In-core kd-tree over triangles: binned SAH with empty-space cutting (paper 000 §4.1).
+//
+// Node layout: 8 bytes, the same size as the out-of-core basic/leaf nodes (paper 000
+// Tables 2 and 4), so the traversal loop is shared once treelets arrive. Nodes are in
+// depth-first preorder: an inner node's left (below) child follows it directly and
+// the right (above) child sits at a positive offset. Offsets are relative, so subtrees
+// built in parallel are spliced together without rewriting inner nodes.
+#pragma once
+
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include "vastray/vecmath.h"
+
+namespace vastray {
+
+struct KdNode {
+    // bits 0-1: split axis (0, 1, 2) or 3 for a leaf.
+    // bits 2-31: inner: offset of the right child from this node; leaf: triangle count.
+    std::uint32_t bits;
+    // inner: split position (float bits); leaf: first index in the triangle-id list.
+    std::uint32_t payload;
+
+    static constexpr std::uint32_t kLeaf = 3;
+    static constexpr std::uint32_t kMaxField = (1u << 30) - 1;
+
+    bool is_leaf() const { return (bits & 3u) == kLeaf; }
+    int axis() const { return static_cast<int>(bits & 3u); }
+    std::uint32_t right_offset() const { return bits >> 2; }
+    std::uint32_t count() const { return bits >> 2; }
+    std::uint32_t first() const { return payload; }
+    float split() const {
+        float f;
+        std::memcpy(&f, &payload, sizeof f);
+        return f;
+    }
+
+    static KdNode inner(int axis, float split, std::uint32_t right_offset) {
+        std::uint32_t p;
+        std::memcpy(&p, &split, sizeof p);
+        return {(right_offset << 2) | static_cast<std::uint32_t>(axis), p};
+    }
+    static KdNode leaf(std::uint32_t first, std::uint32_t count) {
+        return {(count << 2) | kLeaf, first};
+    }
+};
+static_assert(sizeof(KdNode) == 8, "kd-tree nodes are 8 bytes");
+
+struct KdBuildParams {
+    float traversal_cost = 1.0f;     // SAH cost of one inner-node step
+    float intersection_cost = 1.5f;  // SAH cost of one triangle test
+    int leaf_size = 2;               // nodes with <= this many triangles become leaves
+    int bins = 32;                   // SAH candidate planes per axis
+    int max_depth = 0;               // 0: 8 + 1.3 log2(n), capped at 60
+    float empty_space_ratio = 0.15f; // cut off an empty slab when it holds >= this volume fraction
+    int median_fallback = 128;       // SAH found no split but this many triangles remain: split mid
+    unsigned threads = 0;            // 0: all hardware threads
+};
+
+struct KdBuildStats {
+    std::uint64_t nodes = 0, leaves = 0, empty_leaves = 0, references = 0;
+    int max_depth = 0;
+    double sah_cost = 0;
+    double build_ms = 0;
+};
+
+struct KdTree {
+    std::vector<KdNode> nodes;
+    std::vector<std::uint32_t> tri_ids;  // leaf triangle lists
+    Box3f bounds;                        // root cell (model-local coordinates)
+    KdBuildStats stats;
+
+    std::size_t memory_bytes() const {
+        return nodes.size() * sizeof(KdNode) + tri_ids.size() * sizeof(std::uint32_t);
+    }
+};
+
+// A triangle soup in model-local float coordinates (three vertices per triangle).
+struct TriangleSoup {
+    const Vec3f* vertices = nullptr;  // 3 * count vertices
+    std::size_t count = 0;
+    const Vec3f& v(std::size_t tri, int k) const { return vertices[3 * tri + static_cast<std::size_t>(k)]; }
+};
+
+KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params);
+
+}  // namespace vastray

@@ -1,0 +1,80 @@
+// An in-core model ready to ray trace: float geometry relative to the model centre
+// (kept in double), optional per-triangle colours, and its kd-tree.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "vastray/kdtree.h"
+#include "vastray/traverse.h"
+
+namespace vastray {
+
+struct WorldRay {
+    Vec3d org, dir;
+    double tmin = 0, tmax = std::numeric_limits<double>::infinity();
+};
+
+class Scene {
+public:
+    // vertices: (V,3) double world coordinates; faces: (F,3) indices; colors: (F,3) RGB8 or null.
+    Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
+          std::size_t face_count, const std::uint8_t* colors, const KdBuildParams& params);
+
+    std::size_t triangle_count() const { return tri_vertices_.size() / 3; }
+    bool has_colors() const { return !colors_.empty(); }
+    const Vec3d& centre() const { return centre_; }
+    Vec3d world_lo() const { return centre_ + Vec3d(tree_.bounds.lo); }
+    Vec3d world_hi() const { return centre_ + Vec3d(tree_.bounds.hi); }
+    const KdTree& tree() const { return tree_; }
+    const Vec3f* tri_vertices() const { return tri_vertices_.data(); }
+    const std::uint8_t* color(std::uint32_t prim) const { return colors_.data() + 3 * static_cast<std::size_t>(prim); }
+    std::size_t memory_bytes() const;
+
+    // Converts a world ray to model-local float. The subtraction of the centre happens
+    // in double, so a model 1e7 units from the origin keeps float precision locally.
+    Ray to_local(const WorldRay& r) const;
+
+    template <bool AnyHit>
+    bool trace(const Ray& ray, Hit& hit, TraversalCounters& counters, std::uint32_t skip = kNoHit) const {
+        return traverse<AnyHit>(tree_, tri_vertices_.data(), ray, hit, counters, skip);
+    }
+
+    // Geometric normal (unnormalised orientation of the stored winding), local frame.
+    Vec3f normal(std::uint32_t prim) const;
+
+private:
+    Vec3d centre_;
+    std::vector<Vec3f> tri_vertices_;  // 3 per triangle, model-local
+    std::vector<std::uint8_t> colors_;
+    KdTree tree_;
+};
+
+// Batch queries in world coordinates (tools and tests). Outputs are arrays of n.
+struct BatchResult {
+    std::vector<double> t;
+    std::vector<std::int64_t> prim;
+    std::vector<float> u, v;
+    TraversalCounters counters;
+};
+BatchResult intersect_batch(const Scene& scene, const double* origins, const double* directions,
+                            const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+std::vector<std::uint8_t> occluded_batch(const Scene& scene, const double* origins,
+                                         const double* directions, const double* tmin,
+                                         const double* tmax, std::size_t n, unsigned threads);
+
+// Independent reference: double-precision Möller-Trumbore against every triangle, no
+// acceleration structure. Also returns the second-closest distance so callers can tell
+// ties (two triangles at the same t) from real disagreements. `cull` skips runs of
+// triangles whose widened double bounding box the ray misses (same answers, faster).
+struct ReferenceResult {
+    std::vector<double> t, t_second, u, v;
+    std::vector<std::int64_t> prim;
+};
+ReferenceResult reference_intersect(const double* vertices, std::size_t vertex_count,
+                                    const std::uint32_t* faces, std::size_t face_count,
+                                    const double* origins, const double* directions,
+                                    const double* tmin, const double* tmax, std::size_t n,
+                                    unsigned threads, bool cull = true);
+
+}  // namespace vastray

@@ -1,0 +1,117 @@
+// Kd-tree ray traversal (Wald 2004 style, the base of paper 000 Algorithm 1).
+//
+// The root cell clip and every split step tolerate +0/-0 direction components: a
+// direction of zero along an axis gives an infinite (never NaN) split distance unless
+// the origin lies exactly on the plane, in which case both children are visited.
+#pragma once
+
+#include <cstdint>
+
+#include "vastray/kdtree.h"
+#include "vastray/triangle.h"
+
+namespace vastray {
+
+struct TraversalCounters {
+    std::uint64_t node_visits = 0;
+    std::uint64_t triangle_tests = 0;
+};
+
+// Clips the ray to a box; returns false on a miss. Zero direction components are
+// handled explicitly so 0 * inf never produces NaN.
+inline bool clip_ray_to_box(const Ray& ray, const Box3f& box, float& t0, float& t1) {
+    t0 = ray.tmin;
+    t1 = ray.tmax;
+    for (int a = 0; a < 3; ++a) {
+        const float o = ray.org[a], d = ray.dir[a];
+        if (d == 0.0f) {
+            if (o < box.lo[a] || o > box.hi[a]) return false;
+            continue;
+        }
+        const float inv = 1.0f / d;
+        float tn = (box.lo[a] - o) * inv, tf = (box.hi[a] - o) * inv;
+        if (tn > tf) std::swap(tn, tf);
+        // Widen the far distance by a few ulps (pbrt's gamma(3)) so a grazing ray at the
+        // root boundary is not lost to rounding.
+        tf *= 1.0f + 2.0f * 3.0f * std::numeric_limits<float>::epsilon();
+        t0 = tn > t0 ? tn : t0;
+        t1 = tf < t1 ? tf : t1;
+        if (t0 > t1) return false;
+    }
+    return true;
+}
+
+// Closest hit (AnyHit = false) or any hit in [tmin, tmax] (AnyHit = true). `skip` is a
+// triangle never reported (the surface a secondary ray starts on).
+template <bool AnyHit>
+inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& ray, Hit& hit,
+                     TraversalCounters& counters, std::uint32_t skip = kNoHit) {
+    float tmin, tmax;
+    if (tree.nodes.empty() || !clip_ray_to_box(ray, tree.bounds, tmin, tmax)) return false;
+    hit.t = ray.tmax;
+    hit.prim = kNoHit;
+
+    const ShearedRay sheared(ray.dir);
+    const Vec3f inv(1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z);
+    struct Entry {
+        std::uint32_t node;
+        float tmin, tmax;
+    };
+    Entry stack[64];
+    int top = 0;
+    const KdNode* nodes = tree.nodes.data();
+    std::uint32_t index = 0;
+    for (;;) {
+        const KdNode* node = nodes + index;
+        while (!node->is_leaf()) {
+            ++counters.node_visits;
+            const int axis = node->axis();
+            const float split = node->split();
+            const float o = ray.org[axis];
+            const float t_split = (split - o) * inv[axis];
+            const bool below_first = o < split || (o == split && std::signbit(ray.dir[axis]));
+            const std::uint32_t left = index + 1, right = index + node->right_offset();
+            const std::uint32_t first = below_first ? left : right;
+            const std::uint32_t second = below_first ? right : left;
+            if (t_split != t_split) {
+                // Origin on the plane and the ray inside it: both children are relevant.
+                if (top < 64) stack[top++] = {second, tmin, tmax};
+                index = first;
+            } else if (t_split > tmax || t_split <= 0.0f) {
+                index = first;
+            } else if (t_split < tmin) {
+                index = second;
+            } else {
+                if (top < 64) stack[top++] = {second, t_split, tmax};
+                index = first;
+                tmax = t_split;
+            }
+            node = nodes + index;
+        }
+        const std::uint32_t count = node->count();
+        const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+        for (std::uint32_t i = 0; i < count; ++i) {
+            const std::uint32_t id = ids[i];
+            if (id == skip) continue;
+            ++counters.triangle_tests;
+            const Vec3f* v = tri_vertices + 3 * static_cast<std::size_t>(id);
+            if (intersect_triangle(ray, sheared, v[0], v[1], v[2], hit)) {
+                hit.prim = id;
+                if (AnyHit) return true;
+            }
+        }
+        // A hit inside this cell cannot be beaten by cells further along the ray.
+        if (hit.prim != kNoHit && hit.t <= tmax) return true;
+        for (;;) {
+            if (top == 0) return hit.prim != kNoHit;
+            const Entry& e = stack[--top];
+            if (e.tmin > hit.t) continue;
+            index = e.node;
+            tmin = e.tmin;
+            tmax = e.tmax;
+            break;
+        }
+    }
+}
+
+}  // namespace vastray

@@ -1,0 +1,244 @@
+// Python module vastray.native. Every heavy call releases the GIL so the server's
+// event loop and other renders keep running.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <memory>
+#include <stdexcept>
+
+#include "vastray/render.h"
+#include "vastray/scene.h"
+#include "vastray/thread_pool.h"
+
+namespace py = pybind11;
+using namespace vastray;
+
+namespace {
+
+using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using UIntArray = py::array_t<std::uint32_t, py::array::c_style | py::array::forcecast>;
+using ByteArray = py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast>;
+
+void require_shape(const py::array& a, py::ssize_t cols, const char* name) {
+    if (a.ndim() != 2 || a.shape(1) != cols) {
+        throw std::invalid_argument(std::string(name) + " must have shape (n, " + std::to_string(cols) + ")");
+    }
+}
+
+// tmin/tmax may be scalars or per-ray arrays.
+std::vector<double> broadcast(const py::object& value, std::size_t n, const char* name) {
+    auto arr = DoubleArray::ensure(value);
+    if (!arr) throw std::invalid_argument(std::string(name) + " must be a number or an array");
+    if (arr.ndim() == 0 || arr.size() == 1) return std::vector<double>(n, *arr.data());
+    if (static_cast<std::size_t>(arr.size()) != n) {
+        throw std::invalid_argument(std::string(name) + " must be a scalar or have one value per ray");
+    }
+    return std::vector<double>(arr.data(), arr.data() + n);
+}
+
+Vec3d to_vec3(const std::vector<double>& v, const char* name) {
+    if (v.size() != 3) throw std::invalid_argument(std::string(name) + " must have three components");
+    return {v[0], v[1], v[2]};
+}
+
+template <typename T>
+py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
+    auto* heap = new std::vector<T>(std::move(v));
+    py::capsule owner(heap, [](void* p) { delete static_cast<std::vector<T>*>(p); });
+    return py::array_t<T>(shape, heap->data(), owner);
+}
+
+std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::object colors,
+                                  int leaf_size, float traversal_cost, float intersection_cost,
+                                  float empty_space_ratio, int bins, int max_depth, unsigned threads) {
+    require_shape(vertices, 3, "vertices");
+    require_shape(faces, 3, "faces");
+    KdBuildParams params;
+    params.leaf_size = leaf_size;
+    params.traversal_cost = traversal_cost;
+    params.intersection_cost = intersection_cost;
+    params.empty_space_ratio = empty_space_ratio;
+    params.bins = bins;
+    params.max_depth = max_depth;
+    params.threads = threads;
+    if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 ||
+        !(empty_space_ratio > 0)) {
+        throw std::invalid_argument("invalid kd-tree build parameters");
+    }
+    ByteArray colour_array;
+    const std::uint8_t* colour_ptr = nullptr;
+    if (!colors.is_none()) {
+        colour_array = ByteArray::ensure(colors);
+        if (!colour_array) throw std::invalid_argument("colors must be a uint8 array");
+        require_shape(colour_array, 3, "colors");
+        if (colour_array.shape(0) != faces.shape(0)) throw std::invalid_argument("colors must have one row per face");
+        colour_ptr = colour_array.data();
+    }
+    py::gil_scoped_release release;
+    return std::make_shared<Scene>(vertices.data(), static_cast<std::size_t>(vertices.shape(0)),
+                                   faces.data(), static_cast<std::size_t>(faces.shape(0)), colour_ptr, params);
+}
+
+py::dict build_stats(const Scene& s) {
+    const KdBuildStats& st = s.tree().stats;
+    py::dict d;
+    d["nodes"] = st.nodes;
+    d["leaves"] = st.leaves;
+    d["empty_leaves"] = st.empty_leaves;
+    d["references"] = st.references;
+    d["max_depth"] = st.max_depth;
+    d["sah_cost"] = st.sah_cost;
+    d["build_ms"] = st.build_ms;
+    d["memory_bytes"] = s.memory_bytes();
+    return d;
+}
+
+struct RayArrays {
+    DoubleArray origins, directions;
+    std::vector<double> tmin, tmax;
+    std::size_t n;
+};
+
+RayArrays load_rays(DoubleArray origins, DoubleArray directions, const py::object& tmin, const py::object& tmax) {
+    require_shape(origins, 3, "origins");
+    require_shape(directions, 3, "directions");
+    if (origins.shape(0) != directions.shape(0)) throw std::invalid_argument("origins and directions differ in length");
+    const auto n = static_cast<std::size_t>(origins.shape(0));
+    return {origins, directions, broadcast(tmin, n, "tmin"), broadcast(tmax, n, "tmax"), n};
+}
+
+py::dict intersect(const Scene& s, DoubleArray origins, DoubleArray directions, py::object tmin,
+                   py::object tmax, unsigned threads) {
+    RayArrays r = load_rays(origins, directions, tmin, tmax);
+    BatchResult res;
+    {
+        py::gil_scoped_release release;
+        res = intersect_batch(s, r.origins.data(), r.directions.data(), r.tmin.data(), r.tmax.data(), r.n, threads);
+    }
+    const auto n = static_cast<py::ssize_t>(r.n);
+    py::dict d;
+    d["t"] = to_numpy(std::move(res.t), {n});
+    d["prim"] = to_numpy(std::move(res.prim), {n});
+    d["u"] = to_numpy(std::move(res.u), {n});
+    d["v"] = to_numpy(std::move(res.v), {n});
+    d["node_visits"] = res.counters.node_visits;
+    d["triangle_tests"] = res.counters.triangle_tests;
+    return d;
+}
+
+py::array_t<bool> occluded(const Scene& s, DoubleArray origins, DoubleArray directions, py::object tmin,
+                           py::object tmax, unsigned threads) {
+    RayArrays r = load_rays(origins, directions, tmin, tmax);
+    std::vector<std::uint8_t> res;
+    {
+        py::gil_scoped_release release;
+        res = occluded_batch(s, r.origins.data(), r.directions.data(), r.tmin.data(), r.tmax.data(), r.n, threads);
+    }
+    py::array_t<bool> out(static_cast<py::ssize_t>(r.n));
+    auto* o = out.mutable_data();
+    for (std::size_t i = 0; i < r.n; ++i) o[i] = res[i] != 0;
+    return out;
+}
+
+py::dict render_frame(const Scene& s, const std::vector<double>& eye, const std::vector<double>& target,
+                      const std::vector<double>& up, double fov, int width, int height,
+                      const std::string& shading, int ao_samples, double ao_distance,
+                      const std::vector<double>& sun, unsigned threads, int tile_size) {
+    Camera cam;
+    cam.eye = to_vec3(eye, "eye");
+    cam.target = to_vec3(target, "target");
+    cam.up = to_vec3(up, "up");
+    cam.fov_deg = fov;
+    cam.width = width;
+    cam.height = height;
+    RenderParams params;
+    params.shading = parse_shading(shading);
+    params.ao_samples = ao_samples;
+    params.ao_distance = ao_distance;
+    params.sun_direction = to_vec3(sun, "sun");
+    params.threads = threads;
+    params.tile_size = tile_size;
+    Frame f;
+    {
+        py::gil_scoped_release release;
+        f = render(s, cam, params);
+    }
+    const py::ssize_t h = height, w = width;
+    py::dict d;
+    d["image"] = to_numpy(std::move(f.rgb), {h, w, 3});
+    d["depth"] = to_numpy(std::move(f.depth), {h, w});
+    d["prim"] = to_numpy(std::move(f.prim), {h, w});
+    py::dict st;
+    st["primary_rays"] = f.stats.primary_rays;
+    st["secondary_rays"] = f.stats.secondary_rays;
+    st["rays"] = f.stats.primary_rays + f.stats.secondary_rays;
+    st["node_visits"] = f.stats.node_visits;
+    st["triangle_tests"] = f.stats.triangle_tests;
+    st["milliseconds"] = f.stats.milliseconds;
+    st["threads"] = f.stats.threads;
+    d["stats"] = st;
+    return d;
+}
+
+py::dict reference(DoubleArray vertices, UIntArray faces, DoubleArray origins, DoubleArray directions,
+                   py::object tmin, py::object tmax, unsigned threads, bool cull) {
+    require_shape(vertices, 3, "vertices");
+    require_shape(faces, 3, "faces");
+    RayArrays r = load_rays(origins, directions, tmin, tmax);
+    ReferenceResult res;
+    {
+        py::gil_scoped_release release;
+        res = reference_intersect(vertices.data(), static_cast<std::size_t>(vertices.shape(0)), faces.data(),
+                                  static_cast<std::size_t>(faces.shape(0)), r.origins.data(), r.directions.data(),
+                                  r.tmin.data(), r.tmax.data(), r.n, threads, cull);
+    }
+    const auto n = static_cast<py::ssize_t>(r.n);
+    py::dict d;
+    d["t"] = to_numpy(std::move(res.t), {n});
+    d["t_second"] = to_numpy(std::move(res.t_second), {n});
+    d["prim"] = to_numpy(std::move(res.prim), {n});
+    d["u"] = to_numpy(std::move(res.u), {n});
+    d["v"] = to_numpy(std::move(res.v), {n});
+    return d;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(native, m) {
+    m.doc() = "vastray native core: kd-tree build, watertight ray tracing, tiled rendering";
+    m.def("hardware_threads", &hardware_threads, "Lanes the global thread pool uses");
+
+    py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene", "An in-core triangle model with its kd-tree")
+        .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colors") = py::none(),
+             py::arg("leaf_size") = 2, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
+             py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("max_depth") = 0,
+             py::arg("threads") = 0u)
+        .def_property_readonly("triangle_count", &Scene::triangle_count)
+        .def_property_readonly("has_colors", &Scene::has_colors)
+        .def_property_readonly("centre", [](const Scene& s) {
+            const Vec3d c = s.centre();
+            return std::vector<double>{c.x, c.y, c.z};
+        })
+        .def_property_readonly("bounds", [](const Scene& s) {
+            const Vec3d lo = s.world_lo(), hi = s.world_hi();
+            return std::make_pair(std::vector<double>{lo.x, lo.y, lo.z}, std::vector<double>{hi.x, hi.y, hi.z});
+        })
+        .def_property_readonly("build_stats", &build_stats)
+        .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
+             py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
+             "Closest hits: dict of t (inf on a miss), prim (-1 on a miss), u, v barycentrics")
+        .def("occluded", &occluded, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
+             py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
+             "Any hit in [tmin, tmax]: bool per ray")
+        .def("render", &render_frame, py::arg("eye"), py::arg("target"), py::arg("up"), py::arg("fov"),
+             py::arg("width"), py::arg("height"), py::arg("shading") = "headlight", py::arg("ao_samples") = 8,
+             py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
+             py::arg("threads") = 0u, py::arg("tile_size") = 16,
+             "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
+
+    m.def("reference_intersect", &reference, py::arg("vertices"), py::arg("faces"), py::arg("origins"),
+          py::arg("directions"), py::arg("tmin") = 0.0, py::arg("tmax") = std::numeric_limits<double>::infinity(),
+          py::arg("threads") = 0u, py::arg("cull") = true,
+          "Brute-force double-precision closest hits (test reference): t, t_second, prim, u, v");
+}

@@ -1,0 +1,352 @@
+// Binned-SAH kd-tree construction with empty-space cutting and split clipping.
+//
+// Triangles that straddle a split plane are clipped to each child cell so the
+// references below carry tight boxes ("perfect splits"); that keeps duplicated
+// references from inflating deeper levels. Every box that decides membership is
+// widened by a few ulps first: a reference may be kept where it only touches, but a
+// triangle is never dropped from a cell it overlaps, which is what watertight
+// traversal needs.
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <thread>
+#include <utility>
+
+#include "vastray/kdtree.h"
+#include "vastray/thread_pool.h"
+
+namespace vastray {
+namespace {
+
+struct PrimRef {
+    Box3f box;  // the triangle clipped to the current cell, slightly widened
+    std::uint32_t id;
+};
+
+struct Output {
+    std::vector<KdNode> nodes;
+    std::vector<std::uint32_t> tri_ids;
+    KdBuildStats stats;
+    double sah_area_sum = 0;  // sum over nodes of area-weighted costs, normalised at the end
+};
+
+// Widen a box by a relative epsilon so float rounding in clipping never shrinks a
+// triangle's footprint below the cell it really touches.
+Box3f widen(const Box3f& b) {
+    Box3f r = b;
+    for (int a = 0; a < 3; ++a) {
+        const float m = std::max(std::abs(b.lo[a]), std::abs(b.hi[a]));
+        const float eps = m * 4.0f * std::numeric_limits<float>::epsilon() +
+                          std::numeric_limits<float>::min();
+        r.lo[a] = b.lo[a] - eps;
+        r.hi[a] = b.hi[a] + eps;
+    }
+    return r;
+}
+
+// Sutherland-Hodgman clip of a triangle against an axis-aligned box, in double.
+// Returns the bounds of the clipped polygon (empty box when nothing remains).
+Box3f clip_triangle(const Vec3f& a, const Vec3f& b, const Vec3f& c, const Box3f& cell) {
+    std::array<Vec3d, 9> poly{Vec3d(a), Vec3d(b), Vec3d(c)};
+    std::array<Vec3d, 9> next{};
+    int n = 3;
+    for (int axis = 0; axis < 3 && n > 0; ++axis) {
+        for (int side = 0; side < 2 && n > 0; ++side) {
+            const double plane = side == 0 ? cell.lo[axis] : cell.hi[axis];
+            auto inside = [&](const Vec3d& p) { return side == 0 ? p[axis] >= plane : p[axis] <= plane; };
+            int m = 0;
+            for (int i = 0; i < n; ++i) {
+                const Vec3d& p = poly[static_cast<std::size_t>(i)];
+                const Vec3d& q = poly[static_cast<std::size_t>((i + 1) % n)];
+                const bool pin = inside(p), qin = inside(q);
+                if (pin) next[static_cast<std::size_t>(m++)] = p;
+                if (pin != qin && m < 9) {
+                    const double s = (plane - p[axis]) / (q[axis] - p[axis]);
+                    Vec3d x = p + (q - p) * s;
+                    x[axis] = plane;
+                    next[static_cast<std::size_t>(m++)] = x;
+                }
+            }
+            poly = next;
+            n = std::min(m, 9);
+        }
+    }
+    Box3f r;
+    for (int i = 0; i < n; ++i) r.extend(Vec3f(poly[static_cast<std::size_t>(i)]));
+    return r;
+}
+
+class Builder {
+public:
+    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
+        : soup_(soup), p_(params), max_depth_(max_depth),
+          spare_threads_(static_cast<int>(threads) - 1) {}
+
+    void build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+
+private:
+    void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    void build_children(std::vector<PrimRef>& left, const Box3f& lcell, std::vector<PrimRef>& right,
+                        const Box3f& rcell, int depth, int axis, float split, Output& out);
+    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    void partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
+                   const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right) const;
+
+    const TriangleSoup& soup_;
+    const KdBuildParams& p_;
+    const int max_depth_;
+    std::atomic<int> spare_threads_;
+};
+
+void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+    out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(out.tri_ids.size()),
+                                     static_cast<std::uint32_t>(refs.size())));
+    for (const PrimRef& r : refs) out.tri_ids.push_back(r.id);
+    out.stats.leaves++;
+    if (refs.empty()) out.stats.empty_leaves++;
+    out.stats.references += refs.size();
+    out.stats.max_depth = std::max(out.stats.max_depth, depth);
+    out.sah_area_sum += static_cast<double>(p_.intersection_cost) * cell.half_area() *
+                        static_cast<double>(refs.size());
+}
+
+void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
+                        const Box3f& rcell, std::vector<PrimRef>& left,
+                        std::vector<PrimRef>& right) const {
+    left.reserve(refs.size() / 2 + 16);
+    right.reserve(refs.size() / 2 + 16);
+    for (const PrimRef& r : refs) {
+        const float lo = r.box.lo[axis], hi = r.box.hi[axis];
+        const bool planar = lo == split && hi == split;
+        const bool in_left = lo < split || planar;
+        const bool in_right = hi > split || planar;
+        if (in_left && in_right && !planar) {
+            // Straddles: clip the triangle to each side for tight child boxes.
+            const Vec3f &a = soup_.v(r.id, 0), &b = soup_.v(r.id, 1), &c = soup_.v(r.id, 2);
+            for (int side = 0; side < 2; ++side) {
+                const Box3f& child = side == 0 ? lcell : rcell;
+                const Box3f limit = Box3f::intersection(r.box, child);
+                Box3f clipped = clip_triangle(a, b, c, child);
+                clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
+                if (clipped.empty()) clipped = limit;  // rounding: stay conservative
+                (side == 0 ? left : right).push_back({clipped, r.id});
+            }
+        } else {
+            if (in_left) left.push_back({Box3f::intersection(r.box, lcell), r.id});
+            if (in_right) right.push_back({Box3f::intersection(r.box, rcell), r.id});
+        }
+    }
+    std::vector<PrimRef>().swap(refs);  // release the parent's list before recursing
+}
+
+void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
+                             std::vector<PrimRef>& right, const Box3f& rcell, int depth, int axis,
+                             float split, Output& out) {
+    const std::size_t self = out.nodes.size();
+    out.nodes.push_back(KdNode::inner(axis, split, 0));
+    out.stats.max_depth = std::max(out.stats.max_depth, depth);
+
+    // Large subtrees build on spare threads; the right one is spliced in afterwards.
+    constexpr std::size_t kParallelThreshold = 4096;
+    bool spawn = false;
+    if (right.size() >= kParallelThreshold && left.size() >= kParallelThreshold) {
+        int spare = spare_threads_.load();
+        while (spare > 0 && !spare_threads_.compare_exchange_weak(spare, spare - 1)) {
+        }
+        spawn = spare > 0;
+    }
+    if (!spawn) {
+        build(left, lcell, depth + 1, out);
+        out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
+        build(right, rcell, depth + 1, out);
+        return;
+    }
+    Output right_out;
+    std::thread worker([&] {
+        build(right, rcell, depth + 1, right_out);
+        spare_threads_.fetch_add(1);
+    });
+    build(left, lcell, depth + 1, out);
+    worker.join();
+
+    const std::size_t right_offset = out.nodes.size() - self;
+    const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
+    out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset));
+    for (KdNode n : right_out.nodes) {
+        if (n.is_leaf()) n = KdNode::leaf(n.first() + id_base, n.count());
+        out.nodes.push_back(n);
+    }
+    out.tri_ids.insert(out.tri_ids.end(), right_out.tri_ids.begin(), right_out.tri_ids.end());
+    out.stats.leaves += right_out.stats.leaves;
+    out.stats.empty_leaves += right_out.stats.empty_leaves;
+    out.stats.references += right_out.stats.references;
+    out.stats.max_depth = std::max(out.stats.max_depth, right_out.stats.max_depth);
+    out.sah_area_sum += right_out.sah_area_sum;
+}
+
+// Paper 000 §4.1: before any other split, cut off an empty slab holding a large share
+// of the cell. Tight cells make tight LOD voxels and let rays skip empty space early.
+bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+    Box3f used;
+    for (const PrimRef& r : refs) used.extend(r.box);
+    used = Box3f::intersection(used, cell);
+    if (used.empty()) return false;
+    int best_axis = -1, best_side = 0;
+    float best_ratio = p_.empty_space_ratio;
+    for (int a = 0; a < 3; ++a) {
+        const float ext = cell.hi[a] - cell.lo[a];
+        if (!(ext > 0)) continue;
+        const float lo_gap = (used.lo[a] - cell.lo[a]) / ext;
+        const float hi_gap = (cell.hi[a] - used.hi[a]) / ext;
+        if (lo_gap >= best_ratio) { best_ratio = lo_gap; best_axis = a; best_side = 0; }
+        if (hi_gap >= best_ratio) { best_ratio = hi_gap; best_axis = a; best_side = 1; }
+    }
+    if (best_axis < 0) return false;
+    const float split = best_side == 0 ? used.lo[best_axis] : used.hi[best_axis];
+    Box3f lcell = cell, rcell = cell;
+    lcell.hi[best_axis] = split;
+    rcell.lo[best_axis] = split;
+    const std::size_t self = out.nodes.size();
+    out.nodes.push_back(KdNode::inner(best_axis, split, 0));
+    out.sah_area_sum += static_cast<double>(p_.traversal_cost) * cell.half_area();
+    std::vector<PrimRef> none;
+    // Every reference lies on the occupied side of the cut (touching the plane included).
+    if (best_side == 0) {
+        emit_leaf(none, lcell, depth + 1, out);
+        out.nodes[self] = KdNode::inner(best_axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
+        build(refs, rcell, depth + 1, out);
+    } else {
+        build(refs, lcell, depth + 1, out);
+        out.nodes[self] = KdNode::inner(best_axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
+        emit_leaf(none, rcell, depth + 1, out);
+    }
+    return true;
+}
+
+void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+    const std::size_t n = refs.size();
+    if (n == 0 || depth >= max_depth_) {
+        emit_leaf(refs, cell, depth, out);
+        return;
+    }
+    if (try_empty_cut(refs, cell, depth, out)) return;
+    if (n <= static_cast<std::size_t>(p_.leaf_size)) {
+        emit_leaf(refs, cell, depth, out);
+        return;
+    }
+
+    // Binned SAH over the three axes.
+    const int bins = std::max(4, p_.bins);
+    const double area = cell.half_area();
+    double best_cost = static_cast<double>(p_.intersection_cost) * static_cast<double>(n);
+    int best_axis = -1;
+    float best_split = 0;
+    std::vector<std::uint32_t> starts(static_cast<std::size_t>(bins)), ends(static_cast<std::size_t>(bins));
+    for (int a = 0; a < 3; ++a) {
+        const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
+        if (!(ext > 0) || area <= 0) continue;
+        std::fill(starts.begin(), starts.end(), 0u);
+        std::fill(ends.begin(), ends.end(), 0u);
+        const float scale = static_cast<float>(bins) / ext;
+        auto bin_of = [&](float x) {
+            const int b = static_cast<int>((x - lo) * scale);
+            return static_cast<std::size_t>(std::clamp(b, 0, bins - 1));
+        };
+        for (const PrimRef& r : refs) {
+            starts[bin_of(r.box.lo[a])]++;
+            ends[bin_of(r.box.hi[a])]++;
+        }
+        std::size_t n_left = 0, n_right = n;
+        const Vec3f e = cell.extent();
+        const float o1 = e[(a + 1) % 3], o2 = e[(a + 2) % 3];
+        for (int i = 1; i < bins; ++i) {
+            n_left += starts[static_cast<std::size_t>(i - 1)];
+            n_right -= ends[static_cast<std::size_t>(i - 1)];
+            const float split = lo + ext * static_cast<float>(i) / static_cast<float>(bins);
+            const float wl = split - lo, wr = cell.hi[a] - split;
+            const double al = static_cast<double>(wl) * (o1 + o2) + static_cast<double>(o1) * o2;
+            const double ar = static_cast<double>(wr) * (o1 + o2) + static_cast<double>(o1) * o2;
+            const double cost = p_.traversal_cost +
+                                p_.intersection_cost * (al * static_cast<double>(n_left) +
+                                                        ar * static_cast<double>(n_right)) / area;
+            if (cost < best_cost) {
+                best_cost = cost;
+                best_axis = a;
+                best_split = split;
+            }
+        }
+    }
+    if (best_axis < 0) {
+        if (n <= static_cast<std::size_t>(p_.median_fallback)) {
+            emit_leaf(refs, cell, depth, out);
+            return;
+        }
+        // SAH sees no gain but the leaf would be huge: split the longest axis in the middle.
+        const Vec3f e = cell.extent();
+        best_axis = e.x >= e.y && e.x >= e.z ? 0 : (e.y >= e.z ? 1 : 2);
+        best_split = 0.5f * (cell.lo[best_axis] + cell.hi[best_axis]);
+    }
+
+    Box3f lcell = cell, rcell = cell;
+    lcell.hi[best_axis] = best_split;
+    rcell.lo[best_axis] = best_split;
+    std::vector<PrimRef> left, right;
+    partition(refs, best_axis, best_split, lcell, rcell, left, right);
+    out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
+    build_children(left, lcell, right, rcell, depth, best_axis, best_split, out);
+}
+
+}  // namespace
+
+KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
+    const auto start = std::chrono::steady_clock::now();
+    KdTree tree;
+    if (soup.count >= KdNode::kMaxField) throw std::length_error("too many triangles for an in-core kd-tree");
+
+    // Reference creation is embarrassingly parallel; the pool is shared with rendering.
+    std::vector<PrimRef> refs(soup.count);
+    ThreadPool& pool = ThreadPool::global();
+    const std::size_t chunk = 1 << 16;
+    const std::size_t chunks = (soup.count + chunk - 1) / chunk;
+    std::vector<Box3f> chunk_bounds(chunks);
+    pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
+        Box3f bounds;
+        const std::size_t end = std::min(soup.count, (c + 1) * chunk);
+        for (std::size_t i = c * chunk; i < end; ++i) {
+            Box3f b;
+            for (int k = 0; k < 3; ++k) b.extend(soup.v(i, k));
+            refs[i] = {b, static_cast<std::uint32_t>(i)};
+            bounds.extend(b);
+        }
+        chunk_bounds[c] = bounds;
+    }, params.threads);
+    for (const Box3f& b : chunk_bounds) tree.bounds.extend(b);
+    if (soup.count == 0) tree.bounds = Box3f{{0, 0, 0}, {0, 0, 0}};
+
+    int max_depth = params.max_depth;
+    if (max_depth <= 0) {
+        max_depth = static_cast<int>(8 + 1.3 * std::log2(static_cast<double>(std::max<std::size_t>(soup.count, 1))));
+        max_depth = std::min(max_depth, 60);
+    }
+    const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
+    Builder builder(soup, params, max_depth, threads);
+    Output out;
+    out.nodes.reserve(soup.count * 2);
+    out.tri_ids.reserve(soup.count * 2);
+    builder.build(refs, tree.bounds, 0, out);
+
+    tree.nodes = std::move(out.nodes);
+    tree.tri_ids = std::move(out.tri_ids);
+    tree.nodes.shrink_to_fit();
+    tree.tri_ids.shrink_to_fit();
+    tree.stats = out.stats;
+    tree.stats.nodes = tree.nodes.size();
+    const double root_area = tree.bounds.half_area();
+    tree.stats.sah_cost = root_area > 0 ? out.sah_area_sum / root_area : 0;
+    tree.stats.build_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    return tree;
+}
+
+}  // namespace vastray

@@ -1,0 +1,98 @@
+#include "vastray/thread_pool.h"
+
+#include <cstdlib>
+#include <string>
+
+namespace vastray {
+
+unsigned hardware_threads() {
+    if (const char* env = std::getenv("VASTRAY_THREADS")) {
+        const long n = std::strtol(env, nullptr, 10);
+        if (n > 0) return static_cast<unsigned>(n);
+    }
+    const unsigned n = std::thread::hardware_concurrency();
+    return n == 0 ? 1 : n;
+}
+
+ThreadPool::ThreadPool(unsigned threads) {
+    const unsigned lanes = threads == 0 ? hardware_threads() : threads;
+    for (unsigned lane = 1; lane < lanes; ++lane) {
+        workers_.emplace_back([this, lane] { worker_loop(lane); });
+    }
+}
+
+ThreadPool::~ThreadPool() {
+    {
+        std::lock_guard<std::mutex> lock(mutex_);
+        stop_ = true;
+    }
+    wake_.notify_all();
+    for (auto& t : workers_) t.join();
+}
+
+ThreadPool& ThreadPool::global() {
+    static ThreadPool pool;
+    return pool;
+}
+
+void ThreadPool::run_lane(unsigned lane) {
+    if (lane >= job_lanes_) return;
+    for (;;) {
+        const std::size_t task = next_.fetch_add(1, std::memory_order_relaxed);
+        if (task >= job_count_) break;
+        try {
+            (*job_)(task, lane);
+        } catch (...) {
+            std::lock_guard<std::mutex> lock(mutex_);
+            if (!error_) error_ = std::current_exception();
+            // Drain the remaining tasks so every lane stops promptly.
+            next_.store(job_count_, std::memory_order_relaxed);
+        }
+    }
+}
+
+void ThreadPool::worker_loop(unsigned lane) {
+    std::uint64_t seen = 0;
+    for (;;) {
+        {
+            std::unique_lock<std::mutex> lock(mutex_);
+            wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
+            if (stop_) return;
+            seen = generation_;
+        }
+        run_lane(lane);
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            if (--active_ == 0) done_.notify_all();
+        }
+    }
+}
+
+void ThreadPool::parallel_for(std::size_t count,
+                              const std::function<void(std::size_t, unsigned)>& fn,
+                              unsigned max_lanes) {
+    if (count == 0) return;
+    std::lock_guard<std::mutex> job_lock(job_mutex_);
+    {
+        std::lock_guard<std::mutex> lock(mutex_);
+        job_ = &fn;
+        job_count_ = count;
+        job_lanes_ = max_lanes == 0 ? lanes() : std::min(max_lanes, lanes());
+        error_ = nullptr;
+        next_.store(0, std::memory_order_relaxed);
+        active_ = static_cast<unsigned>(workers_.size());
+        ++generation_;
+    }
+    wake_.notify_all();
+    run_lane(0);
+    std::exception_ptr error;
+    {
+        std::unique_lock<std::mutex> lock(mutex_);
+        done_.wait(lock, [&] { return active_ == 0; });
+        job_ = nullptr;
+        error = error_;
+    }
+    if (error) std::rethrow_exception(error);
+}
+
+}  // namespace vastray
