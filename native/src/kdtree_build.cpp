@@ -88,6 +88,7 @@ public:
 
 private:
     void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    void count_empty(const Box3f& cell, int depth, Output& out);
     void build_children(std::vector<PrimRef>& left, const Box3f& lcell, std::vector<PrimRef>& right,
                         const Box3f& rcell, int depth, int axis, float split, Output& out);
     bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
@@ -99,6 +100,12 @@ private:
     const int max_depth_;
     std::atomic<int> spare_threads_;
 };
+
+void Builder::count_empty(const Box3f&, int depth, Output& out) {
+    out.stats.leaves++;
+    out.stats.empty_leaves++;
+    out.stats.max_depth = std::max(out.stats.max_depth, depth);
+}
 
 void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
     out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(out.tri_ids.size()),
@@ -145,8 +152,17 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
                              std::vector<PrimRef>& right, const Box3f& rcell, int depth, int axis,
                              float split, Output& out) {
     const std::size_t self = out.nodes.size();
-    out.nodes.push_back(KdNode::inner(axis, split, 0));
+    const std::uint32_t empty_flags = (left.empty() ? KdNode::kLeftEmpty : 0u) |
+                                      (right.empty() ? KdNode::kRightEmpty : 0u);
+    out.nodes.push_back(KdNode::inner(axis, split, 0, empty_flags));
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
+    if (left.empty() || right.empty()) {
+        // One child is empty: it costs nothing but a flag; the other follows directly.
+        count_empty(left.empty() ? lcell : rcell, depth + 1, out);
+        if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
+        build(left.empty() ? right : left, left.empty() ? rcell : lcell, depth + 1, out);
+        return;
+    }
 
     // Large subtrees build on spare threads; the right one is spliced in afterwards.
     constexpr std::size_t kParallelThreshold = 4096;
@@ -157,23 +173,24 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
         }
         spawn = spare > 0;
     }
+    Output right_out;
+    std::thread worker;
+    if (spawn) {
+        worker = std::thread([&] {
+            build(right, rcell, depth + 1, right_out);
+            spare_threads_.fetch_add(1);
+        });
+    }
+    build(left, lcell, depth + 1, out);
+    const std::size_t right_offset = out.nodes.size() - self;
+    if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
+    out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
     if (!spawn) {
-        build(left, lcell, depth + 1, out);
-        out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
         build(right, rcell, depth + 1, out);
         return;
     }
-    Output right_out;
-    std::thread worker([&] {
-        build(right, rcell, depth + 1, right_out);
-        spare_threads_.fetch_add(1);
-    });
-    build(left, lcell, depth + 1, out);
     worker.join();
-
-    const std::size_t right_offset = out.nodes.size() - self;
     const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
-    out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset));
     for (KdNode n : right_out.nodes) {
         if (n.is_leaf()) n = KdNode::leaf(n.first() + id_base, n.count());
         out.nodes.push_back(n);
@@ -208,19 +225,13 @@ bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int d
     Box3f lcell = cell, rcell = cell;
     lcell.hi[best_axis] = split;
     rcell.lo[best_axis] = split;
-    const std::size_t self = out.nodes.size();
-    out.nodes.push_back(KdNode::inner(best_axis, split, 0));
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * cell.half_area();
-    std::vector<PrimRef> none;
     // Every reference lies on the occupied side of the cut (touching the plane included).
+    std::vector<PrimRef> none;
     if (best_side == 0) {
-        emit_leaf(none, lcell, depth + 1, out);
-        out.nodes[self] = KdNode::inner(best_axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
-        build(refs, rcell, depth + 1, out);
+        build_children(none, lcell, refs, rcell, depth, best_axis, split, out);
     } else {
-        build(refs, lcell, depth + 1, out);
-        out.nodes[self] = KdNode::inner(best_axis, split, static_cast<std::uint32_t>(out.nodes.size() - self));
-        emit_leaf(none, rcell, depth + 1, out);
+        build_children(refs, lcell, none, rcell, depth, best_axis, split, out);
     }
     return true;
 }
@@ -303,7 +314,7 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Ou
 KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
     const auto start = std::chrono::steady_clock::now();
     KdTree tree;
-    if (soup.count >= KdNode::kMaxField) throw std::length_error("too many triangles for an in-core kd-tree");
+    if (soup.count >= KdNode::kMaxCount) throw std::length_error("too many triangles for an in-core kd-tree");
 
     // Reference creation is embarrassingly parallel; the pool is shared with rendering.
     std::vector<PrimRef> refs(soup.count);

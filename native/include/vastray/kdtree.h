@@ -16,18 +16,26 @@
 namespace vastray {
 
 struct KdNode {
-    // bits 0-1: split axis (0, 1, 2) or 3 for a leaf.
-    // bits 2-31: inner: offset of the right child from this node; leaf: triangle count.
+    // inner: bits 0-1 split axis (0, 1, 2); bit 2 left child empty; bit 3 right child
+    //        empty; bits 4-31 offset of the right child from this node. Empty children
+    //        are not stored (paper 000 Table 2's empty flags): an empty left child puts
+    //        the right one directly after its parent, and the traversal never visits
+    //        either kind, which matters because empty-space cutting makes many.
+    // leaf:  bits 0-1 = 3; bits 2-31 triangle count.
     std::uint32_t bits;
     // inner: split position (float bits); leaf: first index in the triangle-id list.
     std::uint32_t payload;
 
     static constexpr std::uint32_t kLeaf = 3;
-    static constexpr std::uint32_t kMaxField = (1u << 30) - 1;
+    static constexpr std::uint32_t kLeftEmpty = 4, kRightEmpty = 8;
+    static constexpr std::uint32_t kMaxCount = (1u << 30) - 1;
+    static constexpr std::uint32_t kMaxOffset = (1u << 28) - 1;
 
     bool is_leaf() const { return (bits & 3u) == kLeaf; }
     int axis() const { return static_cast<int>(bits & 3u); }
-    std::uint32_t right_offset() const { return bits >> 2; }
+    bool left_empty() const { return (bits & kLeftEmpty) != 0; }
+    bool right_empty() const { return (bits & kRightEmpty) != 0; }
+    std::uint32_t right_offset() const { return bits >> 4; }
     std::uint32_t count() const { return bits >> 2; }
     std::uint32_t first() const { return payload; }
     float split() const {
@@ -36,10 +44,10 @@ struct KdNode {
         return f;
     }
 
-    static KdNode inner(int axis, float split, std::uint32_t right_offset) {
+    static KdNode inner(int axis, float split, std::uint32_t right_offset, std::uint32_t empty_flags) {
         std::uint32_t p;
         std::memcpy(&p, &split, sizeof p);
-        return {(right_offset << 2) | static_cast<std::uint32_t>(axis), p};
+        return {(right_offset << 4) | empty_flags | static_cast<std::uint32_t>(axis), p};
     }
     static KdNode leaf(std::uint32_t first, std::uint32_t count) {
         return {(count << 2) | kLeaf, first};
@@ -59,6 +67,7 @@ struct KdBuildParams {
 };
 
 struct KdBuildStats {
+    // empty_leaves counts empty children, which are flagged in their parent, not stored.
     std::uint64_t nodes = 0, leaves = 0, empty_leaves = 0, references = 0;
     int max_depth = 0;
     double sah_cost = 0;

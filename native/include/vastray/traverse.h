@@ -52,56 +52,79 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
     hit.prim = kNoHit;
 
     const ShearedRay sheared(ray.dir);
-    const Vec3f inv(1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z);
+    // Plain arrays indexed by axis: Vec3's operator[] would branch on every step.
+    const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
+    const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
+    const bool dir_negative[3] = {std::signbit(ray.dir.x), std::signbit(ray.dir.y), std::signbit(ray.dir.z)};
     struct Entry {
         std::uint32_t node;
         float tmin, tmax;
     };
     Entry stack[64];
     int top = 0;
+    std::uint64_t node_visits = 0, triangle_tests = 0;  // kept in registers, published at the end
+    struct Publish {
+        TraversalCounters& c;
+        std::uint64_t& nodes;
+        std::uint64_t& tris;
+        ~Publish() {
+            c.node_visits += nodes;
+            c.triangle_tests += tris;
+        }
+    } publish{counters, node_visits, triangle_tests};
     const KdNode* nodes = tree.nodes.data();
     std::uint32_t index = 0;
     for (;;) {
         const KdNode* node = nodes + index;
         while (!node->is_leaf()) {
-            ++counters.node_visits;
+            ++node_visits;
             const int axis = node->axis();
             const float split = node->split();
-            const float o = ray.org[axis];
+            const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
-            const bool below_first = o < split || (o == split && std::signbit(ray.dir[axis]));
-            const std::uint32_t left = index + 1, right = index + node->right_offset();
+            const bool below_first = o < split || (o == split && dir_negative[axis]);
+            // Child index 0 marks an empty child (never stored, never visited).
+            const std::uint32_t left = node->left_empty() ? 0u : index + 1;
+            const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
             const std::uint32_t first = below_first ? left : right;
             const std::uint32_t second = below_first ? right : left;
+            std::uint32_t next;
             if (t_split != t_split) {
                 // Origin on the plane and the ray inside it: both children are relevant.
-                if (top < 64) stack[top++] = {second, tmin, tmax};
-                index = first;
+                if (second != 0 && top < 64) stack[top++] = {second, tmin, tmax};
+                next = first;
             } else if (t_split > tmax || t_split <= 0.0f) {
-                index = first;
+                next = first;
             } else if (t_split < tmin) {
-                index = second;
+                next = second;
+            } else if (first == 0) {
+                next = second;
+                tmin = t_split;
             } else {
-                if (top < 64) stack[top++] = {second, t_split, tmax};
-                index = first;
+                if (second != 0 && top < 64) stack[top++] = {second, t_split, tmax};
+                next = first;
                 tmax = t_split;
             }
+            if (next == 0) break;
+            index = next;
             node = nodes + index;
         }
-        const std::uint32_t count = node->count();
-        const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-        for (std::uint32_t i = 0; i < count; ++i) {
-            const std::uint32_t id = ids[i];
-            if (id == skip) continue;
-            ++counters.triangle_tests;
-            const Vec3f* v = tri_vertices + 3 * static_cast<std::size_t>(id);
-            if (intersect_triangle(ray, sheared, v[0], v[1], v[2], hit)) {
-                hit.prim = id;
-                if (AnyHit) return true;
+        if (node->is_leaf()) {
+            const std::uint32_t count = node->count();
+            const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+            for (std::uint32_t i = 0; i < count; ++i) {
+                const std::uint32_t id = ids[i];
+                if (id == skip) continue;
+                ++triangle_tests;
+                const Vec3f* v = tri_vertices + 3 * static_cast<std::size_t>(id);
+                if (intersect_triangle(ray, sheared, v[0], v[1], v[2], hit)) {
+                    hit.prim = id;
+                    if (AnyHit) return true;
+                }
             }
+            // A hit inside this cell cannot be beaten by cells further along the ray.
+            if (hit.prim != kNoHit && hit.t <= tmax) return true;
         }
-        // A hit inside this cell cannot be beaten by cells further along the ray.
-        if (hit.prim != kNoHit && hit.t <= tmax) return true;
         for (;;) {
             if (top == 0) return hit.prim != kNoHit;
             const Entry& e = stack[--top];

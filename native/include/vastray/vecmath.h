@@ -19,8 +19,10 @@ struct Vec3 {
     constexpr explicit Vec3(const Vec3<U>& o)
         : x(static_cast<T>(o.x)), y(static_cast<T>(o.y)), z(static_cast<T>(o.z)) {}
 
-    T operator[](int i) const { return i == 0 ? x : (i == 1 ? y : z); }
-    T& operator[](int i) { return i == 0 ? x : (i == 1 ? y : z); }
+    // Index through a pointer to the (standard-layout, contiguous) members: the
+    // conditional form compiles to branches in the hot loops.
+    T operator[](int i) const { return (&x)[i]; }
+    T& operator[](int i) { return (&x)[i]; }
 
     Vec3 operator+(const Vec3& o) const { return {x + o.x, y + o.y, z + o.z}; }
     Vec3 operator-(const Vec3& o) const { return {x - o.x, y - o.y, z - o.z}; }
@@ -31,6 +33,7 @@ struct Vec3 {
     Vec3& operator+=(const Vec3& o) { x += o.x; y += o.y; z += o.z; return *this; }
 };
 
+static_assert(sizeof(Vec3<float>) == 3 * sizeof(float), "Vec3 members must be contiguous");
 using Vec3f = Vec3<float>;
 using Vec3d = Vec3<double>;
 

@@ -1,0 +1,5 @@
+import sys
+
+from vastray.cli import main
+
+sys.exit(main())

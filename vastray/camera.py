@@ -1,0 +1,99 @@
+"""Pinhole camera description shared by the CLI, the renderer and (later) the server."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+Vec3 = tuple[float, float, float]
+
+# A three-quarter view from above: shows three faces of a box-like model, the usual
+# default of CAD viewers.
+DEFAULT_VIEW_DIRECTION: Vec3 = (1.0, 0.7, 1.3)
+
+
+@dataclass(frozen=True)
+class Camera:
+    eye: Vec3
+    target: Vec3
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: float = 45.0  # vertical, degrees
+    width: int = 960
+    height: int = 540
+
+    def validate(self) -> None:
+        """Raise ValueError with a readable reason for values no camera can have."""
+        values = (*self.eye, *self.target, *self.up, self.fov)
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("camera values must be finite numbers")
+        view = np.subtract(self.target, self.eye)
+        if not np.any(view):
+            raise ValueError("camera eye and target coincide")
+        if not np.any(self.up):
+            raise ValueError("camera up vector has zero length")
+        side = np.cross(view / np.linalg.norm(view), np.divide(self.up, np.linalg.norm(self.up)))
+        if np.linalg.norm(side) <= 1e-9:
+            raise ValueError("camera up vector is parallel to the view direction")
+        if not 0.0 < self.fov < 180.0:
+            raise ValueError("fov must be between 0 and 180 degrees (exclusive)")
+        if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
+            raise ValueError("image size must be between 1x1 and 16384x16384")
+
+
+def frame_bounds(
+    lo: Sequence[float],
+    hi: Sequence[float],
+    *,
+    fov: float = 45.0,
+    width: int = 960,
+    height: int = 540,
+    direction: Sequence[float] = DEFAULT_VIEW_DIRECTION,
+    up: Vec3 = (0.0, 1.0, 0.0),
+) -> Camera:
+    """A camera that shows the whole bounding box: its bounding sphere fits the narrower
+    field of view, seen from `direction` (pointing from the model towards the eye)."""
+    lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    centre = (lo_a + hi_a) / 2.0
+    radius = max(float(np.linalg.norm(hi_a - lo_a)) / 2.0, 1e-12 * max(1.0, float(np.abs(centre).max())))
+    vfov = math.radians(fov)
+    hfov = 2.0 * math.atan(math.tan(vfov / 2.0) * width / height)
+    distance = 1.05 * radius / math.sin(min(vfov, hfov) / 2.0)
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    eye = centre + d * distance
+    return Camera(
+        eye=(float(eye[0]), float(eye[1]), float(eye[2])),
+        target=(float(centre[0]), float(centre[1]), float(centre[2])),
+        up=up,
+        fov=fov,
+        width=width,
+        height=height,
+    )
+
+
+def parse_vec3(text: str) -> Vec3:
+    """Parse 'x,y,z' into three finite floats."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise ValueError(f"expected three comma-separated numbers, got {text!r}")
+    try:
+        x, y, z = (float(p) for p in parts)
+    except ValueError as exc:
+        raise ValueError(f"not a number in {text!r}") from exc
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        raise ValueError(f"non-finite value in {text!r}")
+    return (x, y, z)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """Parse 'WxH' into positive integers."""
+    try:
+        w, h = (int(p) for p in text.lower().split("x"))
+    except ValueError as exc:
+        raise ValueError(f"expected WIDTHxHEIGHT, got {text!r}") from exc
+    if not (0 < w <= 16384 and 0 < h <= 16384):
+        raise ValueError(f"image size out of range: {text!r}")
+    return (w, h)
