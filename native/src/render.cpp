@@ -4,6 +4,7 @@
 #include <stdexcept>
 
 #include "vastray/thread_pool.h"
+#include "vastray/traverse_packet.h"
 
 namespace vastray {
 
@@ -76,25 +77,48 @@ public:
     }
 
     void render_tile(int x0, int y0, int x1, int y1, TraversalCounters& c, RenderStats& s) const {
-        for (int y = y0; y < y1; ++y) {
-            for (int x = x0; x < x1; ++x) render_pixel(x, y, c, s);
+        for (int y = y0; y < y1; y += 2) {
+            for (int x = x0; x < x1; x += 2) {
+                const int xs[4] = {x, x + 1, x, x + 1}, ys[4] = {y, y, y + 1, y + 1};
+                Ray rays[4];
+                Hit hits[4];
+                const bool full_quad = x + 1 < x1 && y + 1 < y1;
+                for (int k = 0; k < 4; ++k) {
+                    if (full_quad || (xs[k] < x1 && ys[k] < y1)) rays[k] = primary_ray(xs[k], ys[k]);
+                }
+#if defined(VASTRAY_HAVE_PACKETS)
+                if (full_quad && params_.packets && packet_is_coherent(rays)) {
+                    traverse_packet4(scene_.tree(), scene_.tri_vertices(), rays, hits, c);
+                    for (int k = 0; k < 4; ++k) shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
+                    s.primary_rays += 4;
+                    continue;
+                }
+#endif
+                for (int k = 0; k < 4; ++k) {
+                    if (xs[k] >= x1 || ys[k] >= y1) continue;
+                    scene_.trace<false>(rays[k], hits[k], c);
+                    shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
+                    ++s.primary_rays;
+                }
+            }
         }
     }
 
 private:
-    void render_pixel(int x, int y, TraversalCounters& c, RenderStats& s) const {
-        const int width = frame_.width, height = frame_.height;
-        const double sx = 2.0 * (x + 0.5) / width - 1.0;
-        const double sy = 1.0 - 2.0 * (y + 0.5) / height;
+    Ray primary_ray(int x, int y) const {
+        const double sx = 2.0 * (x + 0.5) / frame_.width - 1.0;
+        const double sy = 1.0 - 2.0 * (y + 0.5) / frame_.height;
         WorldRay wr;
         wr.org = eye_;
         wr.dir = normalize(forward_ + right_ * sx + upv_ * sy);
-        const Ray ray = scene_.to_local(wr);
-        Hit hit;
-        ++s.primary_rays;
-        const std::size_t px = static_cast<std::size_t>(y) * width + x;
+        return scene_.to_local(wr);
+    }
+
+    void shade_pixel(int x, int y, const Ray& ray, const Hit& hit, TraversalCounters& c, RenderStats& s) const {
+        const int height = frame_.height;
+        const std::size_t px = static_cast<std::size_t>(y) * frame_.width + x;
         std::uint8_t* rgb = frame_.rgb.data() + 3 * px;
-        if (!scene_.trace<false>(ray, hit, c)) {
+        if (hit.prim == kNoHit) {
             // Quiet vertical gradient: the model should stand out, not the background.
             const float g = static_cast<float>(y) / static_cast<float>(std::max(1, height - 1));
             rgb[0] = static_cast<std::uint8_t>(58 - 30 * g);

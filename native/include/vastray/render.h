@@ -29,6 +29,7 @@ struct RenderParams {
     Vec3d sun_direction{0.35, 0.8, 0.5};  // towards the sun, world frame
     unsigned threads = 0;                  // 0: every lane of the pool
     int tile_size = 16;
+    bool packets = true;  // 2x2 ray packets for primary rays (single rays when false)
 };
 
 struct RenderStats {
