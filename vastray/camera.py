@@ -53,16 +53,30 @@ def frame_bounds(
     direction: Sequence[float] = DEFAULT_VIEW_DIRECTION,
     up: Vec3 = (0.0, 1.0, 0.0),
 ) -> Camera:
-    """A camera that shows the whole bounding box: its bounding sphere fits the narrower
-    field of view, seen from `direction` (pointing from the model towards the eye)."""
+    """A camera that shows the whole bounding box, seen from `direction` (pointing from
+    the model towards the eye): the eye backs off along that direction until all eight
+    corners of the box project inside the frame, with a small margin."""
     lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     centre = (lo_a + hi_a) / 2.0
-    radius = max(float(np.linalg.norm(hi_a - lo_a)) / 2.0, 1e-12 * max(1.0, float(np.abs(centre).max())))
-    vfov = math.radians(fov)
-    hfov = 2.0 * math.atan(math.tan(vfov / 2.0) * width / height)
-    distance = 1.05 * radius / math.sin(min(vfov, hfov) / 2.0)
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
+    w = -d  # viewing direction
+    u = np.cross(w, up)
+    if np.linalg.norm(u) < 1e-9:
+        raise ValueError("view direction is parallel to the up vector")
+    u /= np.linalg.norm(u)
+    v = np.cross(u, w)
+    tan_v = math.tan(math.radians(fov) / 2.0)
+    tan_h = tan_v * width / height
+    corners = np.array(
+        [[x, y, z] for x in (lo_a[0], hi_a[0]) for y in (lo_a[1], hi_a[1]) for z in (lo_a[2], hi_a[2])]
+    )
+    p = corners - centre
+    # A corner at camera-space (x, y, z) is visible from distance D when
+    # |x| <= tan_h * (D + z) and |y| <= tan_v * (D + z).
+    needed = np.maximum(np.abs(p @ u) / tan_h, np.abs(p @ v) / tan_v) - p @ w
+    extent = float(np.linalg.norm(hi_a - lo_a))
+    distance = max(1.08 * float(needed.max()), 1e-9 * max(1.0, float(np.abs(centre).max())), 0.5 * extent)
     eye = centre + d * distance
     return Camera(
         eye=(float(eye[0]), float(eye[1]), float(eye[2])),
