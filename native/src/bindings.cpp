@@ -87,6 +87,7 @@ py::dict build_stats(const Scene& s) {
     d["leaves"] = st.leaves;
     d["empty_leaves"] = st.empty_leaves;
     d["references"] = st.references;
+    d["degenerate"] = st.degenerate;
     d["max_depth"] = st.max_depth;
     d["sah_cost"] = st.sah_cost;
     d["build_ms"] = st.build_ms;

@@ -313,19 +313,32 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
     const std::size_t chunk = 1 << 16;
     const std::size_t chunks = (soup.count + chunk - 1) / chunk;
     std::vector<Box3f> chunk_bounds(chunks);
+    // Zero-area triangles (collinear in the stored float coordinates) cover no surface
+    // and are left out: the sheared 2D test could otherwise give them a sliver of area.
+    constexpr std::uint32_t kDropped = 0xffffffffu;
     pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
         Box3f bounds;
         const std::size_t end = std::min(soup.count, (c + 1) * chunk);
         for (std::size_t i = c * chunk; i < end; ++i) {
-            Box3f b;
-            for (int k = 0; k < 3; ++k) b.extend(soup.v(i, k));
-            refs[i] = {b, static_cast<std::uint32_t>(i)};
-            bounds.extend(b);
+            const Vec3d a(soup.v(i, 0)), b(soup.v(i, 1)), cc(soup.v(i, 2));
+            const Vec3d n = cross(b - a, cc - a);
+            if (n.x == 0 && n.y == 0 && n.z == 0) {
+                refs[i] = {Box3f{}, kDropped};
+                continue;
+            }
+            Box3f box;
+            for (int k = 0; k < 3; ++k) box.extend(soup.v(i, k));
+            refs[i] = {box, static_cast<std::uint32_t>(i)};
+            bounds.extend(box);
         }
         chunk_bounds[c] = bounds;
     }, params.threads);
+    const std::size_t before = refs.size();
+    refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }),
+               refs.end());
+    const std::size_t degenerate = before - refs.size();
     for (const Box3f& b : chunk_bounds) tree.bounds.extend(b);
-    if (soup.count == 0) tree.bounds = Box3f{{0, 0, 0}, {0, 0, 0}};
+    if (tree.bounds.empty()) tree.bounds = Box3f{{0, 0, 0}, {0, 0, 0}};
 
     int max_depth = params.max_depth;
     if (max_depth <= 0) {
@@ -345,6 +358,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
     tree.tri_ids.shrink_to_fit();
     tree.stats = out.stats;
     tree.stats.nodes = tree.nodes.size();
+    tree.stats.degenerate = degenerate;
     const double root_area = tree.bounds.half_area();
     tree.stats.sah_cost = root_area > 0 ? out.sah_area_sum / root_area : 0;
     tree.stats.build_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();

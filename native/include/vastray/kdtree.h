@@ -69,6 +69,7 @@ struct KdBuildParams {
 struct KdBuildStats {
     // empty_leaves counts empty children, which are flagged in their parent, not stored.
     std::uint64_t nodes = 0, leaves = 0, empty_leaves = 0, references = 0;
+    std::uint64_t degenerate = 0;  // zero-area triangles left out of the tree
     int max_depth = 0;
     double sah_cost = 0;
     double build_ms = 0;

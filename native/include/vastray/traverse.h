@@ -5,12 +5,18 @@
 // the origin lies exactly on the plane, in which case both children are visited.
 #pragma once
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 
 #include "vastray/kdtree.h"
 #include "vastray/triangle.h"
 
 namespace vastray {
+
+// Relative slack on split and box distances (8 float ulps): cheap insurance that
+// traversal never skips a cell a ray touches, at the cost of rare extra visits.
+constexpr float kSplitSlack = 8.0f * std::numeric_limits<float>::epsilon();
 
 struct TraversalCounters {
     std::uint64_t node_visits = 0;
@@ -31,9 +37,10 @@ inline bool clip_ray_to_box(const Ray& ray, const Box3f& box, float& t0, float& 
         const float inv = 1.0f / d;
         float tn = (box.lo[a] - o) * inv, tf = (box.hi[a] - o) * inv;
         if (tn > tf) std::swap(tn, tf);
-        // Widen the far distance by a few ulps (pbrt's gamma(3)) so a grazing ray at the
-        // root boundary is not lost to rounding.
-        tf *= 1.0f + 2.0f * 3.0f * std::numeric_limits<float>::epsilon();
+        // Widen the segment by a few ulps (pbrt's gamma(3)) so a ray that enters or
+        // leaves the root box exactly at a vertex is not lost to rounding.
+        tn -= std::abs(tn) * kSplitSlack;
+        tf += std::abs(tf) * kSplitSlack;
         t0 = tn > t0 ? tn : t0;
         t1 = tf < t1 ? tf : t1;
         if (t0 > t1) return false;
@@ -82,6 +89,15 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
             const float split = node->split();
             const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
+            // Err towards visiting both children: a ray that crosses the plane at a
+            // vertex or edge lying in it must not lose the cell on either side to the
+            // rounding of t_split.
+            // (Infinite t_split from a zero direction component gets no slack: inf - inf
+            // would be NaN and send the ray everywhere.)
+            const float abs_split = std::abs(t_split);
+            const float slack =
+                abs_split < std::numeric_limits<float>::infinity() ? abs_split * kSplitSlack : 0.0f;
+            const float ts_lo = t_split - slack, ts_hi = t_split + slack;
             const bool below_first = o < split || (o == split && dir_negative[axis]);
             // Child index 0 marks an empty child (never stored, never visited).
             const std::uint32_t left = node->left_empty() ? 0u : index + 1;
@@ -93,17 +109,17 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
                 // Origin on the plane and the ray inside it: both children are relevant.
                 if (second != 0 && top < 64) stack[top++] = {second, tmin, tmax};
                 next = first;
-            } else if (t_split > tmax || t_split <= 0.0f) {
+            } else if (ts_lo > tmax || t_split <= 0.0f) {
                 next = first;
-            } else if (t_split < tmin) {
+            } else if (ts_hi < tmin) {
                 next = second;
             } else if (first == 0) {
                 next = second;
-                tmin = t_split;
+                tmin = std::max(tmin, ts_lo);
             } else {
-                if (second != 0 && top < 64) stack[top++] = {second, t_split, tmax};
+                if (second != 0 && top < 64) stack[top++] = {second, std::max(tmin, ts_lo), tmax};
                 next = first;
-                tmax = t_split;
+                tmax = std::min(tmax, ts_hi);
             }
             if (next == 0) break;
             index = next;

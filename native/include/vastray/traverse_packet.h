@@ -85,8 +85,11 @@ inline void traverse_packet4(const KdTree& tree, const Vec3f* tri_vertices, cons
             const std::uint32_t far_child = below_first[axis] ? right : left;
             // Each ray's part of the segment on either side of the plane; empty parts
             // (tmin > tmax) make a ray inactive in that child.
-            const __m128 near_tmax = _mm_min_ps(t_split, tmax);
-            const __m128 far_tmin = _mm_max_ps(t_split, tmin);
+            // The same slack as single rays: segments on both sides overlap by a few ulps.
+            const __m128 abs_split = _mm_andnot_ps(_mm_set1_ps(-0.0f), t_split);
+            const __m128 slack = _mm_mul_ps(abs_split, _mm_set1_ps(kSplitSlack));
+            const __m128 near_tmax = _mm_min_ps(_mm_add_ps(t_split, slack), tmax);
+            const __m128 far_tmin = _mm_max_ps(_mm_sub_ps(t_split, slack), tmin);
             const bool near_active = near_child != 0 && _mm_movemask_ps(_mm_cmple_ps(tmin, near_tmax)) != 0;
             const bool far_active = far_child != 0 && _mm_movemask_ps(_mm_cmple_ps(far_tmin, tmax)) != 0;
             if (near_active) {

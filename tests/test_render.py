@@ -1,0 +1,230 @@
+"""Image checks on a procedural scene (tolerance-based, never byte-exact against a file).
+
+The scene is built in code: a floor slab, two walls meeting in a concave corner, an
+icosphere and a cube, every triangle with its own random colour. What is checked:
+
+* primary visibility: each pixel's triangle id and depth equal `scene.intersect` on the
+  camera rays computed here in numpy from the documented camera model;
+* per-triangle colour: in 'headlight' mode every pixel is its face colour times one
+  shading factor (the same for R, G, B), and that factor grows with |cos| between the
+  view ray and the face normal (an affine fit, not hard-coded constants);
+* 'normal' mode maps the unit face normal n to (n + 1) / 2 * 255;
+* 'ao' is deterministic (same image twice, with any thread count) and darker in the
+  concave corner than on open floor, where every sample escapes;
+* threads=1, other tile sizes and the default all give identical frames;
+* stats: primary_rays == W * H, rays == primary + secondary, secondary rays match the
+  shading mode (none for headlight, ao_samples per hit for ao, one per lit pixel for
+  sun), node and triangle counters positive.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+import trimesh
+
+from vastray import native
+
+WIDTH, HEIGHT = 160, 120
+EYE = np.array([3.5, -3.0, 2.5])
+TARGET = np.array([-0.3, 0.4, 0.3])
+UP = [0.0, 0.0, 1.0]
+FOV = 55.0
+AO_DISTANCE = 0.5
+
+
+def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> trimesh.Trimesh:
+    lo_a, hi_a = np.array(lo), np.array(hi)
+    return trimesh.creation.box(extents=hi_a - lo_a, transform=trimesh.transformations.translation_matrix(
+        (lo_a + hi_a) / 2))
+
+
+# Inner faces of the walls: x = -1.9 and y = 1.9; the floor's top is z = 0.
+WALL_X, WALL_Y = -1.9, 1.9
+SPHERE_CENTRE, SPHERE_RADIUS = np.array([0.6, -0.7, 0.5]), 0.5
+CUBE_LO, CUBE_HI = np.array([0.9, 0.6, 0.0]), np.array([1.5, 1.2, 0.6])
+
+
+def build_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    parts = [
+        box((-2.0, -2.0, -0.1), (2.0, 2.0, 0.0)),  # floor
+        box((-2.0, -2.0, 0.0), (WALL_X, 2.0, 1.5)),  # wall along y
+        box((-2.0, WALL_Y, 0.0), (2.0, 2.0, 1.5)),  # wall along x
+        box(tuple(CUBE_LO), tuple(CUBE_HI)),
+    ]
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS)
+    sphere.apply_translation(SPHERE_CENTRE)
+    parts.append(sphere)
+    mesh = trimesh.util.concatenate(parts)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.uint32)
+    colors = np.random.default_rng(42).integers(60, 256, size=(len(faces), 3)).astype(np.uint8)
+    return vertices, faces, colors
+
+
+@pytest.fixture(scope="module")
+def scene_data() -> tuple[native.Scene, np.ndarray, np.ndarray, np.ndarray]:
+    vertices, faces, colors = build_scene()
+    return native.Scene(vertices, faces, colors), vertices, faces, colors
+
+
+def render(scene: native.Scene, **kwargs: object) -> dict:
+    args = {"eye": EYE.tolist(), "target": TARGET.tolist(), "up": UP, "fov": FOV, "width": WIDTH,
+            "height": HEIGHT, **kwargs}
+    return scene.render(**args)
+
+
+def unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    tri = vertices[faces.astype(np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def test_visibility_matches_intersect(
+    scene_data: tuple, camera_directions: Callable[..., np.ndarray]
+) -> None:
+    scene = scene_data[0]
+    frame = render(scene)
+    rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)
+    hits = scene.intersect(np.tile(EYE, (len(rays), 1)), rays)
+    prim, depth = frame["prim"].ravel(), frame["depth"].ravel()
+    assert frame["image"].shape == (HEIGHT, WIDTH, 3) and frame["image"].dtype == np.uint8
+    assert prim.dtype == np.int32 and depth.dtype == np.float32
+    same = (prim == hits["prim"]).mean()
+    assert same >= 0.999, f"only {same:.4%} of the pixels see the triangle intersect() finds"
+    both = (prim >= 0) & (prim == hits["prim"])
+    np.testing.assert_allclose(depth[both], hits["t"][both], rtol=1e-4)
+    # Misses: id -1 and infinite depth, and the picture really has both.
+    assert np.isinf(depth[prim < 0]).all() and np.isfinite(depth[prim >= 0]).all()
+    assert 0.3 < (prim >= 0).mean() < 0.99
+    # Every object of the scene is visible.
+    assert len(np.unique(prim[prim >= 0])) > 100
+
+
+def shading_factor(image: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    """Per pixel: the one factor s with image ≈ colour * s (least squares over RGB)."""
+    c = colors.astype(np.float64)
+    return (image.astype(np.float64) * c).sum(axis=1) / (c * c).sum(axis=1)
+
+
+def test_headlight_shows_face_colours(
+    scene_data: tuple, camera_directions: Callable[..., np.ndarray]
+) -> None:
+    scene, vertices, faces, colors = scene_data
+    assert scene.has_colors
+    frame = render(scene, shading="headlight")
+    prim = frame["prim"].ravel()
+    hit = prim >= 0
+    image = frame["image"].reshape(-1, 3)[hit]
+    face_colour = colors[prim[hit]]
+    s = shading_factor(image, face_colour)
+    # Proportional to the face colour: the same factor for all three channels.
+    predicted = face_colour.astype(np.float64) * s[:, None]
+    assert np.abs(image - predicted).max() <= 1.0
+    # The factor is an increasing affine function of |cos(view, normal)|.
+    rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)[hit]
+    cos = np.abs(np.einsum("ij,ij->i", unit_normals(vertices, faces)[prim[hit]], rays))
+    (slope, intercept), *_ = np.linalg.lstsq(np.stack([cos, np.ones_like(cos)], axis=1), s, rcond=None)
+    print(f"headlight factor = {intercept:.3f} + {slope:.3f} |cos|, "
+          f"max residual {np.abs(s - (intercept + slope * cos)).max():.4f}, "
+          f"max channel error {np.abs(image - predicted).max():.3f}")
+    assert slope > 0.3 and intercept >= 0
+    assert np.abs(s - (intercept + slope * cos)).max() <= 0.02
+    # Without colours every face gets one neutral colour: a single hue in the picture.
+    plain = native.Scene(vertices, faces)
+    assert not plain.has_colors
+    grey = render(plain, shading="headlight")
+    g = grey["image"].reshape(-1, 3)[grey["prim"].ravel() >= 0].astype(np.float64)
+    ratio = g / g.sum(axis=1, keepdims=True)
+    assert np.ptp(ratio, axis=0).max() < 0.02
+
+
+def test_normal_shading_maps_normals(scene_data: tuple) -> None:
+    scene, vertices, faces, _ = scene_data
+    frame = render(scene, shading="normal")
+    prim = frame["prim"].ravel()
+    hit = prim >= 0
+    expected = (unit_normals(vertices, faces)[prim[hit]] + 1.0) * 0.5 * 255.0
+    image = frame["image"].reshape(-1, 3)[hit].astype(np.float64)
+    assert np.abs(image - expected).max() <= 1.0
+    # Colours play no part in this mode.
+    plain = render(native.Scene(vertices, faces), shading="normal")
+    np.testing.assert_array_equal(plain["image"], frame["image"])
+
+
+def test_ao_is_deterministic_and_darker_in_corners(
+    scene_data: tuple, camera_directions: Callable[..., np.ndarray]
+) -> None:
+    scene, _, _, colors = scene_data
+    first = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
+    again = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
+    single = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE, threads=1, tile_size=8)
+    np.testing.assert_array_equal(first["image"], again["image"])
+    np.testing.assert_array_equal(first["image"], single["image"])
+
+    prim = first["prim"].ravel()
+    hit = prim >= 0
+    rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)
+    points = EYE + rays * np.where(hit, first["depth"].ravel(), 0.0)[:, None].astype(np.float64)
+    s = np.zeros(len(prim))
+    s[hit] = shading_factor(first["image"].reshape(-1, 3)[hit], colors[prim[hit]])
+    x, y, z = points.T
+    # Concave: the floor and the walls within 0.1 of where they meet (a 90° inner edge).
+    concave = hit & (z < 0.1) & ((x - WALL_X < 0.1) | (WALL_Y - y < 0.1))
+    # Open floor: nothing within the AO distance above it (walls, sphere, cube).
+    margin = AO_DISTANCE + 0.1
+    near_cube = np.all((points > CUBE_LO - margin) & (points < CUBE_HI + margin), axis=1)
+    near_sphere = np.linalg.norm(points - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS + margin
+    open_floor = hit & (np.abs(z) < 1e-6) & (x - WALL_X > margin) & (WALL_Y - y > margin)
+    open_floor &= ~near_cube & ~near_sphere
+    print(f"ao factor: concave {s[concave].mean():.3f} over {int(concave.sum())} px, "
+          f"open floor {s[open_floor].mean():.3f} over {int(open_floor.sum())} px")
+    assert concave.sum() >= 100 and open_floor.sum() >= 500
+    s_open, s_concave = s[open_floor], s[concave]
+    # Open floor: every sample escapes, so one and the same (brightest) factor everywhere.
+    assert np.ptp(s_open) <= 0.02
+    assert s_open.min() >= s[hit].max() - 0.02
+    assert s_concave.mean() < 0.8 * s_open.mean(), (s_concave.mean(), s_open.mean())
+    assert (s_concave < s_open.min() - 0.02).mean() > 0.9
+
+
+def test_threads_and_tiles_do_not_change_the_frame(scene_data: tuple) -> None:
+    scene = scene_data[0]
+    for shading in ("headlight", "sun"):
+        default = render(scene, shading=shading)
+        for kwargs in ({"threads": 1}, {"tile_size": 5}, {"threads": 2, "tile_size": 64}):
+            other = render(scene, shading=shading, **kwargs)
+            np.testing.assert_array_equal(other["prim"], default["prim"])
+            np.testing.assert_array_equal(other["depth"], default["depth"])
+            np.testing.assert_array_equal(other["image"], default["image"])
+    assert render(scene, threads=1)["stats"]["threads"] == 1
+
+
+def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[..., np.ndarray]) -> None:
+    scene, vertices, faces, _ = scene_data
+    hits = None
+    for shading in ("headlight", "normal", "sun", "ao"):
+        frame = render(scene, shading=shading, ao_samples=4)
+        st = frame["stats"]
+        hits = int((frame["prim"] >= 0).sum())
+        assert st["primary_rays"] == WIDTH * HEIGHT
+        assert st["rays"] == st["primary_rays"] + st["secondary_rays"]
+        assert st["node_visits"] > 0 and st["triangle_tests"] > 0 and st["milliseconds"] > 0
+        assert st["threads"] >= 1
+        if shading in ("headlight", "normal"):
+            assert st["secondary_rays"] == 0
+        elif shading == "ao":
+            assert st["secondary_rays"] == 4 * hits
+        else:
+            prim = frame["prim"].ravel()
+            hit = prim >= 0
+            rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)[hit]
+            n = unit_normals(vertices, faces)[prim[hit]]
+            n = np.where((np.einsum("ij,ij->i", n, rays) > 0)[:, None], -n, n)
+            sun = np.array([0.35, 0.8, 0.5]) / np.linalg.norm([0.35, 0.8, 0.5])
+            lam = n @ sun
+            borderline = int((np.abs(lam) < 1e-6).sum())
+            assert abs(st["secondary_rays"] - int((lam > 0).sum())) <= borderline
+    assert hits is not None and hits > 0
