@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -234,3 +235,11 @@ def test_mandelbulb_calibration_table_matches_fresh_counts() -> None:
     module = __import__("vastray.scenes.mandelbulb", fromlist=["measure_calibration"])
     fresh = module.measure_calibration(12)
     assert fresh == pytest.approx(list(module._CALIBRATION[:12]), rel=0.01)
+
+
+def test_written_scene_has_ordinary_file_permissions(tmp_path: Path) -> None:
+    out = tmp_path / "perm.ply"
+    write_scene("spheres", 2000, 1, out)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~umask

@@ -252,6 +252,10 @@ def write_scene(
     try:
         with os.fdopen(fd, "w+b") as out:
             n_faces, n_vertices = writer(out, chunks, spec, int(seed), progress, workdir)
+        # mkstemp creates 0600; give the finished file the permissions a plain open() would.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp_name, 0o666 & ~umask)
         os.replace(tmp_name, target)
     except BaseException:
         # KeyboardInterrupt included: a half-written model must never look complete.
