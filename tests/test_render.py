@@ -228,3 +228,24 @@ def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[...
             borderline = int((np.abs(lam) < 1e-6).sum())
             assert abs(st["secondary_rays"] - int((lam > 0).sum())) <= borderline
     assert hits is not None and hits > 0
+
+
+def test_ray_packets_change_speed_not_answers() -> None:
+    """Primary rays traced as 4x4 and 2x2 packets must give exactly the single-ray
+    frame, on a scene with many near-coincident surfaces (pipes meeting flanges)."""
+    from vastray import scenes
+    from vastray.camera import frame_bounds
+
+    mesh = scenes.to_mesh("plant", 100_000, 4)
+    scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colors)
+    cam = frame_bounds(*scene.bounds, width=256, height=192)
+    args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
+    frames = {p: scene.render(*args, packets=p) for p in (1, 4, 16)}
+    for p in (4, 16):
+        np.testing.assert_array_equal(frames[p]["prim"], frames[1]["prim"])
+        np.testing.assert_array_equal(frames[p]["depth"], frames[1]["depth"])
+        np.testing.assert_array_equal(frames[p]["image"], frames[1]["image"])
+    # Packets share node visits between rays: that is their whole point.
+    assert frames[16]["stats"]["node_visits"] < frames[1]["stats"]["node_visits"]
+    with pytest.raises(ValueError, match="packets"):
+        scene.render(*args, packets=3)

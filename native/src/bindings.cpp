@@ -145,7 +145,7 @@ py::array_t<bool> occluded(const Scene& s, DoubleArray origins, DoubleArray dire
 py::dict render_frame(const Scene& s, const std::vector<double>& eye, const std::vector<double>& target,
                       const std::vector<double>& up, double fov, int width, int height,
                       const std::string& shading, int ao_samples, double ao_distance,
-                      const std::vector<double>& sun, unsigned threads, int tile_size, bool packets) {
+                      const std::vector<double>& sun, unsigned threads, int tile_size, int packets) {
     Camera cam;
     cam.eye = to_vec3(eye, "eye");
     cam.target = to_vec3(target, "target");
@@ -160,6 +160,7 @@ py::dict render_frame(const Scene& s, const std::vector<double>& eye, const std:
     params.sun_direction = to_vec3(sun, "sun");
     params.threads = threads;
     params.tile_size = tile_size;
+    if (packets != 1 && packets != 4 && packets != 16) throw std::invalid_argument("packets must be 1, 4 or 16");
     params.packets = packets;
     Frame f;
     {
@@ -236,7 +237,7 @@ PYBIND11_MODULE(native, m) {
         .def("render", &render_frame, py::arg("eye"), py::arg("target"), py::arg("up"), py::arg("fov"),
              py::arg("width"), py::arg("height"), py::arg("shading") = "headlight", py::arg("ao_samples") = 8,
              py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
-             py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("packets") = true,
+             py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("packets") = 16,
              "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
 
     m.def("reference_intersect", &reference, py::arg("vertices"), py::arg("faces"), py::arg("origins"),

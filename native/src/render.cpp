@@ -77,34 +77,66 @@ public:
     }
 
     void render_tile(int x0, int y0, int x1, int y1, TraversalCounters& c, RenderStats& s) const {
-        for (int y = y0; y < y1; y += 2) {
-            for (int x = x0; x < x1; x += 2) {
-                const int xs[4] = {x, x + 1, x, x + 1}, ys[4] = {y, y, y + 1, y + 1};
-                Ray rays[4];
-                Hit hits[4];
-                const bool full_quad = x + 1 < x1 && y + 1 < y1;
-                for (int k = 0; k < 4; ++k) {
-                    if (full_quad || (xs[k] < x1 && ys[k] < y1)) rays[k] = primary_ray(xs[k], ys[k]);
-                }
+        for (int y = y0; y < y1; y += 4) {
+            for (int x = x0; x < x1; x += 4) {
 #if defined(VASTRAY_HAVE_PACKETS)
-                if (full_quad && params_.packets && packet_is_coherent(rays)) {
-                    traverse_packet4(scene_.tree(), scene_.tri_vertices(), rays, hits, c);
-                    for (int k = 0; k < 4; ++k) shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
-                    s.primary_rays += 4;
-                    continue;
-                }
+                if (params_.packets == 16 && x + 3 < x1 && y + 3 < y1 && trace_block(x, y, c, s)) continue;
 #endif
-                for (int k = 0; k < 4; ++k) {
-                    if (xs[k] >= x1 || ys[k] >= y1) continue;
-                    scene_.trace<false>(rays[k], hits[k], c);
-                    shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
-                    ++s.primary_rays;
+                for (int qy = y; qy < std::min(y + 4, y1); qy += 2) {
+                    for (int qx = x; qx < std::min(x + 4, x1); qx += 2) trace_quad(qx, qy, x1, y1, c, s);
                 }
             }
         }
     }
 
 private:
+#if defined(VASTRAY_HAVE_PACKETS)
+    // A 4x4 pixel block as one 16-ray packet (four SSE vectors, each a 2x2 quad).
+    bool trace_block(int x, int y, TraversalCounters& c, RenderStats& s) const {
+        Ray rays[16];
+        Hit hits[16];
+        int xs[16], ys[16];
+        for (int q = 0; q < 4; ++q) {
+            for (int k = 0; k < 4; ++k) {
+                const int i = 4 * q + k;
+                xs[i] = x + 2 * (q % 2) + k % 2;
+                ys[i] = y + 2 * (q / 2) + k / 2;
+                rays[i] = primary_ray(xs[i], ys[i]);
+            }
+        }
+        if (!packet_is_coherent(rays, 16)) return false;
+        traverse_packet<4>(scene_.tree(), scene_.tri_vertices(), rays, hits, c);
+        for (int i = 0; i < 16; ++i) shade_pixel(xs[i], ys[i], rays[i], hits[i], c, s);
+        s.primary_rays += 16;
+        return true;
+    }
+#endif
+
+    // A 2x2 quad as a 4-ray packet when it is whole and coherent, else single rays.
+    void trace_quad(int x, int y, int x1, int y1, TraversalCounters& c, RenderStats& s) const {
+        const int xs[4] = {x, x + 1, x, x + 1}, ys[4] = {y, y, y + 1, y + 1};
+        Ray rays[4];
+        Hit hits[4];
+        const bool full_quad = x + 1 < x1 && y + 1 < y1;
+        for (int k = 0; k < 4; ++k) {
+            if (xs[k] < x1 && ys[k] < y1) rays[k] = primary_ray(xs[k], ys[k]);
+        }
+#if defined(VASTRAY_HAVE_PACKETS)
+        if (full_quad && params_.packets >= 4 && packet_is_coherent(rays, 4)) {
+            traverse_packet<1>(scene_.tree(), scene_.tri_vertices(), rays, hits, c);
+            for (int k = 0; k < 4; ++k) shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
+            s.primary_rays += 4;
+            return;
+        }
+#endif
+        for (int k = 0; k < 4; ++k) {
+            if (xs[k] >= x1 || ys[k] >= y1) continue;
+            scene_.trace<false>(rays[k], hits[k], c);
+            shade_pixel(xs[k], ys[k], rays[k], hits[k], c, s);
+            ++s.primary_rays;
+        }
+    }
+
     Ray primary_ray(int x, int y) const {
         const double sx = 2.0 * (x + 0.5) / frame_.width - 1.0;
         const double sy = 1.0 - 2.0 * (y + 0.5) / frame_.height;

@@ -29,7 +29,8 @@ struct RenderParams {
     Vec3d sun_direction{0.35, 0.8, 0.5};  // towards the sun, world frame
     unsigned threads = 0;                  // 0: every lane of the pool
     int tile_size = 16;
-    bool packets = true;  // 2x2 ray packets for primary rays (single rays when false)
+    // Primary rays per packet: 16 (4x4 blocks), 4 (2x2 quads) or 1 (single rays).
+    int packets = 16;
 };
 
 struct RenderStats {

@@ -138,8 +138,10 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
                     if (AnyHit) return true;
                 }
             }
-            // A hit inside this cell cannot be beaten by cells further along the ray.
-            if (hit.prim != kNoHit && hit.t <= tmax) return true;
+            // A hit inside this cell cannot be beaten by cells further along the ray. The
+            // cell's far end carries the split slack, so only a hit clear of that margin
+            // ends the ray; one inside it may still lose to a triangle across the plane.
+            if (hit.prim != kNoHit && hit.t * (1.0f + kSplitSlack) < tmax) return true;
         }
         for (;;) {
             if (top == 0) return hit.prim != kNoHit;
