@@ -1,0 +1,347 @@
+"""Helpers shared by the benchmarks in bench/: machine description, timing, memory
+high-water marks, camera rays built exactly like the renderer builds them, and tables.
+
+Benchmarks run on shared, noisy machines, so every helper here is meant for measurements
+taken side by side in one process: report ratios of interleaved runs, not absolute times.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import os
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+RESULTS_DIR = Path(__file__).resolve().parent / "results"
+
+
+# ----------------------------------------------------------------------------- machine
+
+
+def cpu_model() -> str:
+    """The CPU model name from /proc/cpuinfo (Linux), else what platform reports."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    match = re.search(r"^model name\s*:\s*(.+)$", text, re.MULTILINE)
+    return match.group(1).strip() if match else (platform.processor() or platform.machine())
+
+
+def git_revision() -> str:
+    """Short commit id of the working tree, with '+dirty' when it has local changes."""
+    try:
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return rev + ("+dirty" if dirty else "")
+
+
+def machine_info(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """Everything a reader needs to interpret the numbers of one benchmark run."""
+    info: dict[str, str] = {
+        "date": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "command": " ".join(shlex.quote(a) for a in [Path(sys.executable).name, *sys.argv]),
+        "cpu": cpu_model(),
+        "logical cores": str(os.cpu_count()),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "platform": platform.platform(),
+        "git": git_revision(),
+    }
+    try:
+        import psutil
+
+        info["physical cores"] = str(psutil.cpu_count(logical=False))
+        info["memory"] = f"{psutil.virtual_memory().total / 2**30:.1f} GiB"
+        load = os.getloadavg()
+        info["load average at start"] = ", ".join(f"{x:.2f}" for x in load)
+    except (ImportError, OSError):
+        pass
+    if extra:
+        info.update(extra)
+    return info
+
+
+# ----------------------------------------------------------------------------- native
+
+
+def pin_native() -> str:
+    """Load `vastray.native` from a private copy of the extension module and return a
+    description of it (path, size, modification time).
+
+    An editable install rebuilds the extension in place; a long benchmark that has the
+    file mapped would crash if someone rebuilds it meanwhile, and would measure a mix of
+    builds if it imported late. The copy pins one build for the whole run.
+    """
+    import atexit
+    import importlib.util
+    import shutil
+    import tempfile
+
+    spec = importlib.util.find_spec("vastray.native")
+    if spec is None or spec.origin is None:
+        raise ImportError("vastray.native is not built (pip install --no-build-isolation -e .)")
+    if "vastray.native" in sys.modules:
+        raise RuntimeError("pin_native() must run before vastray.native is imported")
+    origin = Path(spec.origin)
+    stamp = _dt.datetime.fromtimestamp(origin.stat().st_mtime).astimezone().isoformat(timespec="seconds")
+    folder = Path(tempfile.mkdtemp(prefix="vastray-bench-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    copy = folder / origin.name
+    shutil.copy2(origin, copy)
+    pinned = importlib.util.spec_from_file_location("vastray.native", copy)
+    assert pinned is not None and pinned.loader is not None
+    module = importlib.util.module_from_spec(pinned)
+    sys.modules["vastray.native"] = module
+    pinned.loader.exec_module(module)
+    import vastray
+
+    vastray.native = module  # type: ignore[attr-defined]
+    return f"{origin} ({origin.stat().st_size:,} bytes, built {stamp}), run from a private copy"
+
+
+# ----------------------------------------------------------------------------- models
+
+
+def models_dir() -> Path:
+    """The folder of real test meshes: $VASTRAY_MODELS, else ../shared/models."""
+    env = os.environ.get("VASTRAY_MODELS")
+    return Path(env) if env else (REPO_ROOT.parent / "shared" / "models")
+
+
+def parse_count(text: str) -> int:
+    """'1e6', '1000000' or '1M' -> 1000000."""
+    t = text.strip().lower()
+    scale = {"k": 1e3, "m": 1e6, "g": 1e9}.get(t[-1:], 1.0)
+    if t[-1:] in "kmg":
+        t = t[:-1]
+    value = float(t) * scale
+    if not math.isfinite(value) or value < 1:
+        raise ValueError(f"not a positive count: {text!r}")
+    return round(value)
+
+
+def format_count(n: int) -> str:
+    """1000000 -> '1e6'; other numbers as plain integers."""
+    exp = math.log10(n) if n > 0 else 0.0
+    return f"1e{round(exp)}" if n > 0 and abs(exp - round(exp)) < 1e-9 else str(n)
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+def timed(fn: Callable[[], T]) -> tuple[float, T]:
+    """(wall seconds, result) of one call."""
+    start = time.perf_counter()
+    result = fn()
+    return time.perf_counter() - start, result
+
+
+class Best:
+    """Keeps the smallest of repeated measurements (the least disturbed by other load)."""
+
+    def __init__(self) -> None:
+        self.values: list[float] = []
+
+    def add(self, seconds: float) -> None:
+        self.values.append(seconds)
+
+    @property
+    def best(self) -> float:
+        return min(self.values) if self.values else math.nan
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.values)) if self.values else math.nan
+
+
+# ----------------------------------------------------------------------------- memory
+
+
+def _status_kib(field: str) -> int | None:
+    try:
+        text = Path("/proc/self/status").read_text()
+    except OSError:
+        return None
+    match = re.search(rf"^{field}:\s*(\d+)\s*kB", text, re.MULTILINE)
+    return int(match.group(1)) if match else None
+
+
+def current_rss() -> int:
+    """Resident set size of this process in bytes."""
+    kib = _status_kib("VmRSS")
+    if kib is not None:
+        return kib * 1024
+    import psutil
+
+    return int(psutil.Process().memory_info().rss)
+
+
+class PeakRss:
+    """Peak resident memory of this process while the `with` block runs, minus the RSS on
+    entry (`delta` bytes after exit).
+
+    On Linux the kernel's high-water mark (VmHWM) is reset on entry through
+    /proc/self/clear_refs and read on exit, which sees every page even when the work
+    holds the GIL. Elsewhere a psutil thread samples RSS every few milliseconds.
+    """
+
+    def __init__(self, interval: float = 0.005) -> None:
+        self.interval = interval
+        self.start = 0
+        self.peak = 0
+        self._use_hwm = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> PeakRss:
+        self.start = current_rss()
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+            self._use_hwm = _status_kib("VmHWM") is not None
+        except OSError:
+            self._use_hwm = False
+        self.peak = self.start
+        if not self._use_hwm:
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.peak = max(self.peak, current_rss())
+
+    def __exit__(self, *exc: object) -> None:
+        if self._use_hwm:
+            hwm = _status_kib("VmHWM")
+            self.peak = max(self.peak, (hwm or 0) * 1024, current_rss())
+        else:
+            self._stop.set()
+            if self._thread is not None:
+                self._thread.join()
+            self.peak = max(self.peak, current_rss())
+
+    @property
+    def delta(self) -> int:
+        return max(0, self.peak - self.start)
+
+
+# ----------------------------------------------------------------------------- rays
+
+
+def camera_rays(
+    eye: Sequence[float],
+    target: Sequence[float],
+    up: Sequence[float],
+    fov: float,
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Primary rays of a pinhole camera in pixel order (row by row, top row first),
+    computed in float64 exactly as the native renderer does: pixel (x, y) looks along
+    normalize(w + (2(x+.5)/W - 1) tan(fov/2) aspect u + (1 - 2(y+.5)/H) tan(fov/2) v)
+    with w = normalize(target - eye), u = normalize(w x up), v = u x w.
+
+    Returns (origins, directions), each (W*H, 3) float64.
+    """
+    e = np.asarray(eye, dtype=np.float64)
+    w = np.asarray(target, dtype=np.float64) - e
+    w /= np.linalg.norm(w)
+    u = np.cross(w, np.asarray(up, dtype=np.float64))
+    u /= np.linalg.norm(u)
+    v = np.cross(u, w)
+    tan_half = math.tan(fov * 0.5 * math.pi / 180.0)
+    aspect = width / height
+    sx = 2.0 * (np.arange(width, dtype=np.float64) + 0.5) / width - 1.0
+    sy = 1.0 - 2.0 * (np.arange(height, dtype=np.float64) + 0.5) / height
+    right = u * (tan_half * aspect)
+    upv = v * tan_half
+    dirs = w[None, None, :] + sx[None, :, None] * right[None, None, :]
+    dirs = dirs + sy[:, None, None] * upv[None, None, :]
+    dirs = dirs.reshape(-1, 3)
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = np.broadcast_to(e, dirs.shape).copy()
+    return origins, dirs
+
+
+def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents (s, t) for each unit normal in n (Duff et al. 2017, branchless)."""
+    sign = np.where(n[:, 2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    s = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    t = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return s, t
+
+
+def cosine_hemisphere(normals: np.ndarray, samples: int, rng: np.random.Generator) -> np.ndarray:
+    """`samples` cosine-weighted unit directions about each normal (Malley's method).
+
+    Returns (len(normals) * samples, 3): the samples of one normal are consecutive, as
+    when a renderer shoots them pixel by pixel.
+    """
+    m = normals.shape[0]
+    r = np.sqrt(rng.random((m, samples)))
+    phi = 2.0 * math.pi * rng.random((m, samples))
+    lx, ly = r * np.cos(phi), r * np.sin(phi)
+    lz = np.sqrt(np.maximum(0.0, 1.0 - lx * lx - ly * ly))
+    s, t = orthonormal_basis(normals)
+    d = lx[..., None] * s[:, None, :] + ly[..., None] * t[:, None, :] + lz[..., None] * normals[:, None, :]
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    return d.reshape(-1, 3)
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """A GitHub-flavoured markdown table; numbers right-aligned."""
+    body = [[str(c) for c in row] for row in rows]
+    align = []
+    for i in range(len(headers)):
+        numeric = all(_looks_numeric(r[i]) for r in body if i < len(r)) and body
+        align.append("---:" if numeric else "---")
+    lines = ["| " + " | ".join(headers) + " |", "| " + " | ".join(align) + " |"]
+    lines += ["| " + " | ".join(r) + " |" for r in body]
+    return "\n".join(lines)
+
+
+def _looks_numeric(text: str) -> bool:
+    core = text.strip().strip("*")
+    return bool(re.fullmatch(r"[-+]?[\d.,]+(e[-+]?\d+)?[x%]?|n/a|-|nan", core, re.IGNORECASE))
+
+
+def fmt(value: float, digits: int = 2) -> str:
+    """A number for a table: fixed digits, 'n/a' for NaN."""
+    if value is None or not math.isfinite(value):
+        return "n/a"
+    return f"{value:.{digits}f}"
+
+
+def geometric_mean(values: Iterable[float]) -> float:
+    vals = [v for v in values if v is not None and math.isfinite(v) and v > 0]
+    return math.exp(sum(math.log(v) for v in vals) / len(vals)) if vals else math.nan
