@@ -261,31 +261,15 @@ def camera_rays(
     width: int,
     height: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Primary rays of a pinhole camera in pixel order (row by row, top row first),
-    computed in float64 exactly as the native renderer does: pixel (x, y) looks along
-    normalize(w + (2(x+.5)/W - 1) tan(fov/2) aspect u + (1 - 2(y+.5)/H) tan(fov/2) v)
-    with w = normalize(target - eye), u = normalize(w x up), v = u x w.
+    """Primary rays of a pinhole camera in pixel order, exactly as the native renderer
+    computes them (see `vastray.camera.Camera.primary_rays`). Returns (origins,
+    directions), each (W*H, 3) float64."""
+    from vastray.camera import Camera
 
-    Returns (origins, directions), each (W*H, 3) float64.
-    """
-    e = np.asarray(eye, dtype=np.float64)
-    w = np.asarray(target, dtype=np.float64) - e
-    w /= np.linalg.norm(w)
-    u = np.cross(w, np.asarray(up, dtype=np.float64))
-    u /= np.linalg.norm(u)
-    v = np.cross(u, w)
-    tan_half = math.tan(fov * 0.5 * math.pi / 180.0)
-    aspect = width / height
-    sx = 2.0 * (np.arange(width, dtype=np.float64) + 0.5) / width - 1.0
-    sy = 1.0 - 2.0 * (np.arange(height, dtype=np.float64) + 0.5) / height
-    right = u * (tan_half * aspect)
-    upv = v * tan_half
-    dirs = w[None, None, :] + sx[None, :, None] * right[None, None, :]
-    dirs = dirs + sy[:, None, None] * upv[None, None, :]
-    dirs = dirs.reshape(-1, 3)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    origins = np.broadcast_to(e, dirs.shape).copy()
-    return origins, dirs
+    def as_vec(a: Sequence[float]) -> tuple[float, float, float]:
+        return (float(a[0]), float(a[1]), float(a[2]))
+
+    return Camera(as_vec(eye), as_vec(target), as_vec(up), fov, width, height).primary_rays()
 
 
 def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -116,8 +116,12 @@ def winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray)
         a, b, c = tri[:, 0] - p, tri[:, 1] - p, tri[:, 2] - p
         la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
         det = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb
-               + np.einsum("ij,ij->i", b, c) * la)
+        den = (
+            la * lb * lc
+            + np.einsum("ij,ij->i", a, b) * lc
+            + np.einsum("ij,ij->i", a, c) * lb
+            + np.einsum("ij,ij->i", b, c) * la
+        )
         out[i] = np.arctan2(det, den).sum() / (2.0 * np.pi)
     return out
 
@@ -131,19 +135,15 @@ def winding_numbers_fixture() -> Callable[..., np.ndarray]:
 def camera_directions(
     eye: np.ndarray, target: np.ndarray, up: np.ndarray | list[float], fov: float, width: int, height: int
 ) -> np.ndarray:
-    """(H, W, 3) unit view rays of the documented camera model: pixel (x, y) looks along
-    normalize(w + (2(x+.5)/W - 1) tan(fov/2) aspect u + (1 - 2(y+.5)/H) tan(fov/2) v)."""
-    eye = np.asarray(eye, dtype=np.float64)
-    w = np.asarray(target, dtype=np.float64) - eye
-    w /= np.linalg.norm(w)
-    u = np.cross(w, np.asarray(up, dtype=np.float64))
-    u /= np.linalg.norm(u)
-    v = np.cross(u, w)
-    tan_half = np.tan(np.radians(fov) / 2)
-    x = (2 * (np.arange(width) + 0.5) / width - 1) * tan_half * width / height
-    y = (1 - 2 * (np.arange(height) + 0.5) / height) * tan_half
-    d = w + x[None, :, None] * u + y[:, None, None] * v
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    """(H, W, 3) unit view rays of the documented camera model, computed in numpy
+    (`vastray.camera.Camera.primary_rays`), to check the native renderer against."""
+    from vastray.camera import Camera
+
+    def as_vec(a: np.ndarray | list[float]) -> tuple[float, float, float]:
+        return (float(a[0]), float(a[1]), float(a[2]))
+
+    _, dirs = Camera(as_vec(eye), as_vec(target), as_vec(up), fov, width, height).primary_rays()
+    return dirs.reshape(height, width, 3)
 
 
 @pytest.fixture(scope="session", name="camera_directions")
@@ -165,7 +165,10 @@ def small_closed_model() -> ModelMesh:
 
 
 def triangle_hits(
-    vertices: np.ndarray, faces: np.ndarray, prim: np.ndarray, origins: np.ndarray,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    prim: np.ndarray,
+    origins: np.ndarray,
     directions: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Double-precision Möller–Trumbore of ray i against triangle prim[i]: (t, u, v), no
@@ -227,10 +230,20 @@ class Agreement:
 
 
 def compare_with_reference(
-    scene: object, vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray,
-    directions: np.ndarray, *, length: float, tmin: float | np.ndarray = 0.0,
-    tmax: float | np.ndarray = np.inf, rel: float = 1e-5, abs_distance: float = 0.0,
-    tie_bary: float = 1e-4, graze_bary: float = 1e-5, grazing_eps: float = 8 * FLOAT32_EPS,
+    scene: object,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    *,
+    length: float,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    rel: float = 1e-5,
+    abs_distance: float = 0.0,
+    tie_bary: float = 1e-4,
+    graze_bary: float = 1e-5,
+    grazing_eps: float = 8 * FLOAT32_EPS,
 ) -> Agreement:
     """Runs both intersectors and classifies every disagreement.
 
@@ -259,8 +272,11 @@ def compare_with_reference(
     t, prim, u, v = ours["t"], ours["prim"], ours["u"], ours["v"]
     hit, rhit = prim >= 0, ref["prim"] >= 0
     nonfinite = int(
-        np.isnan(t).sum() + np.isnan(u).sum() + np.isnan(v).sum()
-        + (np.isfinite(t) != hit).sum() + (hit & (prim >= faces.shape[0])).sum()
+        np.isnan(t).sum()
+        + np.isnan(u).sum()
+        + np.isnan(v).sum()
+        + (np.isfinite(t) != hit).sum()
+        + (hit & (prim >= faces.shape[0])).sum()
     )
     dlen = np.linalg.norm(directions, axis=1)
     # Incidence of each reference hit: float32 rounding moves the surface by a bounded
@@ -269,9 +285,7 @@ def compare_with_reference(
     r = np.flatnonzero(rhit)
     q = vertices[faces[ref["prim"][r]].astype(np.int64)]
     normal = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
-    cos[r] = np.abs(np.einsum("ij,ij->i", normal, directions[r])) / (
-        np.linalg.norm(normal, axis=1) * dlen[r]
-    )
+    cos[r] = np.abs(np.einsum("ij,ij->i", normal, directions[r])) / (np.linalg.norm(normal, axis=1) * dlen[r])
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         plain = rel * np.maximum(ref["t"] * dlen, length) + abs_distance
         tol = (plain + grazing_eps * length / cos) / dlen  # in t units
@@ -301,8 +315,10 @@ def compare_with_reference(
     tie &= (np.abs(our_t[both] - ref["t"][both]) <= tol[both]) & (our_bary[both] >= -tie_bary)
     # Different places or triangles, and the nearer hit is an edge contact the other
     # intersector rounded away: the same silhouette case as a hit/miss disagreement.
-    nearer_ours = (t[both] <= ref["t"][both] + tol[both]) & (np.abs(our_bary[both]) < graze_bary) & (
-        np.abs(our_t[both] - t[both]) <= tol[both]
+    nearer_ours = (
+        (t[both] <= ref["t"][both] + tol[both])
+        & (np.abs(our_bary[both]) < graze_bary)
+        & (np.abs(our_t[both] - t[both]) <= tol[both])
     )
     nearer_ref = (ref["t"][both] <= t[both] + tol[both]) & (ref_bary[both] < graze_bary)
     edge_first = (far | (diff & ~tie)) & (nearer_ours | nearer_ref)

@@ -42,6 +42,34 @@ class Camera:
         if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
             raise ValueError("image size must be between 1x1 and 16384x16384")
 
+    def primary_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Primary rays in pixel order (row by row, top row first), in float64 exactly as
+        the native renderer computes them: pixel (x, y) looks along
+        normalize(w + (2(x+.5)/W - 1) tan(fov/2) aspect u + (1 - 2(y+.5)/H) tan(fov/2) v)
+        with w = normalize(target - eye), u = normalize(w x up), v = u x w.
+
+        Returns (origins, directions), each (width * height, 3). For tools and tests that
+        need the renderer's rays without rendering (batch queries, picking, comparisons)."""
+        e = np.asarray(self.eye, dtype=np.float64)
+        w = np.asarray(self.target, dtype=np.float64) - e
+        w /= np.linalg.norm(w)
+        u = np.cross(w, np.asarray(self.up, dtype=np.float64))
+        u /= np.linalg.norm(u)
+        v = np.cross(u, w)
+        tan_half = math.tan(self.fov * 0.5 * math.pi / 180.0)
+        right = u * (tan_half * self.width / self.height)
+        upv = v * tan_half
+        sx = 2.0 * (np.arange(self.width, dtype=np.float64) + 0.5) / self.width - 1.0
+        sy = 1.0 - 2.0 * (np.arange(self.height, dtype=np.float64) + 0.5) / self.height
+        dirs = (
+            w[None, None, :]
+            + sx[None, :, None] * right[None, None, :]
+            + sy[:, None, None] * upv[None, None, :]
+        )
+        dirs = dirs.reshape(-1, 3)
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        return np.broadcast_to(e, dirs.shape).copy(), dirs
+
 
 def frame_bounds(
     lo: Sequence[float],
