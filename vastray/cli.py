@@ -17,8 +17,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
     width, height = parse_size(args.size)
     build_options = {"leaf_size": args.leaf_size, "threads": args.threads}
-    print(f"loading {args.model} ...", file=sys.stderr)
-    model = load_model(args.model, **build_options)
+    model = load_model(
+        args.model, on_phase=lambda phase: print(f"{phase} ...", file=sys.stderr, flush=True), **build_options
+    )
     scene = model.scene
     stats = scene.build_stats
     print(

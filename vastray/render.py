@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,10 +66,16 @@ def resolve_mesh(source: str) -> Mesh:
     return load_mesh(source)
 
 
-def load_model(source: str, **build_options: Any) -> Model:
+def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any) -> Model:
+    """Load (or generate) a model and build its kd-tree. `on_phase` hears about each
+    phase as it starts, so a CLI or a job can tell the user what the wait is for."""
     start = time.perf_counter()
+    if on_phase is not None:
+        on_phase(f"loading {source}")
     mesh = resolve_mesh(source)
     loaded = time.perf_counter()
+    if on_phase is not None:
+        on_phase(f"building kd-tree over {mesh.triangle_count:,} triangles")
     scene = scene_from_mesh(mesh, **build_options)
     built = time.perf_counter()
     return Model(scene=scene, name=mesh.name, load_seconds=loaded - start, build_seconds=built - loaded)
