@@ -15,6 +15,8 @@
 #define VASTRAY_HAVE_PACKETS 1
 #endif
 
+#include <new>
+
 #include "vastray/traverse.h"
 
 namespace vastray {
@@ -54,6 +56,10 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
         }
     }
     if (!any_active) return;
+    // Shear constants once per ray, not once per leaf visit.
+    alignas(16) unsigned char sheared_storage[N * sizeof(ShearedRay)];
+    ShearedRay* sheared = reinterpret_cast<ShearedRay*>(sheared_storage);
+    for (int k = 0; k < N; ++k) new (sheared + k) ShearedRay(rays[k].dir);
     __m128 org[3][V], inv[3][V];
     for (int a = 0; a < 3; ++a) {
         for (int v = 0; v < V; ++v) {
@@ -138,12 +144,11 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
             const std::uint32_t* ids = tree.tri_ids.data() + node->first();
             for (int k = 0; k < N; ++k) {
                 if (!(lo[k] <= hi[k])) continue;
-                const ShearedRay sheared(rays[k].dir);
                 for (std::uint32_t i = 0; i < count; ++i) {
                     const std::uint32_t id = ids[i];
                     ++triangle_tests;
                     const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                    if (intersect_triangle(rays[k], sheared, p[0], p[1], p[2], hits[k])) hits[k].prim = id;
+                    if (intersect_triangle(rays[k], sheared[k], p[0], p[1], p[2], hits[k])) hits[k].prim = id;
                 }
             }
             for (int v = 0; v < V; ++v) {
