@@ -11,6 +11,7 @@
 
 #if defined(__SSE2__)
 #include <emmintrin.h>
+#include <cstdint>
 #include <xmmintrin.h>
 #define VASTRAY_HAVE_PACKETS 1
 #endif
@@ -34,6 +35,93 @@ inline bool packet_is_coherent(const Ray* rays, int count) {
 }
 
 #if defined(VASTRAY_HAVE_PACKETS)
+
+// Four rays sharing one shear permutation (kx, ky, kz), in SSE registers, for testing
+// one triangle against four rays at once in a packet's leaf.
+struct ShearedRay4 {
+    int kx, ky, kz;
+    __m128 ox, oy, oz;  // origins, permuted into the shear frame
+    __m128 sx, sy, sz;
+    __m128 tmin;        // each ray's own tmin
+};
+
+// The watertight test of triangle.h on four rays at once, with the same float
+// operations in the same order, so each lane gets bit-for-bit the single-ray answer.
+// Lanes whose edge functions hit exactly zero are finished by the scalar test, which
+// re-evaluates them in double. `active` marks the lanes to test; hits are SoA.
+inline void intersect_triangle4(const ShearedRay4& r, const Ray* rays, const ShearedRay* sheared, const Vec3f* p,
+                                std::uint32_t id, __m128 active, __m128& hit_t, __m128& hit_u, __m128& hit_v,
+                                __m128i& hit_prim) {
+    const __m128 zero = _mm_setzero_ps();
+    const __m128 ax0 = _mm_sub_ps(_mm_set1_ps(p[0][r.kx]), r.ox), ay0 = _mm_sub_ps(_mm_set1_ps(p[0][r.ky]), r.oy);
+    const __m128 az0 = _mm_sub_ps(_mm_set1_ps(p[0][r.kz]), r.oz);
+    const __m128 bx0 = _mm_sub_ps(_mm_set1_ps(p[1][r.kx]), r.ox), by0 = _mm_sub_ps(_mm_set1_ps(p[1][r.ky]), r.oy);
+    const __m128 bz0 = _mm_sub_ps(_mm_set1_ps(p[1][r.kz]), r.oz);
+    const __m128 cx0 = _mm_sub_ps(_mm_set1_ps(p[2][r.kx]), r.ox), cy0 = _mm_sub_ps(_mm_set1_ps(p[2][r.ky]), r.oy);
+    const __m128 cz0 = _mm_sub_ps(_mm_set1_ps(p[2][r.kz]), r.oz);
+    const __m128 ax = _mm_sub_ps(ax0, _mm_mul_ps(r.sx, az0)), ay = _mm_sub_ps(ay0, _mm_mul_ps(r.sy, az0));
+    const __m128 bx = _mm_sub_ps(bx0, _mm_mul_ps(r.sx, bz0)), by = _mm_sub_ps(by0, _mm_mul_ps(r.sy, bz0));
+    const __m128 cx = _mm_sub_ps(cx0, _mm_mul_ps(r.sx, cz0)), cy = _mm_sub_ps(cy0, _mm_mul_ps(r.sy, cz0));
+    const __m128 u = _mm_sub_ps(_mm_mul_ps(cx, by), _mm_mul_ps(cy, bx));
+    const __m128 v = _mm_sub_ps(_mm_mul_ps(ax, cy), _mm_mul_ps(ay, cx));
+    const __m128 w = _mm_sub_ps(_mm_mul_ps(bx, ay), _mm_mul_ps(by, ax));
+    const __m128 on_edge = _mm_and_ps(
+        active, _mm_or_ps(_mm_or_ps(_mm_cmpeq_ps(u, zero), _mm_cmpeq_ps(v, zero)), _mm_cmpeq_ps(w, zero)));
+    const __m128 any_neg = _mm_or_ps(_mm_or_ps(_mm_cmplt_ps(u, zero), _mm_cmplt_ps(v, zero)), _mm_cmplt_ps(w, zero));
+    const __m128 any_pos = _mm_or_ps(_mm_or_ps(_mm_cmpgt_ps(u, zero), _mm_cmpgt_ps(v, zero)), _mm_cmpgt_ps(w, zero));
+    const __m128 det = _mm_add_ps(_mm_add_ps(u, v), w);
+    __m128 valid = _mm_andnot_ps(_mm_or_ps(on_edge, _mm_and_ps(any_neg, any_pos)), active);
+    valid = _mm_and_ps(valid, _mm_cmpneq_ps(det, zero));
+    const int edge_mask = _mm_movemask_ps(on_edge);
+    if (_mm_movemask_ps(valid) != 0) {
+        const __m128 az = _mm_mul_ps(r.sz, az0), bz = _mm_mul_ps(r.sz, bz0), cz = _mm_mul_ps(r.sz, cz0);
+        const __m128 t_scaled = _mm_add_ps(_mm_add_ps(_mm_mul_ps(u, az), _mm_mul_ps(v, bz)), _mm_mul_ps(w, cz));
+        const __m128 sign_bit = _mm_and_ps(det, _mm_set1_ps(-0.0f));
+        const __m128 abs_det = _mm_andnot_ps(_mm_set1_ps(-0.0f), det);
+        const __m128 ts = _mm_xor_ps(t_scaled, sign_bit);
+        valid = _mm_andnot_ps(_mm_cmplt_ps(ts, _mm_mul_ps(r.tmin, abs_det)), valid);
+        valid = _mm_and_ps(valid, _mm_cmplt_ps(ts, _mm_mul_ps(hit_t, abs_det)));
+        if (_mm_movemask_ps(valid) != 0) {
+            const __m128 inv_det = _mm_div_ps(_mm_set1_ps(1.0f), det);
+            const __m128 t = _mm_mul_ps(t_scaled, inv_det);
+            valid = _mm_and_ps(valid, _mm_cmplt_ps(t, hit_t));
+            valid = _mm_andnot_ps(_mm_cmplt_ps(t, r.tmin), valid);
+            hit_t = _mm_or_ps(_mm_and_ps(valid, t), _mm_andnot_ps(valid, hit_t));
+            hit_u = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(v, inv_det)), _mm_andnot_ps(valid, hit_u));
+            hit_v = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(w, inv_det)), _mm_andnot_ps(valid, hit_v));
+            const __m128i take = _mm_castps_si128(valid);
+            hit_prim = _mm_or_si128(_mm_and_si128(take, _mm_set1_epi32(static_cast<int>(id))),
+                                    _mm_andnot_si128(take, hit_prim));
+        }
+    }
+    if (edge_mask != 0) {
+        // Rare: the ray passes exactly through an edge in float. Decide in double, lane by lane.
+        alignas(16) float ht[4], hu[4], hv[4];
+        alignas(16) std::uint32_t hp[4];
+        _mm_store_ps(ht, hit_t);
+        _mm_store_ps(hu, hit_u);
+        _mm_store_ps(hv, hit_v);
+        _mm_store_si128(reinterpret_cast<__m128i*>(hp), hit_prim);
+        for (int k = 0; k < 4; ++k) {
+            if (!(edge_mask & (1 << k))) continue;
+            Hit h;
+            h.t = ht[k];
+            h.u = hu[k];
+            h.v = hv[k];
+            h.prim = hp[k];
+            if (intersect_triangle(rays[k], sheared[k], p[0], p[1], p[2], h)) {
+                ht[k] = h.t;
+                hu[k] = h.u;
+                hv[k] = h.v;
+                hp[k] = id;
+            }
+        }
+        hit_t = _mm_load_ps(ht);
+        hit_u = _mm_load_ps(hu);
+        hit_v = _mm_load_ps(hv);
+        hit_prim = _mm_load_si128(reinterpret_cast<const __m128i*>(hp));
+    }
+}
 
 // Closest hits of 4V coherent rays; hits[k] gets ray k's result.
 template <int V>
@@ -60,6 +148,29 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
     alignas(16) unsigned char sheared_storage[N * sizeof(ShearedRay)];
     ShearedRay* sheared = reinterpret_cast<ShearedRay*>(sheared_storage);
     for (int k = 0; k < N; ++k) new (sheared + k) ShearedRay(rays[k].dir);
+    // Vectors whose four rays share a shear permutation (almost always, in a coherent
+    // packet) test triangles four rays at a time.
+    ShearedRay4 sheared4[V];
+    bool uniform_shear[V];
+    for (int v = 0; v < V; ++v) {
+        const ShearedRay* s4 = sheared + 4 * v;
+        const Ray* r4 = rays + 4 * v;
+        uniform_shear[v] = true;
+        for (int k = 1; k < 4; ++k) {
+            uniform_shear[v] = uniform_shear[v] && s4[k].kx == s4[0].kx && s4[k].ky == s4[0].ky && s4[k].kz == s4[0].kz;
+        }
+        ShearedRay4& q = sheared4[v];
+        q.kx = s4[0].kx;
+        q.ky = s4[0].ky;
+        q.kz = s4[0].kz;
+        q.ox = _mm_setr_ps(r4[0].org[q.kx], r4[1].org[q.kx], r4[2].org[q.kx], r4[3].org[q.kx]);
+        q.oy = _mm_setr_ps(r4[0].org[q.ky], r4[1].org[q.ky], r4[2].org[q.ky], r4[3].org[q.ky]);
+        q.oz = _mm_setr_ps(r4[0].org[q.kz], r4[1].org[q.kz], r4[2].org[q.kz], r4[3].org[q.kz]);
+        q.sx = _mm_setr_ps(s4[0].sx, s4[1].sx, s4[2].sx, s4[3].sx);
+        q.sy = _mm_setr_ps(s4[0].sy, s4[1].sy, s4[2].sy, s4[3].sy);
+        q.sz = _mm_setr_ps(s4[0].sz, s4[1].sz, s4[2].sz, s4[3].sz);
+        q.tmin = _mm_setr_ps(r4[0].tmin, r4[1].tmin, r4[2].tmin, r4[3].tmin);
+    }
     __m128 org[3][V], inv[3][V];
     for (int a = 0; a < 3; ++a) {
         for (int v = 0; v < V; ++v) {
@@ -136,19 +247,43 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
             node = nodes + index;
         }
         if (descend) {
-            for (int v = 0; v < V; ++v) {
-                _mm_store_ps(lo + 4 * v, tmin[v]);
-                _mm_store_ps(hi + 4 * v, tmax[v]);
-            }
             const std::uint32_t count = node->count();
             const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-            for (int k = 0; k < N; ++k) {
-                if (!(lo[k] <= hi[k])) continue;
-                for (std::uint32_t i = 0; i < count; ++i) {
-                    const std::uint32_t id = ids[i];
-                    ++triangle_tests;
-                    const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                    if (intersect_triangle(rays[k], sheared[k], p[0], p[1], p[2], hits[k])) hits[k].prim = id;
+            for (int v = 0; v < V; ++v) {
+                const __m128 active = _mm_cmple_ps(tmin[v], tmax[v]);
+                const int active_mask = _mm_movemask_ps(active);
+                if (active_mask == 0) continue;
+                Hit* h = hits + 4 * v;
+                if (uniform_shear[v]) {
+                    __m128 ht = _mm_setr_ps(h[0].t, h[1].t, h[2].t, h[3].t);
+                    __m128 hu = _mm_setr_ps(h[0].u, h[1].u, h[2].u, h[3].u);
+                    __m128 hv = _mm_setr_ps(h[0].v, h[1].v, h[2].v, h[3].v);
+                    __m128i hp = _mm_setr_epi32(static_cast<int>(h[0].prim), static_cast<int>(h[1].prim),
+                                                static_cast<int>(h[2].prim), static_cast<int>(h[3].prim));
+                    for (std::uint32_t i = 0; i < count; ++i) {
+                        const std::uint32_t id = ids[i];
+                        const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
+                        intersect_triangle4(sheared4[v], rays + 4 * v, sheared + 4 * v, p, id, active, ht, hu, hv, hp);
+                    }
+                    triangle_tests += static_cast<std::uint64_t>(count) *
+                                      static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
+                    alignas(16) float st[4], su[4], sv[4];
+                    alignas(16) std::uint32_t sp[4];
+                    _mm_store_ps(st, ht);
+                    _mm_store_ps(su, hu);
+                    _mm_store_ps(sv, hv);
+                    _mm_store_si128(reinterpret_cast<__m128i*>(sp), hp);
+                    for (int k = 0; k < 4; ++k) h[k] = Hit{st[k], sp[k], su[k], sv[k]};
+                    continue;
+                }
+                for (int k = 0; k < 4; ++k) {
+                    if (!(active_mask & (1 << k))) continue;
+                    for (std::uint32_t i = 0; i < count; ++i) {
+                        const std::uint32_t id = ids[i];
+                        ++triangle_tests;
+                        const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
+                        if (intersect_triangle(rays[4 * v + k], sheared[4 * v + k], p[0], p[1], p[2], h[k])) h[k].prim = id;
+                    }
                 }
             }
             for (int v = 0; v < V; ++v) {
