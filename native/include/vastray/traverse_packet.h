@@ -2,8 +2,9 @@
 // primary rays of a pixel block. Packets hold V SSE vectors of four rays (V = 1: a 2x2
 // quad, V = 4: a 4x4 block). One node fetch and one decision serve all 4V rays;
 // per-ray segments [tmin, tmax] stay in SSE registers, and a ray whose segment is empty
-// simply stops influencing the decisions. Triangle tests stay scalar and watertight
-// (the same test as single rays), so packets change speed, never answers.
+// simply stops influencing the decisions. Leaves test one triangle against four rays
+// with the float operations of the scalar watertight test, so packets change speed,
+// never answers.
 //
 // Preconditions (checked by packet_is_coherent): every direction component is non-zero
 // and has the same sign across the packet, so all rays order the children alike.
