@@ -7,6 +7,7 @@
 #include <memory>
 #include <stdexcept>
 
+#include "vastray/lz4.h"
 #include "vastray/render.h"
 #include "vastray/scene.h"
 #include "vastray/thread_pool.h"
@@ -206,6 +207,19 @@ py::dict reference(DoubleArray vertices, UIntArray faces, DoubleArray origins, D
     return d;
 }
 
+py::bytes lz4_decompress(const py::bytes& data, std::size_t raw_size) {
+    const std::string_view src = data;  // bytes stay alive (and unchanged) for this call
+    std::string out(raw_size, '\0');
+    Lz4Status status;
+    {
+        py::gil_scoped_release release;
+        status = lz4_decompress_block(reinterpret_cast<const std::uint8_t*>(src.data()), src.size(),
+                                      reinterpret_cast<std::uint8_t*>(out.data()), raw_size);
+    }
+    if (status != Lz4Status::Ok) throw std::invalid_argument(std::string("corrupt LZ4 block: ") + lz4_status_message(status));
+    return py::bytes(out);
+}
+
 }  // namespace
 
 PYBIND11_MODULE(native, m) {
@@ -239,6 +253,9 @@ PYBIND11_MODULE(native, m) {
              py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
              py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("packets") = 16,
              "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
+
+    m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),
+          "Decode one LZ4 block (block format, no frame) of exactly raw_size bytes; ValueError if corrupt");
 
     m.def("reference_intersect", &reference, py::arg("vertices"), py::arg("faces"), py::arg("origins"),
           py::arg("directions"), py::arg("tmin") = 0.0, py::arg("tmax") = std::numeric_limits<double>::infinity(),
