@@ -21,7 +21,7 @@ dev: $(BIN)/python
 
 run: install
 	@mkdir -p out
-	$(BIN)/vastray render demo --shading ao -o out/demo.png
+	$(BIN)/vastray render demo --shading sun -o out/demo.png
 
 lint: install
 	$(BIN)/ruff check .
