@@ -37,6 +37,28 @@ inline bool packet_is_coherent(const Ray* rays, int count) {
 
 #if defined(VASTRAY_HAVE_PACKETS)
 
+// The closest hits of four rays, structure-of-arrays, for the SIMD leaf test.
+struct Hit4 {
+    __m128 t, u, v;
+    __m128i prim;
+
+    static Hit4 load(const Hit* h) {
+        return {_mm_setr_ps(h[0].t, h[1].t, h[2].t, h[3].t), _mm_setr_ps(h[0].u, h[1].u, h[2].u, h[3].u),
+                _mm_setr_ps(h[0].v, h[1].v, h[2].v, h[3].v),
+                _mm_setr_epi32(static_cast<int>(h[0].prim), static_cast<int>(h[1].prim), static_cast<int>(h[2].prim),
+                               static_cast<int>(h[3].prim))};
+    }
+    void store(Hit* h) const {
+        alignas(16) float st[4], su[4], sv[4];
+        alignas(16) std::uint32_t sp[4];
+        _mm_store_ps(st, t);
+        _mm_store_ps(su, u);
+        _mm_store_ps(sv, v);
+        _mm_store_si128(reinterpret_cast<__m128i*>(sp), prim);
+        for (int k = 0; k < 4; ++k) h[k] = Hit{st[k], sp[k], su[k], sv[k]};
+    }
+};
+
 // Four rays sharing one shear permutation (kx, ky, kz), in SSE registers, for testing
 // one triangle against four rays at once in a packet's leaf.
 struct ShearedRay4 {
@@ -51,8 +73,7 @@ struct ShearedRay4 {
 // Lanes whose edge functions hit exactly zero are finished by the scalar test, which
 // re-evaluates them in double. `active` marks the lanes to test; hits are SoA.
 inline void intersect_triangle4(const ShearedRay4& r, const Ray* rays, const ShearedRay* sheared, const Vec3f* p,
-                                std::uint32_t id, __m128 active, __m128& hit_t, __m128& hit_u, __m128& hit_v,
-                                __m128i& hit_prim) {
+                                std::uint32_t id, __m128 active, Hit4& hit) {
     const __m128 zero = _mm_setzero_ps();
     const __m128 ax0 = _mm_sub_ps(_mm_set1_ps(p[0][r.kx]), r.ox), ay0 = _mm_sub_ps(_mm_set1_ps(p[0][r.ky]), r.oy);
     const __m128 az0 = _mm_sub_ps(_mm_set1_ps(p[0][r.kz]), r.oz);
@@ -81,46 +102,30 @@ inline void intersect_triangle4(const ShearedRay4& r, const Ray* rays, const She
         const __m128 abs_det = _mm_andnot_ps(_mm_set1_ps(-0.0f), det);
         const __m128 ts = _mm_xor_ps(t_scaled, sign_bit);
         valid = _mm_andnot_ps(_mm_cmplt_ps(ts, _mm_mul_ps(r.tmin, abs_det)), valid);
-        valid = _mm_and_ps(valid, _mm_cmplt_ps(ts, _mm_mul_ps(hit_t, abs_det)));
+        valid = _mm_and_ps(valid, _mm_cmplt_ps(ts, _mm_mul_ps(hit.t, abs_det)));
         if (_mm_movemask_ps(valid) != 0) {
             const __m128 inv_det = _mm_div_ps(_mm_set1_ps(1.0f), det);
             const __m128 t = _mm_mul_ps(t_scaled, inv_det);
-            valid = _mm_and_ps(valid, _mm_cmplt_ps(t, hit_t));
+            valid = _mm_and_ps(valid, _mm_cmplt_ps(t, hit.t));
             valid = _mm_andnot_ps(_mm_cmplt_ps(t, r.tmin), valid);
-            hit_t = _mm_or_ps(_mm_and_ps(valid, t), _mm_andnot_ps(valid, hit_t));
-            hit_u = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(v, inv_det)), _mm_andnot_ps(valid, hit_u));
-            hit_v = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(w, inv_det)), _mm_andnot_ps(valid, hit_v));
+            hit.t = _mm_or_ps(_mm_and_ps(valid, t), _mm_andnot_ps(valid, hit.t));
+            hit.u = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(v, inv_det)), _mm_andnot_ps(valid, hit.u));
+            hit.v = _mm_or_ps(_mm_and_ps(valid, _mm_mul_ps(w, inv_det)), _mm_andnot_ps(valid, hit.v));
             const __m128i take = _mm_castps_si128(valid);
-            hit_prim = _mm_or_si128(_mm_and_si128(take, _mm_set1_epi32(static_cast<int>(id))),
-                                    _mm_andnot_si128(take, hit_prim));
+            hit.prim = _mm_or_si128(_mm_and_si128(take, _mm_set1_epi32(static_cast<int>(id))),
+                                    _mm_andnot_si128(take, hit.prim));
         }
     }
     if (edge_mask != 0) {
         // Rare: the ray passes exactly through an edge in float. Decide in double, lane by lane.
-        alignas(16) float ht[4], hu[4], hv[4];
-        alignas(16) std::uint32_t hp[4];
-        _mm_store_ps(ht, hit_t);
-        _mm_store_ps(hu, hit_u);
-        _mm_store_ps(hv, hit_v);
-        _mm_store_si128(reinterpret_cast<__m128i*>(hp), hit_prim);
+        Hit lanes[4];
+        hit.store(lanes);
         for (int k = 0; k < 4; ++k) {
-            if (!(edge_mask & (1 << k))) continue;
-            Hit h;
-            h.t = ht[k];
-            h.u = hu[k];
-            h.v = hv[k];
-            h.prim = hp[k];
-            if (intersect_triangle(rays[k], sheared[k], p[0], p[1], p[2], h)) {
-                ht[k] = h.t;
-                hu[k] = h.u;
-                hv[k] = h.v;
-                hp[k] = id;
+            if ((edge_mask & (1 << k)) && intersect_triangle(rays[k], sheared[k], p[0], p[1], p[2], lanes[k])) {
+                lanes[k].prim = id;
             }
         }
-        hit_t = _mm_load_ps(ht);
-        hit_u = _mm_load_ps(hu);
-        hit_v = _mm_load_ps(hv);
-        hit_prim = _mm_load_si128(reinterpret_cast<const __m128i*>(hp));
+        hit = Hit4::load(lanes);
     }
 }
 
@@ -256,25 +261,15 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
                 if (active_mask == 0) continue;
                 Hit* h = hits + 4 * v;
                 if (uniform_shear[v]) {
-                    __m128 ht = _mm_setr_ps(h[0].t, h[1].t, h[2].t, h[3].t);
-                    __m128 hu = _mm_setr_ps(h[0].u, h[1].u, h[2].u, h[3].u);
-                    __m128 hv = _mm_setr_ps(h[0].v, h[1].v, h[2].v, h[3].v);
-                    __m128i hp = _mm_setr_epi32(static_cast<int>(h[0].prim), static_cast<int>(h[1].prim),
-                                                static_cast<int>(h[2].prim), static_cast<int>(h[3].prim));
+                    Hit4 h4 = Hit4::load(h);
                     for (std::uint32_t i = 0; i < count; ++i) {
                         const std::uint32_t id = ids[i];
                         const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                        intersect_triangle4(sheared4[v], rays + 4 * v, sheared + 4 * v, p, id, active, ht, hu, hv, hp);
+                        intersect_triangle4(sheared4[v], rays + 4 * v, sheared + 4 * v, p, id, active, h4);
                     }
                     triangle_tests += static_cast<std::uint64_t>(count) *
                                       static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
-                    alignas(16) float st[4], su[4], sv[4];
-                    alignas(16) std::uint32_t sp[4];
-                    _mm_store_ps(st, ht);
-                    _mm_store_ps(su, hu);
-                    _mm_store_ps(sv, hv);
-                    _mm_store_si128(reinterpret_cast<__m128i*>(sp), hp);
-                    for (int k = 0; k < 4; ++k) h[k] = Hit{st[k], sp[k], su[k], sv[k]};
+                    h4.store(h);
                     continue;
                 }
                 for (int k = 0; k < 4; ++k) {
