@@ -236,9 +236,11 @@ def test_ray_packets_change_speed_not_answers() -> None:
     from vastray import scenes
     from vastray.camera import frame_bounds
 
-    mesh = scenes.to_mesh("plant", 100_000, 4)
+    # At this size and view, a single-ray early exit that trusted hits inside the split
+    # slack picked a farther surface than the packets on 3 pixels: keep it that big.
+    mesh = scenes.to_mesh("plant", 1_000_000, 1)
     scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colors)
-    cam = frame_bounds(*scene.bounds, width=256, height=192)
+    cam = frame_bounds(*scene.bounds, width=1024, height=768)
     args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
     frames = {p: scene.render(*args, packets=p) for p in (1, 4, 16)}
     for p in (4, 16):
