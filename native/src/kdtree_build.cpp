@@ -79,7 +79,7 @@ public:
 
 private:
     void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
-    void count_empty(const Box3f& cell, int depth, Output& out);
+    void count_empty(int depth, Output& out);
     void build_children(std::vector<PrimRef>& left, const Box3f& lcell, std::vector<PrimRef>& right,
                         const Box3f& rcell, int depth, int axis, float split, Output& out);
     bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
@@ -92,7 +92,7 @@ private:
     std::atomic<int> spare_threads_;
 };
 
-void Builder::count_empty(const Box3f&, int depth, Output& out) {
+void Builder::count_empty(int depth, Output& out) {
     out.stats.leaves++;
     out.stats.empty_leaves++;
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
@@ -149,7 +149,7 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
     if (left.empty() || right.empty()) {
         // One child is empty: it costs nothing but a flag; the other follows directly.
-        count_empty(left.empty() ? lcell : rcell, depth + 1, out);
+        count_empty(depth + 1, out);
         if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
         build(left.empty() ? right : left, left.empty() ? rcell : lcell, depth + 1, out);
         return;

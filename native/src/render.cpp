@@ -71,8 +71,8 @@ public:
         upv_ = v * tan_half;
         eye_ = cam.eye;
         const Vec3d diag = scene.world_hi() - scene.world_lo();
-        scene_scale_ = static_cast<float>(length(diag));
-        ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance) : 0.2f * scene_scale_;
+        ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
+                                              : 0.2f * static_cast<float>(length(diag));
         sun_ = Vec3f(normalize(params.sun_direction));
     }
 
@@ -245,7 +245,7 @@ private:
     const RenderParams& params_;
     Frame& frame_;
     Vec3d eye_, forward_, right_, upv_;
-    float scene_scale_ = 1, ao_distance_ = 1;
+    float ao_distance_ = 1;
     Vec3f sun_;
 };
 
