@@ -95,6 +95,7 @@ def test_render_builtin_scene_spec(tmp_path: Path) -> None:
         (["render", "scene:spheres:2000:1", "--eye", "1,2", "-o", "x.png"], "three comma-separated"),
         (["render", "scene:spheres:2000:1", "--eye", "nan,0,0", "-o", "x.png"], "non-finite"),
         (["render", "scene:spheres:2000:1", "--fov", "180", "-o", "x.png"], "fov"),
+        (["render", "scene:spheres:2000:1", "--fov", "0", "-o", "x.png"], "fov must be between"),
         (
             ["render", "scene:spheres:2000:1", "--eye", "0,0,0", "--target", "0,0,0", "-o", "x.png"],
             "coincide",

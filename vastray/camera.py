@@ -24,24 +24,6 @@ class Camera:
     width: int = 960
     height: int = 540
 
-    def validate(self) -> None:
-        """Raise ValueError with a readable reason for values no camera can have."""
-        values = (*self.eye, *self.target, *self.up, self.fov)
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError("camera values must be finite numbers")
-        view = np.subtract(self.target, self.eye)
-        if not np.any(view):
-            raise ValueError("camera eye and target coincide")
-        if not np.any(self.up):
-            raise ValueError("camera up vector has zero length")
-        side = np.cross(view / np.linalg.norm(view), np.divide(self.up, np.linalg.norm(self.up)))
-        if np.linalg.norm(side) <= 1e-9:
-            raise ValueError("camera up vector is parallel to the view direction")
-        if not 0.0 < self.fov < 180.0:
-            raise ValueError("fov must be between 0 and 180 degrees (exclusive)")
-        if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
-            raise ValueError("image size must be between 1x1 and 16384x16384")
-
     def primary_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays in pixel order (row by row, top row first), in float64 exactly as
         the native renderer computes them: pixel (x, y) looks along
@@ -84,6 +66,8 @@ def frame_bounds(
     """A camera that shows the whole bounding box, seen from `direction` (pointing from
     the model towards the eye): the eye backs off along that direction until all eight
     corners of the box project inside the frame, with a small margin."""
+    if not 0.0 < fov < 180.0:
+        raise ValueError("fov must be between 0 and 180 degrees (exclusive)")
     lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     centre = (lo_a + hi_a) / 2.0
     d = np.asarray(direction, dtype=np.float64)

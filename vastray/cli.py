@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 
 from vastray import __version__
+from vastray.render import SHADING_MODES
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
@@ -93,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--up", default="0,1,0", help="up vector x,y,z (default 0,1,0)")
     r.add_argument("--fov", type=float, default=45.0, help="vertical field of view in degrees")
     r.add_argument("--size", default="960x540", help="image size WIDTHxHEIGHT")
-    r.add_argument("--shading", default="headlight", choices=["normal", "headlight", "sun", "ao"])
+    r.add_argument("--shading", default="headlight", choices=SHADING_MODES)
     r.add_argument("--ao-samples", type=int, default=8, help="ambient-occlusion rays per pixel")
     r.add_argument("--threads", type=int, default=0, help="render threads (0: all cores)")
     r.add_argument("--leaf-size", type=int, default=2, help="kd-tree leaf size")

@@ -89,9 +89,7 @@ def render(
     ao_samples: int = 8,
     threads: int = 0,
 ) -> Frame:
-    if shading not in SHADING_MODES:
-        raise ValueError(f"unknown shading mode {shading!r} (choose from {', '.join(SHADING_MODES)})")
-    camera.validate()
+    # The native renderer validates the camera and shading name (ValueError with the reason).
     scene = model.scene if isinstance(model, Model) else model
     out = scene.render(
         eye=list(camera.eye),
