@@ -222,6 +222,8 @@ py::bytes lz4_decompress(const py::bytes& data, std::size_t raw_size) {
 
 }  // namespace
 
+void bind_model(py::module_& m);  // bindings_model.cpp
+
 PYBIND11_MODULE(native, m) {
     m.doc() = "vastray native core: kd-tree build, watertight ray tracing, tiled rendering";
     m.def("hardware_threads", &hardware_threads, "Lanes the global thread pool uses");
@@ -253,6 +255,8 @@ PYBIND11_MODULE(native, m) {
              py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
              py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("packets") = 16,
              "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
+
+    bind_model(m);
 
     m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),
           "Decode one LZ4 block (block format, no frame) of exactly raw_size bytes; ValueError if corrupt");

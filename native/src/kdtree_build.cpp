@@ -69,6 +69,37 @@ Box3f clip_to_half_space(const Vec3f& a, const Vec3f& b, const Vec3f& c, int axi
     return r;
 }
 
+// Bounds of the part of a triangle inside a box (Sutherland-Hodgman in double), or an
+// empty box when the triangle misses it. An out-of-core subtree receives every triangle
+// whose bounding box touches its cell; this gives each one its tight footprint there.
+Box3f clip_to_box(const Vec3f& a, const Vec3f& b, const Vec3f& c, const Box3f& box) {
+    Vec3d poly[9] = {Vec3d(a), Vec3d(b), Vec3d(c)}, next[9];
+    int n = 3;
+    for (int axis = 0; axis < 3 && n > 0; ++axis) {
+        for (int side = 0; side < 2 && n > 0; ++side) {
+            const double plane = side == 0 ? box.lo[axis] : box.hi[axis];
+            auto inside = [&](const Vec3d& q) { return side == 0 ? q[axis] >= plane : q[axis] <= plane; };
+            int m = 0;
+            for (int i = 0; i < n; ++i) {
+                const Vec3d& q0 = poly[i];
+                const Vec3d& q1 = poly[(i + 1) % n];
+                if (inside(q0)) next[m++] = q0;
+                if (inside(q0) != inside(q1) && m < 9) {
+                    const double s = (plane - q0[axis]) / (q1[axis] - q0[axis]);
+                    Vec3d x = q0 + (q1 - q0) * s;
+                    x[axis] = plane;
+                    next[m++] = x;
+                }
+            }
+            n = std::min(m, 9);
+            std::copy(next, next + n, poly);
+        }
+    }
+    Box3f r;
+    for (int i = 0; i < n; ++i) r.extend(Vec3f(poly[i]));
+    return r;
+}
+
 class Builder {
 public:
     Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
@@ -302,7 +333,7 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Ou
 
 }  // namespace
 
-KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
+KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const Box3f* cell) {
     const auto start = std::chrono::steady_clock::now();
     KdTree tree;
     if (soup.count >= KdNode::kMaxCount) throw std::length_error("too many triangles for an in-core kd-tree");
@@ -315,7 +346,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
     std::vector<Box3f> chunk_bounds(chunks);
     // Zero-area triangles (collinear in the stored float coordinates) cover no surface
     // and are left out: the sheared 2D test could otherwise give them a sliver of area.
-    constexpr std::uint32_t kDropped = 0xffffffffu;
+    constexpr std::uint32_t kDropped = 0xffffffffu, kOutside = 0xfffffffeu;
     pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
         Box3f bounds;
         const std::size_t end = std::min(soup.count, (c + 1) * chunk);
@@ -327,17 +358,35 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params) {
                 continue;
             }
             Box3f box;
-            for (int k = 0; k < 3; ++k) box.extend(soup.v(i, k));
+            if (cell != nullptr) {
+                box = clip_to_box(soup.v(i, 0), soup.v(i, 1), soup.v(i, 2), *cell);
+                // Touching the cell only in rounding still keeps the triangle (never drop
+                // a triangle from a cell it may overlap); one clearly outside is left out.
+                if (box.empty()) {
+                    Box3f full;
+                    for (int k = 0; k < 3; ++k) full.extend(soup.v(i, k));
+                    box = Box3f::intersection(widen(full), *cell);
+                    if (box.empty()) {
+                        refs[i] = {Box3f{}, kOutside};
+                        continue;
+                    }
+                } else {
+                    box = Box3f::intersection(widen(box), *cell);
+                }
+            } else {
+                for (int k = 0; k < 3; ++k) box.extend(soup.v(i, k));
+            }
             refs[i] = {box, static_cast<std::uint32_t>(i)};
             bounds.extend(box);
         }
         chunk_bounds[c] = bounds;
     }, params.threads);
-    const std::size_t before = refs.size();
-    refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }),
+    const std::size_t degenerate = static_cast<std::size_t>(
+        std::count_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }));
+    refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id >= kOutside; }),
                refs.end());
-    const std::size_t degenerate = before - refs.size();
     for (const Box3f& b : chunk_bounds) tree.bounds.extend(b);
+    if (cell != nullptr) tree.bounds = *cell;
     if (tree.bounds.empty()) tree.bounds = Box3f{{0, 0, 0}, {0, 0, 0}};
 
     int max_depth = params.max_depth;

@@ -93,6 +93,8 @@ struct TriangleSoup {
     const Vec3f& v(std::size_t tri, int k) const { return vertices[3 * tri + static_cast<std::size_t>(k)]; }
 };
 
-KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params);
+// cell: the root cell when the tree is one subtree of a larger one (out-of-core build);
+// triangles are clipped to it and those outside it are left out. Null: the triangles' bounds.
+KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const Box3f* cell = nullptr);
 
 }  // namespace vastray

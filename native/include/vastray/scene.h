@@ -21,6 +21,10 @@ public:
     Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
           std::size_t face_count, const std::uint8_t* colors, const KdBuildParams& params);
 
+    // A scene whose tree was built elsewhere (decoded from a built model).
+    Scene(const Vec3d& centre, std::vector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colors, KdTree&& tree)
+        : centre_(centre), tri_vertices_(std::move(tri_vertices)), colors_(std::move(colors)), tree_(std::move(tree)) {}
+
     std::size_t triangle_count() const { return tri_vertices_.size() / 3; }
     bool has_colors() const { return !colors_.empty(); }
     const Vec3d& centre() const { return centre_; }

@@ -1,0 +1,137 @@
+// Bit layouts of the out-of-core model format (docs/FORMAT.md is the specification;
+// this header is its single C++ transcription, shared by the writer and the readers).
+//
+// A model is a kd-tree cut into treelets of height 3. Treelets whose roots lie at depth
+// 3k form LOD level k and are packed into 64 KB blocks of that level; leaf triangles
+// live in triangle blocks, the last level. Block ids stored in nodes are relative to
+// the first block of the level they point into, so levels can be written as separate
+// streams and concatenated without patching.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <cstring>
+
+#include "vastray/vecmath.h"
+
+namespace vastray::format {
+
+constexpr std::size_t kBlockSize = 64 * 1024;
+constexpr int kTreeletHeight = 3;
+
+// ---- node word 0 ---------------------------------------------------------------------
+// inner nodes (bit 31 set):  bits 0-1 split axis, bit 2 left child empty, bit 3 right
+//                            child empty, bit 30 LOD node; word 1 split position (f32).
+//   basic (8 B):  bits 4-9   right child offset from this node, 8-byte units
+//                            (the left child, when present, follows directly).
+//   LOD (16 B):   bits 4-10  voxel offset from this node, 4-byte units
+//                 bits 11-16 right child treelet offset from the left one, 8-byte units
+//                 bits 17-29 first present child treelet's offset in the child block,
+//                            8-byte units
+//                 word 2 enclosing-sphere radius (f32), word 3 child block id (relative
+//                 to the next LOD level's first block).
+// leaf (8 B, bit 31 clear):  bits 0-15 first entry in the triangle block's list section,
+//                            bits 16-30 triangle count; word 1 triangle block id
+//                            (relative to the triangle level's first block).
+constexpr std::uint32_t kInner = 1u << 31;
+constexpr std::uint32_t kLod = 1u << 30;
+constexpr std::uint32_t kLeftEmpty = 1u << 2;
+constexpr std::uint32_t kRightEmpty = 1u << 3;
+constexpr std::uint32_t kMaxLeafTriangles = (1u << 15) - 1;
+
+inline std::uint32_t float_bits(float f) {
+    std::uint32_t u;
+    std::memcpy(&u, &f, sizeof u);
+    return u;
+}
+inline float bits_float(std::uint32_t u) {
+    float f;
+    std::memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+inline std::uint32_t basic_word(int axis, std::uint32_t empty, std::uint32_t right_off8) {
+    return kInner | static_cast<std::uint32_t>(axis) | empty | (right_off8 << 4);
+}
+inline std::uint32_t lod_word(int axis, std::uint32_t empty, std::uint32_t voxel_off4,
+                              std::uint32_t right_from_left8, std::uint32_t child_off8) {
+    return kInner | kLod | static_cast<std::uint32_t>(axis) | empty | (voxel_off4 << 4) |
+           (right_from_left8 << 11) | (child_off8 << 17);
+}
+inline std::uint32_t leaf_word(std::uint32_t first, std::uint32_t count) { return first | (count << 16); }
+
+inline bool is_inner(std::uint32_t w) { return (w & kInner) != 0; }
+inline bool is_lod(std::uint32_t w) { return (w & kLod) != 0; }
+inline int axis_of(std::uint32_t w) { return static_cast<int>(w & 3u); }
+inline std::uint32_t basic_right_off8(std::uint32_t w) { return (w >> 4) & 63u; }
+inline std::uint32_t lod_voxel_off4(std::uint32_t w) { return (w >> 4) & 127u; }
+inline std::uint32_t lod_right_from_left8(std::uint32_t w) { return (w >> 11) & 63u; }
+inline std::uint32_t lod_child_off8(std::uint32_t w) { return (w >> 17) & 8191u; }
+inline std::uint32_t leaf_first(std::uint32_t w) { return w & 0xffffu; }
+inline std::uint32_t leaf_count(std::uint32_t w) { return (w >> 16) & kMaxLeafTriangles; }
+
+// ---- voxel shading samples (paper 000 Table 1) ----------------------------------------
+// bits 0-4 red, 5-9 green, 10-14 blue; bit 15 normal sign, bits 16-17 normal axis,
+// bits 18-23 u, 24-29 v (6-bit two's complement, the cube-face coordinates times 31);
+// bit 31 set when the voxel has one sample (else six, in face order -x +x -y +y -z +z).
+constexpr std::uint32_t kOneSample = 1u << 31;
+
+inline std::uint32_t pack_sample(const Vec3f& colour, const Vec3f& normal, bool one_sample) {
+    auto q5 = [](float c) { return static_cast<std::uint32_t>(std::clamp(std::lround(c * 31.0f), 0L, 31L)); };
+    std::uint32_t s = q5(colour.x) | (q5(colour.y) << 5) | (q5(colour.z) << 10);
+    const float ax = std::abs(normal.x), ay = std::abs(normal.y), az = std::abs(normal.z);
+    const int axis = ax >= ay && ax >= az ? 0 : (ay >= az ? 1 : 2);
+    const float major = normal[axis];
+    if (major != 0 && std::isfinite(major)) {
+        const float inv = 1.0f / std::abs(major);
+        auto q6 = [&](float c) {
+            const long q = std::clamp(std::lround(c * inv * 31.0f), -31L, 31L);
+            return static_cast<std::uint32_t>(q) & 63u;
+        };
+        s |= (major < 0 ? 1u : 0u) << 15;
+        s |= static_cast<std::uint32_t>(axis) << 16;
+        s |= q6(normal[(axis + 1) % 3]) << 18;
+        s |= q6(normal[(axis + 2) % 3]) << 24;
+    }
+    if (one_sample) s |= kOneSample;
+    return s;
+}
+
+inline void unpack_sample(std::uint32_t s, Vec3f& colour, Vec3f& normal) {
+    colour = {static_cast<float>(s & 31u) / 31.0f, static_cast<float>((s >> 5) & 31u) / 31.0f,
+              static_cast<float>((s >> 10) & 31u) / 31.0f};
+    const int axis = static_cast<int>((s >> 16) & 3u) % 3;
+    auto s6 = [](std::uint32_t v) { return static_cast<float>(static_cast<int>(v << 26) >> 26) / 31.0f; };
+    Vec3f n;
+    n[axis] = (s >> 15) & 1u ? -1.0f : 1.0f;
+    n[(axis + 1) % 3] = s6((s >> 18) & 63u);
+    n[(axis + 2) % 3] = s6((s >> 24) & 63u);
+    normal = normalize(n);
+}
+
+// ---- triangle blocks --------------------------------------------------------------------
+// 16-byte header (u32 list entries, triangles, vertices, reserved 0), then the sections,
+// each starting on a 4-byte boundary:
+//   list       u16 per entry: triangle index in this block (leaves point into it)
+//   triangles  3 x u16 per triangle: vertex indices in this block
+//   ids        u32 per triangle: the input triangle index (for picking and checks)
+//   colours    u32 per triangle, 0x00BBGGRR, only when the model has colours
+//   vertices   3 x f32 per vertex, relative to the model centre
+struct TriangleBlockLayout {
+    std::size_t list = 16, triangles = 0, ids = 0, colours = 0, vertices = 0, end = 0;
+
+    static std::size_t pad4(std::size_t n) { return (n + 3) & ~std::size_t{3}; }
+    static TriangleBlockLayout of(std::size_t entries, std::size_t tris, std::size_t verts, bool has_colours) {
+        TriangleBlockLayout l;
+        l.triangles = l.list + pad4(2 * entries);
+        l.ids = l.triangles + pad4(6 * tris);
+        l.colours = l.ids + 4 * tris;
+        l.vertices = l.colours + (has_colours ? 4 * tris : 0);
+        l.end = l.vertices + 12 * verts;
+        return l;
+    }
+};
+
+}  // namespace vastray::format

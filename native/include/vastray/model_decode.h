@@ -1,0 +1,27 @@
+// Decodes a whole built model (every block, already decompressed and verified) into an
+// in-core Scene: the same kd-tree, re-encoded in the in-core node layout, with triangles
+// indexed by their input ids. This is the full-detail path for one-shot renders and
+// checks; interactive rendering reads blocks through the cache instead.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "vastray/scene.h"
+
+namespace vastray {
+
+struct DecodeInput {
+    std::vector<const std::uint8_t*> blocks;  // raw block bytes by global block id
+    std::vector<std::size_t> sizes;
+    std::vector<std::uint32_t> level_first;   // first block of each level; the last level holds triangles
+    Vec3d centre;
+    Box3f root_cell;
+    std::uint64_t triangle_ids = 0;           // one more than the largest input triangle id
+    bool has_colours = false;
+};
+
+std::shared_ptr<Scene> decode_model(const DecodeInput& in);
+
+}  // namespace vastray

@@ -1,0 +1,88 @@
+// Writes the out-of-core model format (docs/FORMAT.md): turns kd-subtrees into treelets
+// with LOD voxels, packs them into 64 KB blocks per LOD level and packs leaf triangles
+// into triangle blocks with shared vertices.
+//
+// The tree is written bottom-up. A treelet is finished only when everything below it
+// is, so its LOD nodes know where their child treelets went and their voxels can be
+// sampled from the finished level below. A finished treelet stays pending (in memory)
+// until its parent places it next to its sibling: the two children of a LOD node must
+// share a block, because the node stores one block id. Only the treelets along the
+// current path are pending, so memory stays bounded by the subtree being built.
+//
+// The caller (vastray.build) owns the top of the tree: it splits out of core with
+// temp files, hands each subtree that fits in memory to add_subtree(), then describes
+// the out-of-core treelets above them with add_inner_treelet().
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <unordered_map>
+#include <vector>
+
+#include "vastray/format.h"
+#include "vastray/kdtree.h"
+
+namespace vastray {
+
+struct ModelWriterParams {
+    KdBuildParams kd;
+    bool has_colours = false;
+    int voxel_rays_per_axis = 3;        // a k x k grid of rays per voxel face
+    float one_sample_colour = 0.05f;    // six samples collapse to one when every colour
+    float one_sample_normal = 0.10f;    // and normal component is this close to the mean
+};
+
+struct ModelWriterStats {
+    std::uint64_t basic_nodes = 0, lod_nodes = 0, leaves = 0, empty_children = 0;
+    std::uint64_t voxels_one = 0, voxels_six = 0, treelets = 0;
+    std::uint64_t references = 0;           // leaf triangle-list entries
+    std::uint64_t stored_triangles = 0;     // triangle records (a triangle repeats across blocks)
+    std::uint64_t stored_vertices = 0;
+    std::uint64_t degenerate = 0;           // zero-area triangles left out
+    std::uint64_t triangle_blocks = 0;
+    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels
+    std::uint64_t triangle_bytes = 0;
+    double kd_build_ms = 0, emit_ms = 0;
+    int max_depth = 0;
+};
+
+// Receives each finished raw block: level >= 0 is a node level, -1 the triangle level.
+using BlockSink = std::function<void(int level, const std::uint8_t* data, std::size_t size)>;
+// Reports leaf triangle references written so far (for progress bars).
+using ProgressSink = std::function<void(std::uint64_t references)>;
+
+class ModelWriter {
+public:
+    ModelWriter(const ModelWriterParams& params, BlockSink sink, ProgressSink progress);
+    ~ModelWriter();
+    ModelWriter(const ModelWriter&) = delete;
+    ModelWriter& operator=(const ModelWriter&) = delete;
+
+    // Builds a kd-tree over n triangles (9 floats each, model-local) inside `cell`,
+    // whose root sits at depth 3 * level, and writes all of it except its root treelet,
+    // which stays pending under the returned handle. ids: input triangle indices;
+    // colours: 0x00BBGGRR per triangle or null.
+    int add_subtree(const float* corners, const std::uint32_t* ids, const std::uint32_t* colours,
+                    std::size_t n, const Box3f& cell, int level);
+
+    // A treelet of three median-split levels above eight pending children. Nodes are in
+    // heap order (0 root, 1-2 its children, 3-6 grandchildren); child slot 2j + s
+    // belongs to grandchild j (s = 0 below the split). Handle -1: empty child.
+    int add_inner_treelet(int level, const Box3f& cell, const std::array<int, 7>& axes,
+                          const std::array<float, 7>& splits, const std::array<int, 8>& children);
+
+    // Writes the root treelet into level 0 and flushes every partly filled block.
+    void finish(int root);
+
+    const ModelWriterStats& stats() const { return stats_; }
+
+    struct Impl;
+
+private:
+    std::unique_ptr<Impl> impl_;
+    ModelWriterStats& stats_;
+};
+
+}  // namespace vastray

@@ -1,0 +1,164 @@
+// Python bindings of the model writer and decoder (part of vastray.native).
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <stdexcept>
+#include <string>
+
+#include "vastray/model_decode.h"
+#include "vastray/model_writer.h"
+
+namespace py = pybind11;
+using namespace vastray;
+
+namespace {
+
+using FloatArray = py::array_t<float, py::array::c_style | py::array::forcecast>;
+using UIntArray = py::array_t<std::uint32_t, py::array::c_style | py::array::forcecast>;
+
+Box3f to_box(const std::vector<double>& lo, const std::vector<double>& hi) {
+    if (lo.size() != 3 || hi.size() != 3) throw std::invalid_argument("cell corners must have three components");
+    Box3f b;
+    for (int a = 0; a < 3; ++a) {
+        b.lo[a] = static_cast<float>(lo[static_cast<std::size_t>(a)]);
+        b.hi[a] = static_cast<float>(hi[static_cast<std::size_t>(a)]);
+    }
+    if (b.empty()) throw std::invalid_argument("cell is empty (lo > hi)");
+    return b;
+}
+
+class PyModelWriter {
+public:
+    PyModelWriter(bool has_colours, py::function sink, py::object progress, int leaf_size, float traversal_cost,
+                  float intersection_cost, float empty_space_ratio, int bins, int voxel_rays, unsigned threads) {
+        ModelWriterParams p;
+        p.has_colours = has_colours;
+        p.kd.leaf_size = leaf_size;
+        p.kd.traversal_cost = traversal_cost;
+        p.kd.intersection_cost = intersection_cost;
+        p.kd.empty_space_ratio = empty_space_ratio;
+        p.kd.bins = bins;
+        p.kd.threads = threads;
+        p.voxel_rays_per_axis = voxel_rays;
+        if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
+            throw std::invalid_argument("invalid model build parameters");
+        }
+        // The writer runs with the GIL released; these take it back for each call.
+        BlockSink block_sink = [sink](int level, const std::uint8_t* data, std::size_t size) {
+            py::gil_scoped_acquire gil;
+            sink(level, py::bytes(reinterpret_cast<const char*>(data), size));
+        };
+        ProgressSink progress_sink;
+        if (!progress.is_none()) {
+            progress_sink = [progress](std::uint64_t refs) {
+                py::gil_scoped_acquire gil;
+                progress(refs);
+            };
+        }
+        writer_ = std::make_unique<ModelWriter>(p, std::move(block_sink), std::move(progress_sink));
+    }
+
+    int add_subtree(FloatArray corners, UIntArray ids, py::object colours, const std::vector<double>& lo,
+                    const std::vector<double>& hi, int level) {
+        const auto n = static_cast<std::size_t>(corners.size() / 9);
+        if (corners.size() % 9 != 0 || corners.ndim() < 2) throw std::invalid_argument("corners must have shape (n, 9) or (n, 3, 3)");
+        if (static_cast<std::size_t>(ids.size()) != n) throw std::invalid_argument("ids must have one entry per triangle");
+        UIntArray colour_array;
+        const std::uint32_t* colour_ptr = nullptr;
+        if (!colours.is_none()) {
+            colour_array = UIntArray::ensure(colours);
+            if (!colour_array || static_cast<std::size_t>(colour_array.size()) != n) {
+                throw std::invalid_argument("colours must be one uint32 per triangle");
+            }
+            colour_ptr = colour_array.data();
+        }
+        if (level < 0) throw std::invalid_argument("level must be >= 0");
+        const Box3f cell = to_box(lo, hi);
+        py::gil_scoped_release release;
+        return writer_->add_subtree(corners.data(), ids.data(), colour_ptr, n, cell, level);
+    }
+
+    int add_inner_treelet(int level, const std::vector<double>& lo, const std::vector<double>& hi,
+                          const std::array<int, 7>& axes, const std::array<float, 7>& splits,
+                          const std::array<int, 8>& children) {
+        const Box3f cell = to_box(lo, hi);
+        py::gil_scoped_release release;
+        return writer_->add_inner_treelet(level, cell, axes, splits, children);
+    }
+
+    void finish(int root) {
+        py::gil_scoped_release release;
+        writer_->finish(root);
+    }
+
+    py::dict stats() const {
+        const ModelWriterStats& s = writer_->stats();
+        py::dict d;
+        d["basic_nodes"] = s.basic_nodes;
+        d["lod_nodes"] = s.lod_nodes;
+        d["leaves"] = s.leaves;
+        d["empty_children"] = s.empty_children;
+        d["voxels_one"] = s.voxels_one;
+        d["voxels_six"] = s.voxels_six;
+        d["treelets"] = s.treelets;
+        d["references"] = s.references;
+        d["stored_triangles"] = s.stored_triangles;
+        d["stored_vertices"] = s.stored_vertices;
+        d["degenerate"] = s.degenerate;
+        d["triangle_blocks"] = s.triangle_blocks;
+        d["triangle_bytes"] = s.triangle_bytes;
+        d["level_blocks"] = s.level_blocks;
+        d["level_bytes"] = s.level_bytes;
+        d["kd_build_ms"] = s.kd_build_ms;
+        d["emit_ms"] = s.emit_ms;
+        d["max_depth"] = s.max_depth;
+        return d;
+    }
+
+private:
+    std::unique_ptr<ModelWriter> writer_;
+};
+
+std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& level_first,
+                              const std::vector<double>& centre, const std::vector<double>& lo,
+                              const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours) {
+    DecodeInput in;
+    std::vector<std::string_view> views;
+    for (const py::handle& b : blocks) {
+        const std::string_view v = b.cast<py::bytes>();
+        in.blocks.push_back(reinterpret_cast<const std::uint8_t*>(v.data()));
+        in.sizes.push_back(v.size());
+    }
+    in.level_first = level_first;
+    if (centre.size() != 3) throw std::invalid_argument("centre must have three components");
+    in.centre = {centre[0], centre[1], centre[2]};
+    in.root_cell = to_box(lo, hi);
+    in.triangle_ids = triangle_ids;
+    in.has_colours = has_colours;
+    for (std::uint32_t f : level_first) {
+        if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
+    }
+    py::gil_scoped_release release;  // `blocks` keeps every bytes object alive meanwhile
+    return decode_model(in);
+}
+
+}  // namespace
+
+void bind_model(py::module_& m) {
+    py::class_<PyModelWriter>(m, "ModelWriter", "Writes kd-subtrees as treelets, voxels and triangle blocks")
+        .def(py::init<bool, py::function, py::object, int, float, float, float, int, int, unsigned>(),
+             py::arg("has_colours"), py::arg("sink"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
+             py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
+             py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
+             py::arg("threads") = 0u)
+        .def("add_subtree", &PyModelWriter::add_subtree, py::arg("corners"), py::arg("ids"), py::arg("colours"),
+             py::arg("lo"), py::arg("hi"), py::arg("level"))
+        .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
+             py::arg("axes"), py::arg("splits"), py::arg("children"))
+        .def("finish", &PyModelWriter::finish, py::arg("root"))
+        .def_property_readonly("stats", &PyModelWriter::stats);
+    m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),
+          py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"),
+          "Decode a whole model (raw blocks by global id) into an in-core Scene");
+}

@@ -1,0 +1,134 @@
+#include "vastray/model_decode.h"
+
+#include <stdexcept>
+#include <string>
+
+#include "vastray/format.h"
+
+namespace vastray {
+
+using namespace format;
+
+namespace {
+
+class Decoder {
+public:
+    explicit Decoder(const DecodeInput& in) : in_(in) {
+        if (in.level_first.size() < 2) throw std::runtime_error("model has no levels");
+        tri_level_ = in.level_first.size() - 1;
+        vertices_.resize(3 * in.triangle_ids);
+        seen_.assign(in.triangle_ids, 0);
+        if (in.has_colours) colours_.resize(3 * in.triangle_ids);
+    }
+
+    std::shared_ptr<Scene> run() {
+        walk(in_.level_first[0], 0, 0, 0);
+        KdTree tree;
+        tree.nodes = std::move(nodes_);
+        tree.tri_ids = std::move(tri_ids_);
+        tree.bounds = in_.root_cell;
+        tree.stats.nodes = tree.nodes.size();
+        tree.stats.references = tree.tri_ids.size();
+        return std::make_shared<Scene>(in_.centre, std::move(vertices_), std::move(colours_), std::move(tree));
+    }
+
+private:
+    [[noreturn]] static void bad(std::size_t block, const std::string& what) {
+        throw std::runtime_error("model block " + std::to_string(block) + ": " + what);
+    }
+
+    std::uint32_t word(std::size_t block, std::size_t off) const {
+        if (off + 4 > in_.sizes[block]) bad(block, "node at offset " + std::to_string(off) + " runs past the block end");
+        std::uint32_t w;
+        std::memcpy(&w, in_.blocks[block] + off, 4);
+        return w;
+    }
+
+    std::size_t block_of(std::size_t level, std::uint32_t relative, std::size_t from) const {
+        const std::size_t level_end = level + 1 < in_.level_first.size() ? in_.level_first[level + 1] : in_.blocks.size();
+        const std::size_t b = in_.level_first[level] + relative;
+        if (b >= level_end) bad(from, "child block " + std::to_string(relative) + " is outside level " + std::to_string(level));
+        return b;
+    }
+
+    void walk(std::size_t block, std::size_t off, std::size_t level, int depth) {
+        if (depth > 200) bad(block, "tree deeper than 200 levels (cycle?)");
+        const std::uint32_t w = word(block, off);
+        if (!is_inner(w)) {
+            leaf(block, w, word(block, off + 4));
+            return;
+        }
+        const float split = bits_float(word(block, off + 4));
+        const std::uint32_t empty = w & (kLeftEmpty | kRightEmpty);
+        const bool has_l = (empty & kLeftEmpty) == 0, has_r = (empty & kRightEmpty) == 0;
+        if (!has_l && !has_r) bad(block, "inner node with two empty children");
+        const std::size_t self = nodes_.size();
+        nodes_.push_back(KdNode::inner(axis_of(w), split, 0, (has_l ? 0 : KdNode::kLeftEmpty) | (has_r ? 0 : KdNode::kRightEmpty)));
+        std::size_t l_block = block, r_block = block, l_off = off + 8, r_off = 0, child_level = level;
+        if (is_lod(w)) {
+            if (level + 1 >= tri_level_) bad(block, "LOD node in the last node level");
+            child_level = level + 1;
+            l_block = r_block = block_of(child_level, word(block, off + 12), block);
+            l_off = 8 * static_cast<std::size_t>(lod_child_off8(w));
+            r_off = has_l ? l_off + 8 * static_cast<std::size_t>(lod_right_from_left8(w)) : l_off;
+        } else {
+            r_off = has_l ? off + 8 * static_cast<std::size_t>(basic_right_off8(w)) : off + 8;
+            if (has_r && r_off <= off + 8 && has_l) bad(block, "right child offset does not point past the left child");
+        }
+        if (has_l) walk(l_block, l_off, child_level, depth + 1);
+        if (has_r) {
+            const std::size_t right_index = nodes_.size();
+            walk(r_block, r_off, child_level, depth + 1);
+            if (has_l) nodes_[self] = KdNode::inner(axis_of(w), split, static_cast<std::uint32_t>(right_index - self), 0);
+            else nodes_[self] = KdNode::inner(axis_of(w), split, 1, KdNode::kLeftEmpty);
+        }
+    }
+
+    void leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
+        const std::size_t b = block_of(tri_level_, tri_block, from);
+        const std::uint8_t* data = in_.blocks[b];
+        if (in_.sizes[b] < 16) bad(b, "triangle block shorter than its header");
+        std::uint32_t header[4];
+        std::memcpy(header, data, sizeof header);
+        const TriangleBlockLayout l = TriangleBlockLayout::of(header[0], header[1], header[2], in_.has_colours);
+        if (l.end != in_.sizes[b]) bad(b, "triangle block size does not match its section counts");
+        const std::uint32_t first = leaf_first(w), count = leaf_count(w);
+        if (first + count > header[0]) bad(b, "leaf list runs past the list section");
+        nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), count));
+        for (std::uint32_t i = 0; i < count; ++i) {
+            std::uint16_t local;
+            std::memcpy(&local, data + l.list + 2 * (first + i), 2);
+            if (local >= header[1]) bad(b, "list entry points past the triangle section");
+            std::uint32_t id;
+            std::memcpy(&id, data + l.ids + 4 * std::size_t{local}, 4);
+            if (id >= seen_.size()) bad(b, "triangle id " + std::to_string(id) + " is out of range");
+            tri_ids_.push_back(id);
+            if (seen_[id]) continue;
+            seen_[id] = 1;
+            for (int k = 0; k < 3; ++k) {
+                std::uint16_t v;
+                std::memcpy(&v, data + l.triangles + 6 * std::size_t{local} + 2 * static_cast<std::size_t>(k), 2);
+                if (v >= header[2]) bad(b, "triangle points past the vertex section");
+                std::memcpy(&vertices_[3 * std::size_t{id} + static_cast<std::size_t>(k)], data + l.vertices + 12 * std::size_t{v}, 12);
+            }
+            if (in_.has_colours) {
+                std::uint32_t c;
+                std::memcpy(&c, data + l.colours + 4 * std::size_t{local}, 4);
+                for (int k = 0; k < 3; ++k) colours_[3 * std::size_t{id} + static_cast<std::size_t>(k)] = static_cast<std::uint8_t>(c >> (8 * k));
+            }
+        }
+    }
+
+    const DecodeInput& in_;
+    std::size_t tri_level_ = 0;
+    std::vector<KdNode> nodes_;
+    std::vector<std::uint32_t> tri_ids_;
+    std::vector<Vec3f> vertices_;
+    std::vector<std::uint8_t> seen_, colours_;
+};
+
+}  // namespace
+
+std::shared_ptr<Scene> decode_model(const DecodeInput& in) { return Decoder(in).run(); }
+
+}  // namespace vastray

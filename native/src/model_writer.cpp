@@ -1,0 +1,663 @@
+#include "vastray/model_writer.h"
+
+#include <chrono>
+#include <stdexcept>
+#include <string>
+#include <utility>
+
+namespace vastray {
+
+using namespace format;
+
+namespace {
+
+// Face f = 2 * axis + side: side 0 is the face at the low end of the axis (looked at
+// from -axis), side 1 the high one. A sample for face f describes what a viewer outside
+// that face sees, so its normal is oriented towards the viewer (dot(n, outward_f) >= 0).
+Vec3f outward(int f) {
+    Vec3f o;
+    o[f / 2] = (f % 2) != 0 ? 1.0f : -1.0f;
+    return o;
+}
+
+struct FaceSamples {
+    Vec3f colour[6];
+    Vec3f normal[6];
+};
+
+// What a finished treelet looks like to the LOD node above it: its voxels and leaves as
+// boxes with per-face samples. Voxels are sampled against these, one level finer.
+struct Proxy {
+    Box3f box;
+    FaceSamples s;
+};
+
+struct Pending {
+    std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes
+    std::vector<Proxy> proxies;
+};
+
+struct LocalNode {
+    enum Kind { Basic, Lod, Leaf } kind = Basic;
+    int axis = 0;
+    float split = 0;
+    Box3f cell;
+    std::uint32_t empty = 0;
+    int left = -1, right = -1;              // basic: local indices of the children
+    std::uint32_t kd_left = 0, kd_right = 0;  // LOD (in-core): kd-tree indices of the children
+    int child_handles[2] = {-1, -1};        // LOD (out of core): pending children
+    float radius = 0;
+    std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;
+    std::uint32_t samples[6] = {};
+    int sample_count = 0;
+    std::uint32_t kd_node = 0;              // leaf (in-core): its kd node
+    std::uint32_t tri_block = 0, first = 0, count = 0;
+    std::size_t offset = 0;
+};
+
+Box3f child_cell(const Box3f& cell, int axis, float split, int side) {
+    Box3f c = cell;
+    (side == 0 ? c.hi : c.lo)[axis] = split;
+    return c;
+}
+
+// Open addressing for the per-block dedup tables (at most a few thousand entries, so
+// a fixed table cleared through its used-slot list beats a node-based map).
+template <typename Key, typename Hash>
+class SmallMap {
+public:
+    explicit SmallMap(std::size_t capacity_log2 = 15)
+        : mask_((std::size_t{1} << capacity_log2) - 1), keys_(mask_ + 1), values_(mask_ + 1, kFree) {}
+    // Returns the value for key, inserting `fresh` if absent.
+    std::uint32_t find_or_insert(const Key& key, std::uint32_t fresh, bool& inserted) {
+        std::size_t i = Hash{}(key) & mask_;
+        for (;;) {
+            if (values_[i] == kFree) {
+                keys_[i] = key;
+                values_[i] = fresh;
+                used_.push_back(i);
+                inserted = true;
+                return fresh;
+            }
+            if (keys_[i] == key) {
+                inserted = false;
+                return values_[i];
+            }
+            i = (i + 1) & mask_;
+        }
+    }
+    void clear() {
+        for (std::size_t i : used_) values_[i] = kFree;
+        used_.clear();
+    }
+
+private:
+    static constexpr std::uint32_t kFree = 0xffffffffu;
+    std::size_t mask_;
+    std::vector<Key> keys_;
+    std::vector<std::uint32_t> values_;
+    std::vector<std::size_t> used_;
+};
+
+struct IdHash {
+    std::size_t operator()(std::uint32_t v) const { return static_cast<std::size_t>(v * 0x9E3779B1u) >> 7; }
+};
+using VertexKey = std::array<std::uint32_t, 3>;
+struct VertexHash {
+    std::size_t operator()(const VertexKey& k) const {
+        std::uint64_t h = k[0] * 0x9E3779B97F4A7C15ull;
+        h ^= (h >> 29) + k[1] * 0xBF58476D1CE4E5B9ull;
+        h ^= (h >> 31) + k[2] * 0x94D049BB133111EBull;
+        return static_cast<std::size_t>(h ^ (h >> 32));
+    }
+};
+
+// Packs leaf triangle lists into triangle blocks: a list section pointing at triangle
+// records, which point at vertices shared within the block (paper 000 §4.6).
+class TriangleBlocks {
+public:
+    TriangleBlocks(bool has_colours, BlockSink& sink, ModelWriterStats& stats)
+        : has_colours_(has_colours), sink_(sink), stats_(stats) {}
+
+    // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
+    std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
+                                                     const Vec3f* corners, const std::uint32_t* ids,
+                                                     const std::uint32_t* colours) {
+        const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
+        insert(tris, count, corners, ids, colours);
+        if (layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
+        // Too full: close the block as it was before this leaf and start a fresh one.
+        list_.resize(list0);
+        ids_.resize(tri0);
+        tri_verts_.resize(3 * tri0);
+        if (has_colours_) colours_.resize(tri0);
+        verts_.resize(vert0);
+        flush();
+        insert(tris, count, corners, ids, colours);
+        if (layout().end > kBlockSize) {
+            throw std::length_error("a kd-tree leaf with " + std::to_string(count) +
+                                    " triangles does not fit in one 64 KB triangle block");
+        }
+        return {blocks_, 0};
+    }
+
+    void flush() {
+        if (list_.empty()) return;
+        const TriangleBlockLayout l = layout();
+        std::vector<std::uint8_t> out(l.end, 0);
+        const std::uint32_t header[4] = {static_cast<std::uint32_t>(list_.size()),
+                                         static_cast<std::uint32_t>(ids_.size()),
+                                         static_cast<std::uint32_t>(verts_.size()), 0};
+        std::memcpy(out.data(), header, sizeof header);
+        std::memcpy(out.data() + l.list, list_.data(), 2 * list_.size());
+        std::memcpy(out.data() + l.triangles, tri_verts_.data(), 2 * tri_verts_.size());
+        std::memcpy(out.data() + l.ids, ids_.data(), 4 * ids_.size());
+        if (has_colours_) std::memcpy(out.data() + l.colours, colours_.data(), 4 * colours_.size());
+        std::memcpy(out.data() + l.vertices, verts_.data(), 12 * verts_.size());
+        sink_(-1, out.data(), out.size());
+        stats_.stored_triangles += ids_.size();
+        stats_.stored_vertices += verts_.size();
+        stats_.triangle_blocks++;
+        stats_.triangle_bytes += out.size();
+        ++blocks_;
+        list_.clear();
+        ids_.clear();
+        tri_verts_.clear();
+        colours_.clear();
+        verts_.clear();
+        id_map_.clear();
+        vertex_map_.clear();
+    }
+
+private:
+    TriangleBlockLayout layout() const {
+        return TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_);
+    }
+
+    void insert(const std::uint32_t* tris, std::uint32_t count, const Vec3f* corners,
+                const std::uint32_t* ids, const std::uint32_t* colours) {
+        for (std::uint32_t i = 0; i < count; ++i) {
+            const std::uint32_t t = tris[i];
+            bool fresh = false;
+            const std::uint32_t local = id_map_.find_or_insert(ids[t], static_cast<std::uint32_t>(ids_.size()), fresh);
+            if (fresh) {
+                ids_.push_back(ids[t]);
+                if (has_colours_) colours_.push_back(colours[t]);
+                for (int k = 0; k < 3; ++k) {
+                    const Vec3f& p = corners[3 * static_cast<std::size_t>(t) + static_cast<std::size_t>(k)];
+                    const VertexKey key{float_bits(p.x), float_bits(p.y), float_bits(p.z)};
+                    bool new_vertex = false;
+                    const std::uint32_t v =
+                        vertex_map_.find_or_insert(key, static_cast<std::uint32_t>(verts_.size()), new_vertex);
+                    if (new_vertex) verts_.push_back(p);
+                    tri_verts_.push_back(static_cast<std::uint16_t>(v));
+                }
+            }
+            list_.push_back(static_cast<std::uint16_t>(local));
+        }
+    }
+
+    bool has_colours_;
+    BlockSink& sink_;
+    ModelWriterStats& stats_;
+    std::uint32_t blocks_ = 0;
+    std::vector<std::uint16_t> list_, tri_verts_;
+    std::vector<std::uint32_t> ids_, colours_;
+    std::vector<Vec3f> verts_;
+    SmallMap<std::uint32_t, IdHash> id_map_;
+    SmallMap<VertexKey, VertexHash> vertex_map_;
+};
+
+}  // namespace
+
+struct ModelWriter::Impl {
+    ModelWriterParams p;
+    BlockSink sink;
+    ProgressSink progress;
+    ModelWriterStats stats;
+    std::vector<std::vector<std::uint8_t>> level_buf;
+    TriangleBlocks triangles;
+    std::unordered_map<int, Pending> pending;
+    int next_handle = 0;
+    std::uint64_t last_progress = 0;
+
+    // The subtree being emitted (add_subtree).
+    const KdTree* tree = nullptr;
+    const Vec3f* corners = nullptr;
+    const std::uint32_t* ids = nullptr;
+    const std::uint32_t* colours = nullptr;
+
+    Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
+        : p(params), sink(std::move(s)), progress(std::move(pr)), triangles(params.has_colours, sink, stats) {}
+
+    int keep(Pending&& t) {
+        const int h = next_handle++;
+        pending.emplace(h, std::move(t));
+        return h;
+    }
+    Pending take(int handle) {
+        auto it = pending.find(handle);
+        if (it == pending.end()) throw std::invalid_argument("unknown or already used treelet handle " + std::to_string(handle));
+        Pending t = std::move(it->second);
+        pending.erase(it);
+        return t;
+    }
+
+    void flush_level(std::size_t level) {
+        auto& buf = level_buf[level];
+        if (buf.empty()) return;
+        sink(static_cast<int>(level), buf.data(), buf.size());
+        stats.level_blocks[level]++;
+        stats.level_bytes[level] += buf.size();
+        buf.clear();
+    }
+
+    // Places sibling treelets contiguously in one block of `level`; returns the block id
+    // and the first one's offset.
+    std::pair<std::uint32_t, std::size_t> place(std::size_t level, const Pending* a, const Pending* b) {
+        if (level_buf.size() <= level) {
+            level_buf.resize(level + 1);
+            stats.level_blocks.resize(level + 1, 0);
+            stats.level_bytes.resize(level + 1, 0);
+        }
+        auto& buf = level_buf[level];
+        const std::size_t need = (a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0);
+        if (buf.size() + need > kBlockSize) flush_level(level);
+        const std::size_t off = buf.size();
+        if (a) buf.insert(buf.end(), a->bytes.begin(), a->bytes.end());
+        if (b) buf.insert(buf.end(), b->bytes.begin(), b->bytes.end());
+        stats.treelets += (a ? 1 : 0) + (b ? 1 : 0);
+        return {static_cast<std::uint32_t>(stats.level_blocks[level]), off};
+    }
+
+    // ---- voxels ------------------------------------------------------------------------
+
+    // Orthographic rays from each face of the cell into the finished level below: the
+    // nearest proxy along each ray is what a viewer on that side sees there.
+    FaceSamples sample_voxel(const Box3f& cell, const Pending* a, const Pending* b) const {
+        FaceSamples out;
+        bool have[6] = {};
+        const int k = std::max(1, p.voxel_rays_per_axis);
+        for (int f = 0; f < 6; ++f) {
+            const int axis = f / 2, side = f % 2, u = (axis + 1) % 3, v = (axis + 2) % 3;
+            Vec3f colour, normal;
+            int hits = 0;
+            for (int i = 0; i < k; ++i) {
+                const float pu = cell.lo[u] + (cell.hi[u] - cell.lo[u]) * (static_cast<float>(i) + 0.5f) / static_cast<float>(k);
+                for (int j = 0; j < k; ++j) {
+                    const float pv = cell.lo[v] + (cell.hi[v] - cell.lo[v]) * (static_cast<float>(j) + 0.5f) / static_cast<float>(k);
+                    const Proxy* best = nullptr;
+                    float best_d = std::numeric_limits<float>::infinity();
+                    for (const Pending* t : {a, b}) {
+                        if (t == nullptr) continue;
+                        for (const Proxy& q : t->proxies) {
+                            if (pu < q.box.lo[u] || pu > q.box.hi[u] || pv < q.box.lo[v] || pv > q.box.hi[v]) continue;
+                            const float d = side == 0 ? q.box.lo[axis] : -q.box.hi[axis];
+                            if (d < best_d) {
+                                best_d = d;
+                                best = &q;
+                            }
+                        }
+                    }
+                    if (best == nullptr) continue;
+                    colour += best->s.colour[f];
+                    normal += best->s.normal[f];
+                    ++hits;
+                }
+            }
+            if (hits > 0 && dot(normal, normal) > 0) {
+                out.colour[f] = colour / static_cast<float>(hits);
+                out.normal[f] = normalize(normal);
+                have[f] = true;
+            }
+        }
+        // Faces no ray saw anything through (thin geometry between the rays) borrow from
+        // the faces that did, or from every proxy when none did.
+        Vec3f colour_sum, normal_sum;
+        int seen = 0;
+        for (int f = 0; f < 6; ++f) {
+            if (!have[f]) continue;
+            colour_sum += out.colour[f];
+            ++seen;
+        }
+        if (seen == 0) {
+            int n = 0;
+            for (const Pending* t : {a, b}) {
+                if (t == nullptr) continue;
+                for (const Proxy& q : t->proxies) {
+                    for (int f = 0; f < 6; ++f) colour_sum += q.s.colour[f];
+                    n += 6;
+                }
+            }
+            colour_sum = n > 0 ? colour_sum / static_cast<float>(n) : Vec3f(0.75f, 0.75f, 0.75f);
+        } else {
+            colour_sum = colour_sum / static_cast<float>(seen);
+        }
+        for (int f = 0; f < 6; ++f) {
+            if (have[f]) continue;
+            const Vec3f o = outward(f);
+            normal_sum = Vec3f();
+            for (int g = 0; g < 6; ++g) {
+                if (have[g]) normal_sum += out.normal[g] * (dot(out.normal[g], o) < 0 ? -1.0f : 1.0f);
+            }
+            out.colour[f] = colour_sum;
+            out.normal[f] = dot(normal_sum, normal_sum) > 0 ? normalize(normal_sum) : o;
+        }
+        return out;
+    }
+
+    // Quantises the six samples, collapsing them to one when they agree (normals up to
+    // sign: shading is two-sided). Returns the samples the level above will see.
+    FaceSamples store_voxel(const FaceSamples& s, LocalNode& node) {
+        Vec3f cm, nm;
+        for (int f = 0; f < 6; ++f) {
+            cm += s.colour[f];
+            nm += s.normal[f] * (dot(s.normal[f], s.normal[0]) < 0 ? -1.0f : 1.0f);
+        }
+        cm = cm / 6.0f;
+        nm = dot(nm, nm) > 0 ? normalize(nm) : s.normal[0];
+        bool one = true;
+        for (int f = 0; f < 6 && one; ++f) {
+            const Vec3f n = s.normal[f] * (dot(s.normal[f], nm) < 0 ? -1.0f : 1.0f);
+            for (int c = 0; c < 3; ++c) {
+                if (std::abs(s.colour[f][c] - cm[c]) > p.one_sample_colour ||
+                    std::abs(n[c] - nm[c]) > p.one_sample_normal) {
+                    one = false;
+                }
+            }
+        }
+        FaceSamples seen = s;
+        if (one) {
+            node.samples[0] = pack_sample(cm, nm, true);
+            node.sample_count = 1;
+            stats.voxels_one++;
+            for (int f = 0; f < 6; ++f) {
+                seen.colour[f] = cm;
+                seen.normal[f] = nm * (dot(nm, outward(f)) < 0 ? -1.0f : 1.0f);
+            }
+        } else {
+            for (int f = 0; f < 6; ++f) node.samples[f] = pack_sample(s.colour[f], s.normal[f], false);
+            node.sample_count = 6;
+            stats.voxels_six++;
+        }
+        return seen;
+    }
+
+    Proxy leaf_proxy(const std::uint32_t* tris, std::uint32_t count, const Box3f& cell) const {
+        Proxy q;
+        Vec3f csum[6], nsum[6];
+        float wsum[6] = {}, area_sum = 0;
+        Vec3f cflat;
+        for (std::uint32_t i = 0; i < count; ++i) {
+            const Vec3f* v = corners + 3 * static_cast<std::size_t>(tris[i]);
+            for (int k = 0; k < 3; ++k) q.box.extend(v[k]);
+            Vec3f n = cross(v[1] - v[0], v[2] - v[0]);
+            const float area = 0.5f * length(n);
+            if (!(area > 0)) continue;
+            n = n / (2.0f * area);
+            Vec3f c(0.75f, 0.75f, 0.75f);
+            if (colours != nullptr) {
+                const std::uint32_t rgb = colours[tris[i]];
+                c = Vec3f(static_cast<float>(rgb & 255u), static_cast<float>((rgb >> 8) & 255u),
+                          static_cast<float>((rgb >> 16) & 255u)) / 255.0f;
+            }
+            cflat += c * area;
+            area_sum += area;
+            for (int f = 0; f < 6; ++f) {
+                // Weighted by the area seen from face f, oriented towards that viewer.
+                const float proj = dot(n, outward(f));
+                const float w = area * std::abs(proj);
+                csum[f] += c * w;
+                nsum[f] += n * (proj < 0 ? -w : w);
+                wsum[f] += w;
+            }
+        }
+        q.box = Box3f::intersection(q.box, cell);
+        if (q.box.empty()) q.box = cell;
+        const Vec3f grey(0.75f, 0.75f, 0.75f);
+        for (int f = 0; f < 6; ++f) {
+            if (wsum[f] > 0 && dot(nsum[f], nsum[f]) > 0) {
+                q.s.colour[f] = csum[f] / wsum[f];
+                q.s.normal[f] = normalize(nsum[f]);
+            } else {
+                q.s.colour[f] = area_sum > 0 ? cflat / area_sum : grey;
+                q.s.normal[f] = outward(f);
+            }
+        }
+        return q;
+    }
+
+    // ---- treelets ----------------------------------------------------------------------
+
+    // Finishes a LOD node whose children are finished: samples its voxel, places the
+    // children side by side one level down, and records where they went.
+    void finish_lod(LocalNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
+        const FaceSamples s = sample_voxel(node.cell, a, b);
+        const FaceSamples seen = store_voxel(s, node);
+        self.proxies.push_back({node.cell, seen});
+        const auto [block, off] = place(level + 1, a, b);
+        node.child_block = block;
+        node.child_off8 = static_cast<std::uint32_t>(off / 8);
+        node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
+        const Vec3f e = node.cell.extent();
+        node.radius = 0.5f * length(e);
+    }
+
+    void serialise(std::vector<LocalNode>& nodes, Pending& out) {
+        std::size_t cursor = 0;
+        for (LocalNode& n : nodes) {
+            n.offset = cursor;
+            cursor += n.kind == LocalNode::Lod ? 16 : 8;
+        }
+        std::vector<std::size_t> voxel_at(nodes.size(), 0);
+        for (std::size_t i = 0; i < nodes.size(); ++i) {
+            if (nodes[i].kind != LocalNode::Lod) continue;
+            voxel_at[i] = cursor;
+            cursor += 4 * static_cast<std::size_t>(nodes[i].sample_count);
+        }
+        cursor = (cursor + 7) & ~std::size_t{7};
+        out.bytes.assign(cursor, 0);
+        auto put = [&](std::size_t at, std::uint32_t w) { std::memcpy(out.bytes.data() + at, &w, 4); };
+        for (std::size_t i = 0; i < nodes.size(); ++i) {
+            const LocalNode& n = nodes[i];
+            switch (n.kind) {
+                case LocalNode::Basic: {
+                    const std::uint32_t right8 =
+                        n.right >= 0 ? static_cast<std::uint32_t>((nodes[static_cast<std::size_t>(n.right)].offset - n.offset) / 8) : 0;
+                    put(n.offset, basic_word(n.axis, n.empty, right8));
+                    put(n.offset + 4, float_bits(n.split));
+                    break;
+                }
+                case LocalNode::Lod: {
+                    const auto voxel4 = static_cast<std::uint32_t>((voxel_at[i] - n.offset) / 4);
+                    if (voxel4 > 127 || n.right_from_left8 > 63 || n.child_off8 > 8191) {
+                        throw std::logic_error("LOD node field overflow");
+                    }
+                    put(n.offset, lod_word(n.axis, n.empty, voxel4, n.right_from_left8, n.child_off8));
+                    put(n.offset + 4, float_bits(n.split));
+                    put(n.offset + 8, float_bits(n.radius));
+                    put(n.offset + 12, n.child_block);
+                    for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
+                    break;
+                }
+                case LocalNode::Leaf:
+                    put(n.offset, leaf_word(n.first, n.count));
+                    put(n.offset + 4, n.tri_block);
+                    break;
+            }
+        }
+    }
+
+    void collect_kd(std::uint32_t index, const Box3f& cell, int depth, std::vector<LocalNode>& nodes) {
+        const KdNode& k = tree->nodes[index];
+        LocalNode n;
+        n.cell = cell;
+        if (k.is_leaf()) {
+            n.kind = LocalNode::Leaf;
+            n.kd_node = index;
+            nodes.push_back(n);
+            return;
+        }
+        n.axis = k.axis();
+        n.split = k.split();
+        n.empty = (k.left_empty() ? kLeftEmpty : 0u) | (k.right_empty() ? kRightEmpty : 0u);
+        const std::uint32_t left = index + 1, right = index + k.right_offset();
+        if (depth == kTreeletHeight - 1) {
+            n.kind = LocalNode::Lod;
+            n.kd_left = left;
+            n.kd_right = right;
+            nodes.push_back(n);
+            return;
+        }
+        const std::size_t self = nodes.size();
+        nodes.push_back(n);
+        if (!k.left_empty()) {
+            nodes[self].left = static_cast<int>(nodes.size());
+            collect_kd(left, child_cell(cell, n.axis, n.split, 0), depth + 1, nodes);
+        }
+        if (!k.right_empty()) {
+            nodes[self].right = static_cast<int>(nodes.size());
+            collect_kd(right, child_cell(cell, n.axis, n.split, 1), depth + 1, nodes);
+        }
+    }
+
+    Pending emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level) {
+        std::vector<LocalNode> nodes;
+        nodes.reserve(7);
+        collect_kd(root, cell, 0, nodes);
+        Pending self;
+        for (LocalNode& n : nodes) {
+            if (n.kind == LocalNode::Lod) {
+                const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
+                Pending l, r;
+                if (has_l) l = emit_kd_treelet(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), level + 1);
+                if (has_r) r = emit_kd_treelet(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), level + 1);
+                finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
+                stats.lod_nodes++;
+                stats.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
+            } else if (n.kind == LocalNode::Leaf) {
+                const KdNode& k = tree->nodes[n.kd_node];
+                const std::uint32_t* tris = tree->tri_ids.data() + k.first();
+                n.count = k.count();
+                if (n.count > kMaxLeafTriangles) throw std::length_error("kd-tree leaf too large for the format");
+                const auto [block, first] = triangles.add_leaf(tris, n.count, corners, ids, colours);
+                n.tri_block = block;
+                n.first = first;
+                self.proxies.push_back(leaf_proxy(tris, n.count, n.cell));
+                stats.leaves++;
+                stats.references += n.count;
+                if (stats.references - last_progress >= (1u << 16)) {
+                    last_progress = stats.references;
+                    if (progress) progress(stats.references);
+                }
+            } else {
+                stats.basic_nodes++;
+                stats.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
+            }
+        }
+        serialise(nodes, self);
+        return self;
+    }
+};
+
+ModelWriter::ModelWriter(const ModelWriterParams& params, BlockSink sink, ProgressSink progress)
+    : impl_(std::make_unique<Impl>(params, std::move(sink), std::move(progress))), stats_(impl_->stats) {}
+
+ModelWriter::~ModelWriter() = default;
+
+int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, const std::uint32_t* colours,
+                             std::size_t n, const Box3f& cell, int level) {
+    if (n == 0) throw std::invalid_argument("a subtree needs at least one triangle");
+    if (impl_->p.has_colours && colours == nullptr) throw std::invalid_argument("the model has colours; pass them");
+    const auto t0 = std::chrono::steady_clock::now();
+    const auto* verts = reinterpret_cast<const Vec3f*>(corners);
+    KdTree tree = build_kdtree(TriangleSoup{verts, n}, impl_->p.kd, &cell);
+    const auto t1 = std::chrono::steady_clock::now();
+    stats_.kd_build_ms += std::chrono::duration<double, std::milli>(t1 - t0).count();
+    stats_.degenerate += tree.stats.degenerate;
+    stats_.max_depth = std::max(stats_.max_depth, tree.stats.max_depth + 3 * level);
+    if (tree.nodes.empty() || (tree.nodes[0].is_leaf() && tree.nodes[0].count() == 0)) {
+        throw std::invalid_argument("no triangle of this subtree lies inside its cell");
+    }
+    impl_->tree = &tree;
+    impl_->corners = verts;
+    impl_->ids = ids;
+    impl_->colours = impl_->p.has_colours ? colours : nullptr;
+    Pending root = impl_->emit_kd_treelet(0, cell, static_cast<std::size_t>(level));
+    impl_->tree = nullptr;
+    stats_.emit_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count();
+    return impl_->keep(std::move(root));
+}
+
+int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::array<int, 7>& axes,
+                                   const std::array<float, 7>& splits, const std::array<int, 8>& children) {
+    // Presence bottom-up: a node exists when any child slot below it is filled.
+    bool present[7] = {};
+    for (int j = 0; j < 4; ++j) present[3 + j] = children[2 * j] >= 0 || children[2 * j + 1] >= 0;
+    for (int i = 0; i < 2; ++i) present[1 + i] = present[3 + 2 * i] || present[4 + 2 * i];
+    present[0] = present[1] || present[2];
+    if (!present[0]) throw std::invalid_argument("an inner treelet needs at least one child");
+    for (int h = 0; h < 7; ++h) {
+        if (axes[static_cast<std::size_t>(h)] < 0 || axes[static_cast<std::size_t>(h)] > 2) throw std::invalid_argument("split axis must be 0, 1 or 2");
+    }
+
+    std::vector<LocalNode> nodes;
+    auto collect = [&](auto&& self, int h, const Box3f& c, int depth) -> void {
+        LocalNode n;
+        n.cell = c;
+        n.axis = axes[static_cast<std::size_t>(h)];
+        n.split = splits[static_cast<std::size_t>(h)];
+        if (depth == kTreeletHeight - 1) {
+            const int j = h - 3;
+            n.kind = LocalNode::Lod;
+            n.child_handles[0] = children[static_cast<std::size_t>(2 * j)];
+            n.child_handles[1] = children[static_cast<std::size_t>(2 * j + 1)];
+            n.empty = (n.child_handles[0] < 0 ? kLeftEmpty : 0u) | (n.child_handles[1] < 0 ? kRightEmpty : 0u);
+            nodes.push_back(n);
+            return;
+        }
+        const int l = 2 * h + 1, r = 2 * h + 2;
+        n.empty = (present[l] ? 0u : kLeftEmpty) | (present[r] ? 0u : kRightEmpty);
+        const std::size_t at = nodes.size();
+        nodes.push_back(n);
+        if (present[l]) {
+            nodes[at].left = static_cast<int>(nodes.size());
+            self(self, l, child_cell(c, n.axis, n.split, 0), depth + 1);
+        }
+        if (present[r]) {
+            nodes[at].right = static_cast<int>(nodes.size());
+            self(self, r, child_cell(c, n.axis, n.split, 1), depth + 1);
+        }
+    };
+    collect(collect, 0, cell, 0);
+
+    Pending self;
+    for (LocalNode& n : nodes) {
+        if (n.kind == LocalNode::Lod) {
+            const bool has_l = n.child_handles[0] >= 0, has_r = n.child_handles[1] >= 0;
+            Pending l, r;
+            if (has_l) l = impl_->take(n.child_handles[0]);
+            if (has_r) r = impl_->take(n.child_handles[1]);
+            impl_->finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
+            stats_.lod_nodes++;
+            stats_.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
+        } else {
+            stats_.basic_nodes++;
+            stats_.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
+        }
+    }
+    impl_->serialise(nodes, self);
+    return impl_->keep(std::move(self));
+}
+
+void ModelWriter::finish(int root) {
+    Pending r = impl_->take(root);
+    if (!impl_->level_buf.empty() && !impl_->level_buf[0].empty()) throw std::logic_error("level 0 already written");
+    impl_->place(0, &r, nullptr);
+    for (std::size_t level = 0; level < impl_->level_buf.size(); ++level) impl_->flush_level(level);
+    impl_->triangles.flush();
+    if (!impl_->pending.empty()) throw std::logic_error("treelets left unplaced: the tree has more than one root");
+    if (impl_->progress) impl_->progress(stats_.references);
+}
+
+}  // namespace vastray

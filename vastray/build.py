@@ -1,0 +1,650 @@
+"""Builds the out-of-core model from any triangle input within a memory budget
+(paper 000 §4; the file format is in docs/FORMAT.md).
+
+Phases, each reported through `progress`:
+1. read   Stream the input once, write its triangles as model-local float32 records
+          (relative to the model centre, which is kept in double) to a scratch file,
+          and drop zero-area triangles.
+2. split  While a node's triangles exceed what the budget lets us build in core, split
+          it out of core: one pass over its scratch file sifts the triangles into the
+          eight cells of three median-split levels (a whole treelet). Straddling
+          triangles go to every cell they touch.
+3. build  Each part that fits is loaded and handed to the native writer, which builds
+          its kd-tree with binned SAH and empty-space cutting on all cores, samples the
+          LOD voxels, and emits treelets and triangle blocks. The out-of-core treelets
+          above the parts are then written bottom-up.
+4. write  Blocks are LZ4-compressed and checksummed as they are produced, kept in one
+          scratch file per LOD level, and finally assembled behind the header and the
+          block index into a temporary file that is renamed over the output.
+Nothing is left behind on failure, cancellation or Ctrl-C: scratch files and the
+temporary output are removed.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import shutil
+import tempfile
+import threading
+import time
+import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import lz4.block
+import numpy as np
+
+from vastray import modelfile, native
+from vastray.mesh import MeshError
+
+# Peak memory of an in-core part per triangle, measured with bench/build.py (peak RSS
+# growth while add_subtree() runs, plus the loaded records): kd-tree references,
+# clipping buffers, nodes and the writer's pending treelets. Parts are sized with it.
+INCORE_BYTES_PER_TRIANGLE = 420
+# Interpreter, numpy, lz4 and the chunk buffers of the streaming passes.
+BASE_OVERHEAD_BYTES = 200 << 20
+MIN_INCORE_TRIANGLES = 20_000
+READ_CHUNK = 1 << 19  # triangles per streaming chunk (20-24 MB of records)
+MAX_OUT_OF_CORE_LEVELS = 16
+DEFAULT_MEMORY = 2 << 30
+
+
+class BuildCancelled(Exception):
+    """The build was cancelled through its cancel event; nothing was written."""
+
+
+@dataclass
+class BuildProgress:
+    phase: str  # read, split, build, write
+    done: int
+    total: int
+    unit: str  # what done/total count: triangles or bytes
+    elapsed: float  # seconds since the build started
+    message: str = ""
+
+
+@dataclass
+class BuildOptions:
+    memory: int = DEFAULT_MEMORY  # bytes; the builder's working set stays within this
+    threads: int = 0  # 0: every core
+    overwrite: bool = False
+    scratch_dir: str | None = None  # default: next to the output
+    # A coarser tree than the in-core renderer's (traversal 4x a triangle test): it halves
+    # the bytes per triangle (30 vs 60 on the bunny) and builds faster, at the same
+    # render speed (bench/build.py; docs/FORMAT.md).
+    leaf_size: int = 4
+    traversal_cost: float = 4.0
+    intersection_cost: float = 1.0
+    empty_space_ratio: float = 0.15
+    voxel_rays: int = 3
+
+    def incore_limit(self) -> int:
+        usable = self.memory - BASE_OVERHEAD_BYTES
+        return max(MIN_INCORE_TRIANGLES, usable // INCORE_BYTES_PER_TRIANGLE)
+
+
+def parse_memory(text: str) -> int:
+    """'2G', '512M', '1.5GiB' or a byte count."""
+    s = text.strip().upper().removesuffix("B").removesuffix("I")
+    scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}.get(s[-1:], 1)
+    number = s[:-1] if scale != 1 else s
+    try:
+        value = float(number)
+    except ValueError:
+        raise ValueError(f"memory budget {text!r} is not a size like 2G or 512M") from None
+    if not value > 0:
+        raise ValueError(f"memory budget must be positive, got {text!r}")
+    return int(value * scale)
+
+
+# ---- inputs ---------------------------------------------------------------------------------
+
+
+@dataclass
+class _Input:
+    name: str
+    has_colours: bool
+    estimate: int  # triangle count for progress (exact for files)
+    chunks: Callable[[], Iterator[tuple[np.ndarray, np.ndarray | None]]]
+    rereadable: bool  # reading twice is cheap (files, meshes); generators are not
+
+
+def _open_input(source: str | os.PathLike[str]) -> _Input:
+    from vastray import scenes
+    from vastray.render import DEMO_SCENE, DEMO_SEED, DEMO_TRIANGLES
+    from vastray.streaming import open_triangles
+
+    text = str(source)
+    if text == "demo" or text.startswith("scene:"):
+        if text == "demo":
+            name, tris, seed = DEMO_SCENE, DEMO_TRIANGLES, DEMO_SEED
+        else:
+            parts = text.split(":")[1:]
+            name = parts[0]
+            tris = int(float(parts[1])) if len(parts) > 1 else 100_000
+            seed = int(parts[2]) if len(parts) > 2 else 1
+        if name not in scenes.SCENES:
+            raise ValueError(f"unknown scene {name!r}; choose one of {', '.join(scenes.SCENES)}")
+
+        def generated() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+            for vertices, faces, colours in scenes.generate(name, tris, seed):
+                yield vertices[faces], colours
+
+        return _Input(f"{name}-{tris}-s{seed}", scenes.SCENES[name].colored, tris, generated, False)
+
+    path = Path(text)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file (or use 'demo' / 'scene:NAME:TRIANGLES:SEED')")
+    try:
+        stream = open_triangles(path)
+    except MeshError:
+        stream = None  # ASCII PLY/STL or another format: load it whole through trimesh
+    if stream is not None:
+
+        def streamed() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+            for chunk in stream.chunks(READ_CHUNK):
+                yield chunk.corners, chunk.colors
+
+        return _Input(path.stem, stream.has_colors, stream.triangle_count, streamed, True)
+
+    from vastray.ingest import load_mesh
+
+    mesh = load_mesh(path)
+
+    def loaded() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+        for first in range(0, mesh.triangle_count, READ_CHUNK):
+            faces = mesh.faces[first : first + READ_CHUNK]
+            colours = None if mesh.face_colors is None else mesh.face_colors[first : first + READ_CHUNK]
+            yield mesh.vertices[faces], colours
+
+    return _Input(path.stem, mesh.face_colors is not None, mesh.triangle_count, loaded, True)
+
+
+def _record_dtype(colours: bool) -> np.dtype:
+    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", "<f4", (9,)), ("id", "<u4")]
+    if colours:
+        fields.append(("rgb", "<u4"))
+    return np.dtype(fields)
+
+
+# ---- the out-of-core part of the tree ----------------------------------------------------------
+
+
+@dataclass
+class _Part:
+    """Triangles of one cell in a scratch file, small enough to build in core."""
+
+    path: Path
+    count: int
+    lo: np.ndarray  # float32 cell
+    hi: np.ndarray
+    level: int
+
+
+@dataclass
+class _Split:
+    """Three median-split levels (one treelet) over up to eight children."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    level: int
+    axes: list[int]
+    splits: list[float]
+    children: list[_Part | _Split | None] = field(default_factory=list)
+
+
+class _Builder:
+    def __init__(
+        self,
+        source: _Input,
+        output: Path,
+        options: BuildOptions,
+        progress: Callable[[BuildProgress], None] | None,
+        cancel: threading.Event | None,
+    ) -> None:
+        self.src = source
+        self.output = output
+        self.opt = options
+        self.progress_cb = progress
+        self.cancel = cancel
+        self.start = time.perf_counter()
+        self.dtype = _record_dtype(source.has_colours)
+        self.phase_seconds: dict[str, float] = {}
+        self.level_files: dict[int, Any] = {}
+        self.level_entries: dict[int, list[tuple[int, int, int, int]]] = {}
+        self.warnings: list[str] = []
+
+    # -- plumbing ---------------------------------------------------------------------------
+
+    def report(self, phase: str, done: int, total: int, unit: str = "triangles", message: str = "") -> None:
+        if self.cancel is not None and self.cancel.is_set():
+            raise BuildCancelled("build cancelled")
+        if self.progress_cb is not None:
+            self.progress_cb(BuildProgress(phase, done, total, unit, time.perf_counter() - self.start, message))
+
+    def timed(self, phase: str, since: float) -> float:
+        now = time.perf_counter()
+        self.phase_seconds[phase] = self.phase_seconds.get(phase, 0.0) + now - since
+        return now
+
+    # -- phase 1: read ----------------------------------------------------------------------
+
+    def read(self, scratch: Path) -> tuple[Path, int, int, int, np.ndarray, np.ndarray, np.ndarray]:
+        """Writes root records; returns (path, count, input count, degenerate, centre, lo, hi)."""
+        total = 0
+        origin: np.ndarray | None = None
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        staged = scratch / "input.f32"
+        if self.src.rereadable:
+            for corners, _ in self.src.chunks():
+                lo = np.minimum(lo, corners.min(axis=(0, 1)))
+                hi = np.maximum(hi, corners.max(axis=(0, 1)))
+                total += len(corners)
+                self.report("read", total, 2 * self.src.estimate, message="bounds")
+        else:
+            # A generator runs once: stage float32 relative to a provisional origin (the
+            # first chunk's centre), which keeps precision for far-away models.
+            with open(staged, "wb") as f:
+                for corners, colours in self.src.chunks():
+                    if origin is None:
+                        origin = 0.5 * (corners.min(axis=(0, 1)) + corners.max(axis=(0, 1)))
+                    lo = np.minimum(lo, corners.min(axis=(0, 1)))
+                    hi = np.maximum(hi, corners.max(axis=(0, 1)))
+                    rec = np.empty(len(corners), self.dtype)
+                    rec["c"] = (corners - origin).reshape(-1, 9)
+                    rec["id"] = np.arange(total, total + len(corners), dtype=np.uint32)
+                    if colours is not None:
+                        rec["rgb"] = _pack_rgb(colours)
+                    rec.tofile(f)
+                    total += len(corners)
+                    self.report("read", total, 2 * max(total, self.src.estimate), message="staging")
+        if total == 0:
+            raise MeshError(f"{self.src.name}: the input has no triangles")
+        if total >= 2**32 - 1:
+            raise ValueError(f"{self.src.name}: {total} triangles; the format's ids hold at most 2^32 - 2")
+        centre = 0.5 * (lo + hi)
+
+        root = scratch / "root.tri"
+        count = 0
+        degenerate = 0
+        box_lo = np.full(3, np.inf, dtype=np.float32)
+        box_hi = np.full(3, -np.inf, dtype=np.float32)
+        done = 0
+
+        def local_chunks() -> Iterator[np.ndarray]:
+            nonlocal done
+            if self.src.rereadable:
+                first = 0
+                for corners, colours in self.src.chunks():
+                    rec = np.empty(len(corners), self.dtype)
+                    # The subtraction happens in double, as in the in-core Scene, so both
+                    # paths store bit-identical float32 vertices.
+                    rec["c"] = (corners - centre).astype(np.float32).reshape(-1, 9)
+                    rec["id"] = np.arange(first, first + len(corners), dtype=np.uint32)
+                    if colours is not None:
+                        rec["rgb"] = _pack_rgb(colours)
+                    first += len(corners)
+                    yield rec
+            else:
+                assert origin is not None
+                shift = origin - centre
+                staged_recs = np.memmap(staged, dtype=self.dtype, mode="r")
+                for first in range(0, len(staged_recs), READ_CHUNK):
+                    rec = np.array(staged_recs[first : first + READ_CHUNK])
+                    rec["c"] = (rec["c"].astype(np.float64) + np.tile(shift, 3)).astype(np.float32)
+                    yield rec
+                del staged_recs
+
+        with open(root, "wb") as f:
+            for rec in local_chunks():
+                c = rec["c"].reshape(-1, 3, 3).astype(np.float64)
+                n = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+                keep = (n != 0).any(axis=1)
+                degenerate += int(len(rec) - keep.sum())
+                rec = rec[keep]
+                if len(rec):
+                    pts = rec["c"].reshape(-1, 3)
+                    box_lo = np.minimum(box_lo, pts.min(axis=0))
+                    box_hi = np.maximum(box_hi, pts.max(axis=0))
+                rec.tofile(f)
+                count += len(rec)
+                done += len(keep)
+                self.report("read", total + done, 2 * total, message="writing records")
+        staged.unlink(missing_ok=True)
+        if count == 0:
+            raise MeshError(f"{self.src.name}: all {total} triangles are degenerate (zero area)")
+        return root, count, total, degenerate, centre, box_lo, box_hi
+
+    # -- phase 2: split ---------------------------------------------------------------------
+
+    def plan(self, path: Path, count: int, lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray,
+             tight_hi: np.ndarray, level: int, scratch: Path, limit: int) -> _Part | _Split:
+        if count <= limit:
+            return _Part(path, count, lo, hi, level)
+        if level >= MAX_OUT_OF_CORE_LEVELS:
+            self.warnings.append(f"out-of-core splitting stopped at level {level} with {count:,} triangles")
+            return _Part(path, count, lo, hi, level)
+        split = _choose_splits(lo, hi, tight_lo, tight_hi, level)
+        kids = self.sift(path, count, split, scratch)
+        path.unlink()
+        for slot, kid in enumerate(kids):
+            if kid is None:
+                split.children.append(None)
+                continue
+            kpath, kcount, clo, chi, tlo, thi = kid
+            if kcount > 0.95 * count:
+                # Splitting no longer separates these triangles (huge or coincident ones):
+                # build them in core rather than split forever.
+                self.warnings.append(f"{kcount:,} triangles in one cell could not be split further")
+                split.children.append(_Part(kpath, kcount, clo, chi, level + 1))
+            else:
+                split.children.append(self.plan(kpath, kcount, clo, chi, tlo, thi, level + 1, scratch, limit))
+            del slot
+        return split
+
+    def sift(self, path: Path, count: int, split: _Split, scratch: Path) -> list[Any]:
+        cells = _slot_cells(split)
+        files = [open(scratch / f"n{os.getpid()}-{id(split)}-{s}.tri", "wb") for s in range(8)]  # noqa: SIM115
+        counts = [0] * 8
+        tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
+        thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
+        try:
+            recs = np.memmap(path, dtype=self.dtype, mode="r")
+            for first in range(0, count, READ_CHUNK):
+                rec = np.array(recs[first : first + READ_CHUNK])
+                c = rec["c"].reshape(-1, 3, 3)
+                clo, chi = c.min(axis=1), c.max(axis=1)
+                for s, mask in enumerate(_slot_masks(split, clo, chi)):
+                    if not mask.any():
+                        continue
+                    sel = rec[mask]
+                    sel.tofile(files[s])
+                    counts[s] += len(sel)
+                    lo_c, hi_c = cells[s]
+                    tlo[s] = np.minimum(tlo[s], np.maximum(clo[mask].min(axis=0), lo_c))
+                    thi[s] = np.maximum(thi[s], np.minimum(chi[mask].max(axis=0), hi_c))
+                self.sifted += len(rec)
+                self.report("split", self.sifted, self.sift_estimate, message=f"level {split.level}")
+            del recs
+        finally:
+            for f in files:
+                f.close()
+        out: list[Any] = []
+        for s in range(8):
+            fpath = Path(files[s].name)
+            if counts[s] == 0:
+                fpath.unlink()
+                out.append(None)
+            else:
+                out.append((fpath, counts[s], cells[s][0], cells[s][1], tlo[s], thi[s]))
+        return out
+
+    # -- phase 3: build ---------------------------------------------------------------------
+
+    def sink(self, level: int, raw: bytes) -> None:
+        stored = lz4.block.compress(raw, mode="default", store_size=False)
+        codec = modelfile.CODEC_LZ4
+        if len(stored) >= len(raw):
+            stored, codec = raw, modelfile.CODEC_STORED
+        f = self.level_files.get(level)
+        if f is None:
+            f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")  # noqa: SIM115
+            self.level_entries[level] = []
+        f.write(stored)
+        self.level_entries[level].append((len(stored), len(raw), zlib.crc32(stored), codec))
+
+    def emit(self, node: _Part | _Split, writer: native.ModelWriter) -> int:
+        if isinstance(node, _Split):
+            handles = [self.emit(k, writer) if k is not None else -1 for k in node.children]
+            return writer.add_inner_treelet(
+                node.level, node.lo.tolist(), node.hi.tolist(), node.axes, node.splits, handles
+            )
+        recs = np.fromfile(node.path, dtype=self.dtype)
+        node.path.unlink()
+        self.part_base = self.built
+        self.part_refs0 = self.refs_seen
+        self.part_count = node.count
+        handle = writer.add_subtree(
+            recs["c"], recs["id"], recs["rgb"] if self.src.has_colours else None,
+            node.lo.tolist(), node.hi.tolist(), node.level,
+        )  # fmt: skip
+        del recs
+        part_refs = self.refs_seen - self.part_refs0
+        if node.count:
+            self.dup = max(1.0, part_refs / node.count)
+        self.built += node.count
+        self.report("build", self.built, self.build_total)
+        return handle
+
+    def on_refs(self, refs: int) -> None:
+        self.refs_seen = refs
+        within = min(self.part_count, int((refs - self.part_refs0) / self.dup))
+        self.report("build", self.part_base + within, self.build_total)
+
+    # -- all phases -------------------------------------------------------------------------
+
+    def run(self, scratch: Path, partial: Path) -> dict[str, Any]:
+        self.scratch = scratch
+        t = time.perf_counter()
+        root, count, total, degenerate, centre, lo, hi = self.read(scratch)
+        t = self.timed("read", t)
+
+        limit = self.opt.incore_limit()
+        self.sifted = 0
+        # Each out-of-core level passes over every triangle once (plus duplicates).
+        levels_needed = 0
+        n = count
+        while n > limit:
+            n //= 8
+            levels_needed += 1
+        self.sift_estimate = max(1, count * levels_needed)
+        tree = self.plan(root, count, lo, hi, lo, hi, 0, scratch, limit)
+        t = self.timed("split", t)
+
+        parts = list(_parts(tree))
+        self.build_total = sum(p.count for p in parts)
+        self.built = 0
+        self.refs_seen = 0
+        self.part_base = self.part_refs0 = self.part_count = 0
+        self.dup = 1.5
+        writer = native.ModelWriter(
+            has_colours=self.src.has_colours,
+            sink=self.sink,
+            progress=self.on_refs,
+            leaf_size=self.opt.leaf_size,
+            traversal_cost=self.opt.traversal_cost,
+            intersection_cost=self.opt.intersection_cost,
+            empty_space_ratio=self.opt.empty_space_ratio,
+            voxel_rays=self.opt.voxel_rays,
+            threads=self.opt.threads,
+        )
+        self.report("build", 0, self.build_total)
+        root_handle = self.emit(tree, writer)
+        writer.finish(root_handle)
+        stats = writer.stats
+        for f in self.level_files.values():
+            f.close()
+        t = self.timed("build", t)
+
+        node_levels = len(stats["level_blocks"])
+        order = [*range(node_levels), -1]
+        levels: list[tuple[int, int]] = []
+        entries: list[tuple[int, int, int, int]] = []
+        for level in order:
+            es = self.level_entries.get(level, [])
+            levels.append((len(entries), len(es)))
+            entries.extend(es)
+        stored_total = sum(e[0] for e in entries)
+        fields = {
+            "flags": modelfile.FLAG_TRIANGLE_IDS | (modelfile.FLAG_COLOURS if self.src.has_colours else 0),
+            "centre": tuple(float(x) for x in centre),
+            "cell_lo": tuple(float(x) for x in lo),
+            "cell_hi": tuple(float(x) for x in hi),
+            "triangle_count": count,
+            "input_triangles": total,
+            "degenerate": degenerate + stats["degenerate"],
+            "basic_nodes": stats["basic_nodes"],
+            "lod_nodes": stats["lod_nodes"],
+            "leaves": stats["leaves"],
+            "voxels_one": stats["voxels_one"],
+            "voxels_six": stats["voxels_six"],
+            "references": stats["references"],
+        }
+        written = 0
+
+        def blocks() -> Iterator[bytes]:
+            nonlocal written
+            for level in order:
+                path = scratch / f"level{level}.blk"
+                if not path.exists():
+                    continue
+                with open(path, "rb") as f:
+                    while chunk := f.read(8 << 20):
+                        written += len(chunk)
+                        self.report("write", written, stored_total, unit="bytes")
+                        yield chunk
+                path.unlink()
+
+        with open(partial, "wb") as out:
+            size = modelfile.write_model_file(out, fields, levels, entries, blocks())
+            out.flush()
+            os.fsync(out.fileno())
+        t = self.timed("write", t)
+
+        raw_total = sum(e[1] for e in entries)
+        return {
+            "input": self.src.name,
+            "output": str(self.output),
+            "triangles": count,
+            "input_triangles": total,
+            "degenerate": degenerate,
+            "file_bytes": size,
+            "raw_bytes": raw_total,
+            "compression_ratio": raw_total / stored_total if stored_total else 1.0,
+            "bytes_per_triangle": size / count,
+            "node_levels": node_levels,
+            "blocks": len(entries),
+            "parts": len(parts),
+            "out_of_core_levels": _depth(tree),
+            "incore_limit": limit,
+            "seconds": time.perf_counter() - self.start,
+            "phase_seconds": dict(self.phase_seconds),
+            "triangles_per_second": count / max(1e-9, time.perf_counter() - self.start),
+            "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "warnings": self.warnings,
+            **{k: stats[k] for k in ("basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six",
+                                     "references", "stored_triangles", "stored_vertices", "kd_build_ms",
+                                     "emit_ms", "max_depth")},
+        }  # fmt: skip
+
+
+def _pack_rgb(colours: np.ndarray) -> np.ndarray:
+    c = colours.astype(np.uint32)
+    return c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
+
+
+def _choose_splits(lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray, tight_hi: np.ndarray,
+                   level: int) -> _Split:
+    """Median splits for three levels, in heap order: each halves the longest side of
+    the occupied part of its cell, so empty space is cut away as it goes."""
+    axes: list[int] = []
+    splits: list[float] = []
+    boxes = {0: (np.maximum(lo, tight_lo), np.minimum(hi, tight_hi))}
+    cells = {0: (lo.astype(np.float32), hi.astype(np.float32))}
+    for h in range(7):
+        clo, chi = cells[h]
+        blo, bhi = boxes[h]
+        ext = bhi - blo
+        axis = int(np.argmax(ext))
+        value = np.float32(0.5 * (float(blo[axis]) + float(bhi[axis])))
+        if not (ext[axis] > 0 and clo[axis] < value < chi[axis]):
+            axis = int(np.argmax(chi - clo))
+            value = np.float32(0.5 * (float(clo[axis]) + float(chi[axis])))
+        axes.append(axis)
+        splits.append(float(value))
+        for side, child in ((0, 2 * h + 1), (1, 2 * h + 2)):
+            c_lo, c_hi = clo.copy(), chi.copy()
+            if side == 0:
+                c_hi[axis] = value
+            else:
+                c_lo[axis] = value
+            cells[child] = (c_lo, c_hi)
+            boxes[child] = (np.maximum(blo, c_lo), np.minimum(bhi, c_hi))
+    return _Split(lo.astype(np.float32), hi.astype(np.float32), level, axes, splits)
+
+
+def _slot_cells(split: _Split) -> list[tuple[np.ndarray, np.ndarray]]:
+    cells = {0: (split.lo.copy(), split.hi.copy())}
+    for h in range(7):
+        clo, chi = cells[h]
+        a, v = split.axes[h], np.float32(split.splits[h])
+        left = (clo.copy(), chi.copy())
+        left[1][a] = v
+        right = (clo.copy(), chi.copy())
+        right[0][a] = v
+        cells[2 * h + 1], cells[2 * h + 2] = left, right
+    return [cells[7 + s] for s in range(8)]
+
+
+def _slot_masks(split: _Split, clo: np.ndarray, chi: np.ndarray) -> list[np.ndarray]:
+    # A triangle goes to each side whose closed half-space its bounding box touches.
+    masks = {0: np.ones(len(clo), dtype=bool)}
+    for h in range(7):
+        a, v = split.axes[h], np.float32(split.splits[h])
+        masks[2 * h + 1] = masks[h] & (clo[:, a] <= v)
+        masks[2 * h + 2] = masks[h] & (chi[:, a] >= v)
+    return [masks[7 + s] for s in range(8)]
+
+
+def _parts(node: _Part | _Split | None) -> Iterator[_Part]:
+    if isinstance(node, _Part):
+        yield node
+    elif isinstance(node, _Split):
+        for k in node.children:
+            yield from _parts(k)
+
+
+def _depth(node: _Part | _Split | None) -> int:
+    if isinstance(node, _Split):
+        return 1 + max(_depth(k) for k in node.children)
+    return 0
+
+
+def build_model(
+    source: str | os.PathLike[str],
+    output: str | os.PathLike[str],
+    options: BuildOptions | None = None,
+    *,
+    progress: Callable[[BuildProgress], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> dict[str, Any]:
+    """Builds `source` (a mesh file, 'demo' or 'scene:NAME:TRIANGLES:SEED') into the
+    model file `output`; returns a report of counts, sizes and timings."""
+    opt = options or BuildOptions()
+    out = Path(output)
+    if out.exists() and not opt.overwrite:
+        raise FileExistsError(f"{out} exists; pass overwrite (--force) to replace it")
+    if not out.parent.is_dir():
+        raise FileNotFoundError(f"{out.parent}: no such directory for the output")
+    if opt.memory < BASE_OVERHEAD_BYTES + MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE:
+        need = (BASE_OVERHEAD_BYTES + MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE) >> 20
+        raise ValueError(f"memory budget too small: the builder needs at least {need} MiB")
+    src = _open_input(source)
+    scratch = Path(tempfile.mkdtemp(prefix=".vastray-build-", dir=opt.scratch_dir or out.parent))
+    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    builder = _Builder(src, out, opt, progress, cancel)
+    try:
+        report = builder.run(scratch, partial)
+        if out.exists() and not opt.overwrite:
+            raise FileExistsError(f"{out} appeared during the build; not replacing it")
+        os.replace(partial, out)
+        return report
+    finally:
+        for f in builder.level_files.values():
+            f.close()
+        partial.unlink(missing_ok=True)
+        shutil.rmtree(scratch, ignore_errors=True)
