@@ -52,7 +52,7 @@ MAX_OUT_OF_CORE_LEVELS = 16
 DEFAULT_MEMORY = 2 << 30
 
 
-class BuildCancelled(Exception):
+class BuildCancelledError(Exception):
     """The build was cancelled through its cancel event; nothing was written."""
 
 
@@ -221,9 +221,11 @@ class _Builder:
 
     def report(self, phase: str, done: int, total: int, unit: str = "triangles", message: str = "") -> None:
         if self.cancel is not None and self.cancel.is_set():
-            raise BuildCancelled("build cancelled")
+            raise BuildCancelledError("build cancelled")
         if self.progress_cb is not None:
-            self.progress_cb(BuildProgress(phase, done, total, unit, time.perf_counter() - self.start, message))
+            self.progress_cb(
+                BuildProgress(phase, done, total, unit, time.perf_counter() - self.start, message)
+            )
 
     def timed(self, phase: str, since: float) -> float:
         now = time.perf_counter()
@@ -321,8 +323,18 @@ class _Builder:
 
     # -- phase 2: split ---------------------------------------------------------------------
 
-    def plan(self, path: Path, count: int, lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray,
-             tight_hi: np.ndarray, level: int, scratch: Path, limit: int) -> _Part | _Split:
+    def plan(
+        self,
+        path: Path,
+        count: int,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        tight_lo: np.ndarray,
+        tight_hi: np.ndarray,
+        level: int,
+        scratch: Path,
+        limit: int,
+    ) -> _Part | _Split:
         if count <= limit:
             return _Part(path, count, lo, hi, level)
         if level >= MAX_OUT_OF_CORE_LEVELS:
@@ -348,7 +360,7 @@ class _Builder:
 
     def sift(self, path: Path, count: int, split: _Split, scratch: Path) -> list[Any]:
         cells = _slot_cells(split)
-        files = [open(scratch / f"n{os.getpid()}-{id(split)}-{s}.tri", "wb") for s in range(8)]  # noqa: SIM115
+        files = [open(scratch / f"n{os.getpid()}-{id(split)}-{s}.tri", "wb") for s in range(8)]
         counts = [0] * 8
         tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
         thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
@@ -392,7 +404,7 @@ class _Builder:
             stored, codec = raw, modelfile.CODEC_STORED
         f = self.level_files.get(level)
         if f is None:
-            f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")  # noqa: SIM115
+            f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")
             self.level_entries[level] = []
         f.write(stored)
         self.level_entries[level].append((len(stored), len(raw), zlib.crc32(stored), codec))
@@ -547,8 +559,9 @@ def _pack_rgb(colours: np.ndarray) -> np.ndarray:
     return c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
 
 
-def _choose_splits(lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray, tight_hi: np.ndarray,
-                   level: int) -> _Split:
+def _choose_splits(
+    lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray, tight_hi: np.ndarray, level: int
+) -> _Split:
     """Median splits for three levels, in heap order: each halves the longest side of
     the occupied part of its cell, so empty space is cut away as it goes."""
     axes: list[int] = []

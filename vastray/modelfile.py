@@ -152,7 +152,7 @@ class ModelFile:
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self._file = open(self.path, "rb")  # noqa: SIM115 (closed by close() / context manager)
+        self._file = open(self.path, "rb")
         try:
             self._open()
         except BaseException:
@@ -194,7 +194,9 @@ class ModelFile:
             raise self._fail("block index checksum mismatch (the index is corrupted)")
         self.levels = [_LEVEL.unpack_from(index, _LEVEL.size * i) for i in range(h["level_count"])]
         base = _LEVEL.size * h["level_count"]
-        self.blocks = [BlockEntry(*_ENTRY.unpack_from(index, base + _ENTRY.size * i)) for i in range(h["block_count"])]
+        self.blocks = [
+            BlockEntry(*_ENTRY.unpack_from(index, base + _ENTRY.size * i)) for i in range(h["block_count"])
+        ]
         expected = 0
         for first, count in self.levels:
             if first != expected:
@@ -241,7 +243,9 @@ class ModelFile:
         if len(stored) != e.stored_size:
             raise self._fail(f"block {block} is truncated")
         if zlib.crc32(stored) != e.crc32:
-            raise self._fail(f"block {block} (level {self.level_of(block)}) checksum mismatch: the file is corrupted")
+            raise self._fail(
+                f"block {block} (level {self.level_of(block)}) checksum mismatch: the file is corrupted"
+            )
         if e.codec == CODEC_STORED:
             if e.raw_size != e.stored_size:
                 raise self._fail(f"block {block}: stored block with a different raw size")
