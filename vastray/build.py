@@ -43,11 +43,15 @@ from vastray.mesh import MeshError
 # Peak memory of an in-core part per triangle, measured with bench/build.py (peak RSS
 # growth while add_subtree() runs, plus the loaded records): kd-tree references,
 # clipping buffers, nodes and the writer's pending treelets. Parts are sized with it.
-INCORE_BYTES_PER_TRIANGLE = 420
-# Interpreter, numpy, lz4 and the chunk buffers of the streaming passes.
-BASE_OVERHEAD_BYTES = 200 << 20
+INCORE_BYTES_PER_TRIANGLE = 240
+# The budget covers the builder's working set: streaming chunks and in-core parts. On
+# top of it comes a fixed overhead that does not grow with the model: the interpreter,
+# numpy, trimesh, lz4 and the native module (90 MiB measured) plus allocator slack.
+STATED_OVERHEAD_BYTES = 128 << 20
+# Streaming passes hold a chunk of records plus its float64 corners, bounds and masks.
+CHUNK_BYTES_PER_TRIANGLE = 300
+MAX_CHUNK = 1 << 19
 MIN_INCORE_TRIANGLES = 20_000
-READ_CHUNK = 1 << 19  # triangles per streaming chunk (20-24 MB of records)
 MAX_OUT_OF_CORE_LEVELS = 16
 DEFAULT_MEMORY = 2 << 30
 
@@ -82,8 +86,11 @@ class BuildOptions:
     voxel_rays: int = 3
 
     def incore_limit(self) -> int:
-        usable = self.memory - BASE_OVERHEAD_BYTES
-        return max(MIN_INCORE_TRIANGLES, usable // INCORE_BYTES_PER_TRIANGLE)
+        return max(MIN_INCORE_TRIANGLES, self.memory // INCORE_BYTES_PER_TRIANGLE)
+
+    def chunk(self) -> int:
+        """Triangles per streaming chunk: a quarter of the budget at most."""
+        return int(min(MAX_CHUNK, max(4096, self.memory // (4 * CHUNK_BYTES_PER_TRIANGLE))))
 
 
 def parse_memory(text: str) -> int:
@@ -112,7 +119,7 @@ class _Input:
     rereadable: bool  # reading twice is cheap (files, meshes); generators are not
 
 
-def _open_input(source: str | os.PathLike[str]) -> _Input:
+def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
     from vastray import scenes
     from vastray.render import DEMO_SCENE, DEMO_SEED, DEMO_TRIANGLES
     from vastray.streaming import open_triangles
@@ -138,6 +145,9 @@ def _open_input(source: str | os.PathLike[str]) -> _Input:
     path = Path(text)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file (or use 'demo' / 'scene:NAME:TRIANGLES:SEED')")
+    with open(path, "rb") as f:
+        if f.read(len(modelfile.MAGIC)) == modelfile.MAGIC:
+            raise ValueError(f"{path} is already a built model; build takes a mesh")
     try:
         stream = open_triangles(path)
     except MeshError:
@@ -145,8 +155,8 @@ def _open_input(source: str | os.PathLike[str]) -> _Input:
     if stream is not None:
 
         def streamed() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-            for chunk in stream.chunks(READ_CHUNK):
-                yield chunk.corners, chunk.colors
+            for part in stream.chunks(chunk):
+                yield part.corners, part.colors
 
         return _Input(path.stem, stream.has_colors, stream.triangle_count, streamed, True)
 
@@ -155,9 +165,9 @@ def _open_input(source: str | os.PathLike[str]) -> _Input:
     mesh = load_mesh(path)
 
     def loaded() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-        for first in range(0, mesh.triangle_count, READ_CHUNK):
-            faces = mesh.faces[first : first + READ_CHUNK]
-            colours = None if mesh.face_colors is None else mesh.face_colors[first : first + READ_CHUNK]
+        for first in range(0, mesh.triangle_count, chunk):
+            faces = mesh.faces[first : first + chunk]
+            colours = None if mesh.face_colors is None else mesh.face_colors[first : first + chunk]
             yield mesh.vertices[faces], colours
 
     return _Input(path.stem, mesh.face_colors is not None, mesh.triangle_count, loaded, True)
@@ -295,8 +305,8 @@ class _Builder:
                 assert origin is not None
                 shift = origin - centre
                 staged_recs = np.memmap(staged, dtype=self.dtype, mode="r")
-                for first in range(0, len(staged_recs), READ_CHUNK):
-                    rec = np.array(staged_recs[first : first + READ_CHUNK])
+                for first in range(0, len(staged_recs), self.opt.chunk()):
+                    rec = np.array(staged_recs[first : first + self.opt.chunk()])
                     rec["c"] = (rec["c"].astype(np.float64) + np.tile(shift, 3)).astype(np.float32)
                     yield rec
                 del staged_recs
@@ -366,8 +376,8 @@ class _Builder:
         thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
         try:
             recs = np.memmap(path, dtype=self.dtype, mode="r")
-            for first in range(0, count, READ_CHUNK):
-                rec = np.array(recs[first : first + READ_CHUNK])
+            for first in range(0, count, self.opt.chunk()):
+                rec = np.array(recs[first : first + self.opt.chunk()])
                 c = rec["c"].reshape(-1, 3, 3)
                 clo, chi = c.min(axis=1), c.max(axis=1)
                 for s, mask in enumerate(_slot_masks(split, clo, chi)):
@@ -643,10 +653,10 @@ def build_model(
         raise FileExistsError(f"{out} exists; pass overwrite (--force) to replace it")
     if not out.parent.is_dir():
         raise FileNotFoundError(f"{out.parent}: no such directory for the output")
-    if opt.memory < BASE_OVERHEAD_BYTES + MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE:
-        need = (BASE_OVERHEAD_BYTES + MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE) >> 20
+    if opt.memory < MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE:
+        need = (MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE + (1 << 20) - 1) >> 20
         raise ValueError(f"memory budget too small: the builder needs at least {need} MiB")
-    src = _open_input(source)
+    src = _open_input(source, opt.chunk())
     scratch = Path(tempfile.mkdtemp(prefix=".vastray-build-", dir=opt.scratch_dir or out.parent))
     partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
     builder = _Builder(src, out, opt, progress, cancel)

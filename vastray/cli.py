@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from vastray import __version__
 from vastray.render import SHADING_MODES
@@ -23,12 +24,18 @@ def _cmd_render(args: argparse.Namespace) -> int:
     )
     scene = model.scene
     stats = scene.build_stats
-    print(
-        f"model      {model.name}: {scene.triangle_count:,} triangles, "
-        f"loaded in {model.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
-        f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
-        f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
-    )
+    if model.build_seconds == 0.0:
+        print(
+            f"model      {model.name}: built model decoded in {model.load_seconds:.2f} s "
+            f"({stats['nodes']:,} nodes, {stats['memory_bytes'] / 2**20:.1f} MiB in memory)"
+        )
+    else:
+        print(
+            f"model      {model.name}: {scene.triangle_count:,} triangles, "
+            f"loaded in {model.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
+            f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
+            f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
+        )
     lo, hi = scene.bounds
     if args.eye or args.target:
         framed = frame_bounds(lo, hi, fov=args.fov, width=width, height=height)
@@ -81,13 +88,128 @@ def _cmd_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+class _PhaseBars:
+    """One tqdm bar per build phase, fed from BuildProgress events."""
+
+    def __init__(self) -> None:
+        self.phase = ""
+        self.bar: Any = None
+
+    def __call__(self, p: Any) -> None:
+        from tqdm import tqdm
+
+        if p.phase != self.phase:
+            self.close()
+            self.phase = p.phase
+            unit = "B" if p.unit == "bytes" else "tri"
+            self.bar = tqdm(total=p.total, unit=unit, unit_scale=True, desc=f"{p.phase:5}", file=sys.stderr)
+        if self.bar.total != p.total:
+            self.bar.total = p.total
+        self.bar.update(p.done - self.bar.n)
+        if p.message:
+            self.bar.set_postfix_str(p.message, refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _cmd_build(args: argparse.Namespace) -> int:
+    import signal
+
+    from vastray.build import STATED_OVERHEAD_BYTES, BuildOptions, build_model, parse_memory
+
+    options = BuildOptions(
+        memory=parse_memory(args.memory),
+        threads=args.threads,
+        overwrite=args.force,
+        scratch_dir=args.scratch_dir,
+    )
+    # SIGTERM (docker stop, kill) cleans up like Ctrl-C does.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    bars = _PhaseBars()
+    try:
+        report = build_model(args.input, args.output, options, progress=bars)
+    finally:
+        bars.close()
+    phases = ", ".join(f"{k} {v:.1f} s" for k, v in report["phase_seconds"].items())
+    print(
+        f"built      {report['output']}: {report['triangles']:,} triangles in {report['seconds']:.1f} s "
+        f"({report['triangles_per_second'] / 1e6:.2f} Mtri/s; {phases})"
+    )
+    print(
+        f"size       {report['file_bytes'] / 2**20:.1f} MiB, {report['bytes_per_triangle']:.1f} B/triangle, "
+        f"compression {report['compression_ratio']:.2f}x, {report['blocks']:,} blocks, "
+        f"{report['node_levels']} LOD levels"
+    )
+    print(
+        f"memory     peak RSS {report['peak_rss_bytes'] / 2**20:.0f} MiB "
+        f"(budget {options.memory / 2**20:.0f} MiB + {STATED_OVERHEAD_BYTES >> 20} MiB fixed overhead; "
+        f"{report['parts']} in-core part(s) of <= {report['incore_limit']:,} triangles)"
+    )
+    if report["degenerate"]:
+        print(f"note       dropped {report['degenerate']:,} degenerate (zero-area) triangles")
+    for warning in report["warnings"]:
+        print(f"warning    {warning}")
+    return 0
+
+
+def _cmd_inspect(args: argparse.Namespace) -> int:
+    import json
+
+    from vastray.modelfile import ModelFile
+
+    with ModelFile(args.model) as model:
+        if args.verify:
+            from tqdm import tqdm
+
+            with tqdm(total=len(model.blocks), unit="block", desc="verify", file=sys.stderr) as bar:
+                model.verify(progress=bar.update)
+        stats = model.stats()
+    if args.json:
+        print(json.dumps(stats, indent=2))
+        return 0
+    lo, hi = stats["bounds"]
+    print(f"model      {stats['path']} (format version {stats['version']})")
+    print(
+        f"triangles  {stats['triangles']:,} (input {stats['input_triangles']:,}, "
+        f"{stats['degenerate']:,} degenerate dropped), colours: {'yes' if stats['colours'] else 'no'}"
+    )
+    print(f"bounds     {_fmt(lo)} .. {_fmt(hi)}")
+    print(
+        f"nodes      {stats['nodes']:,} ({stats['basic_nodes']:,} basic, {stats['lod_nodes']:,} LOD, "
+        f"{stats['leaves']:,} leaves), {stats['references']:,} triangle references"
+    )
+    print(
+        f"voxels     {stats['voxels']:,} ({stats['voxels_one']:,} one-sample, {stats['voxels_six']:,} six-sample)"
+    )
+    print(
+        f"size       {stats['file_bytes'] / 2**20:.2f} MiB, {stats['bytes_per_triangle']:.1f} B/triangle, "
+        f"{stats['blocks']:,} blocks, compression {stats['compression_ratio']:.2f}x"
+    )
+    print(f"{'level':>10} {'blocks':>8} {'raw MiB':>10} {'stored MiB':>11} {'ratio':>6}")
+    for lv in stats["levels"]:
+        ratio = lv["raw_bytes"] / lv["stored_bytes"] if lv["stored_bytes"] else 1.0
+        print(
+            f"{lv['level']!s:>10} {lv['blocks']:>8,} {lv['raw_bytes'] / 2**20:>10.2f} "
+            f"{lv['stored_bytes'] / 2**20:>11.2f} {ratio:>6.2f}"
+        )
+    if args.verify:
+        print(f"verified   all {stats['blocks']:,} blocks (checksums and decompression)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vastray", description=__doc__)
     parser.add_argument("--version", action="version", version=f"vastray {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a model to an image")
-    r.add_argument("model", help="mesh file (OBJ/PLY/STL/GLB/OFF), 'demo', or scene:NAME[:TRIANGLES[:SEED]]")
+    r.add_argument(
+        "model",
+        help="built model, mesh file (OBJ/PLY/STL/GLB/OFF), 'demo', or scene:NAME[:TRIANGLES[:SEED]]",
+    )
     r.add_argument("-o", "--output", required=True, help="output image (PNG, JPEG, ...)")
     r.add_argument("--eye", help="camera position x,y,z (default: framed automatically)")
     r.add_argument("--target", help="point looked at x,y,z (default: the model's centre)")
@@ -99,6 +221,25 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--threads", type=int, default=0, help="render threads (0: all cores)")
     r.add_argument("--leaf-size", type=int, default=2, help="kd-tree leaf size")
     r.set_defaults(func=_cmd_render)
+
+    b = sub.add_parser("build", help="build the out-of-core model the server renders from")
+    b.add_argument(
+        "input",
+        help="mesh file (binary PLY/STL and raw .f32 soup stream; OBJ/GLB/OFF load whole), 'demo', "
+        "or scene:NAME[:TRIANGLES[:SEED]]",
+    )
+    b.add_argument("-o", "--output", required=True, help="model file to write (e.g. model.vast)")
+    b.add_argument("--memory", default="2G", help="memory budget, e.g. 2G or 512M (default 2G)")
+    b.add_argument("--threads", type=int, default=0, help="build threads (0: all cores)")
+    b.add_argument("--force", action="store_true", help="replace the output if it exists")
+    b.add_argument("--scratch-dir", help="where temporary files go (default: next to the output)")
+    b.set_defaults(func=_cmd_build)
+
+    i = sub.add_parser("inspect", help="print a built model's statistics")
+    i.add_argument("model", help="model file written by 'vastray build'")
+    i.add_argument("--verify", action="store_true", help="read and check every block")
+    i.add_argument("--json", action="store_true", help="print the statistics as JSON")
+    i.set_defaults(func=_cmd_inspect)
 
     s = sub.add_parser("scene", help="generate a procedural test scene")
     s.add_argument("name", help="scene name: spheres, plant, mandelbulb")

@@ -66,10 +66,31 @@ def resolve_mesh(source: str) -> Mesh:
     return load_mesh(source)
 
 
+def is_built_model(source: str) -> bool:
+    """Whether `source` is a file written by `vastray build` (checked by magic bytes)."""
+    from vastray.modelfile import MAGIC
+
+    try:
+        with open(source, "rb") as f:
+            return f.read(len(MAGIC)) == MAGIC
+    except OSError:
+        return False
+
+
 def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any) -> Model:
-    """Load (or generate) a model and build its kd-tree. `on_phase` hears about each
-    phase as it starts, so a CLI or a job can tell the user what the wait is for."""
+    """Load (or generate) a model and build its kd-tree, or decode a built model at full
+    detail. `on_phase` hears about each phase as it starts, so a CLI or a job can tell
+    the user what the wait is for."""
     start = time.perf_counter()
+    if is_built_model(source):
+        from vastray.modelfile import ModelFile
+
+        if on_phase is not None:
+            on_phase(f"decoding built model {source} at full detail")
+        with ModelFile(source) as model_file:
+            scene = model_file.to_scene()
+        decoded = time.perf_counter() - start
+        return Model(scene=scene, name=os.path.basename(source), load_seconds=decoded, build_seconds=0.0)
     if on_phase is not None:
         on_phase(f"loading {source}")
     mesh = resolve_mesh(source)
