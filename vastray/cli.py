@@ -182,7 +182,8 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         f"{stats['leaves']:,} leaves), {stats['references']:,} triangle references"
     )
     print(
-        f"voxels     {stats['voxels']:,} ({stats['voxels_one']:,} one-sample, {stats['voxels_six']:,} six-sample)"
+        f"voxels     {stats['voxels']:,} "
+        f"({stats['voxels_one']:,} one-sample, {stats['voxels_six']:,} six-sample)"
     )
     print(
         f"size       {stats['file_bytes'] / 2**20:.2f} MiB, {stats['bytes_per_triangle']:.1f} B/triangle, "
