@@ -1,6 +1,9 @@
 #include "vastray/model_writer.h"
 
+#include "vastray/thread_pool.h"
+
 #include <chrono>
+#include <mutex>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -32,10 +35,21 @@ struct Proxy {
     FaceSamples s;
 };
 
+// A block id written into a node that the merge of a parallel part must rebase: the
+// u32 at `offset` refers to a block of `target` (a node level, or -1 for triangles).
+struct Patch {
+    std::uint32_t offset;
+    int target;
+};
+
 struct Pending {
     std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes
     std::vector<Proxy> proxies;
+    std::vector<Patch> patches;
 };
+
+// Where finished blocks go: straight to the sink, or into a buffer for a later merge.
+using Emit = std::function<void(int level, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&& patches)>;
 
 struct LocalNode {
     enum Kind { Basic, Lod, Leaf } kind = Basic;
@@ -116,10 +130,14 @@ struct VertexHash {
 // records, which point at vertices shared within the block (paper 000 §4.6).
 class TriangleBlocks {
 public:
-    TriangleBlocks(bool has_colours, BlockSink& sink, ModelWriterStats& stats)
-        : has_colours_(has_colours), sink_(sink), stats_(stats) {}
+    TriangleBlocks(bool has_colours, Emit& emit, ModelWriterStats& stats)
+        : has_colours_(has_colours), emit_(emit), stats_(stats) {}
 
     // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
+    std::uint32_t blocks() const { return blocks_; }
+    // A triangle block emitted elsewhere took the next id (parallel merge).
+    void skip_block() { ++blocks_; }
+
     std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                      const Vec3f* corners, const std::uint32_t* ids,
                                                      const std::uint32_t* colours) {
@@ -154,11 +172,11 @@ public:
         std::memcpy(out.data() + l.ids, ids_.data(), 4 * ids_.size());
         if (has_colours_) std::memcpy(out.data() + l.colours, colours_.data(), 4 * colours_.size());
         std::memcpy(out.data() + l.vertices, verts_.data(), 12 * verts_.size());
-        sink_(-1, out.data(), out.size());
         stats_.stored_triangles += ids_.size();
         stats_.stored_vertices += verts_.size();
         stats_.triangle_blocks++;
         stats_.triangle_bytes += out.size();
+        emit_(-1, std::move(out), {});
         ++blocks_;
         list_.clear();
         ids_.clear();
@@ -198,7 +216,7 @@ private:
     }
 
     bool has_colours_;
-    BlockSink& sink_;
+    Emit& emit_;
     ModelWriterStats& stats_;
     std::uint32_t blocks_ = 0;
     std::vector<std::uint16_t> list_, tri_verts_;
@@ -208,64 +226,83 @@ private:
     SmallMap<VertexKey, VertexHash> vertex_map_;
 };
 
-}  // namespace
+// Leaf references written so far, shared by the emitters of one writer (progress bars).
+struct ProgressCounter {
+    ProgressSink sink;
+    std::mutex mutex;
+    std::uint64_t references = 0, reported = 0;
 
-struct ModelWriter::Impl {
-    ModelWriterParams p;
-    BlockSink sink;
-    ProgressSink progress;
+    void add(std::uint64_t n) {
+        std::lock_guard<std::mutex> lock(mutex);
+        references += n;
+        if (sink && references - reported >= (1u << 16)) {
+            reported = references;
+            sink(references);
+        }
+    }
+};
+
+struct BufferedBlock {
+    int level;
+    std::vector<std::uint8_t> bytes;
+    std::vector<Patch> patches;
+};
+
+// Emits treelets and triangle blocks into one set of level streams. The writer has a
+// main emitter that feeds the sink; parts of a subtree emitted in parallel get their
+// own, which buffer their blocks (with local block ids) until merged in order.
+struct Emitter {
+    const ModelWriterParams& p;
+    ProgressCounter& counter;
     ModelWriterStats stats;
+    Emit emit;
     std::vector<std::vector<std::uint8_t>> level_buf;
+    std::vector<std::vector<Patch>> level_patches;
     TriangleBlocks triangles;
-    std::unordered_map<int, Pending> pending;
-    int next_handle = 0;
-    std::uint64_t last_progress = 0;
 
-    // The subtree being emitted (add_subtree).
+    // The subtree being emitted.
     const KdTree* tree = nullptr;
     const Vec3f* corners = nullptr;
     const std::uint32_t* ids = nullptr;
     const std::uint32_t* colours = nullptr;
 
-    Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
-        : p(params), sink(std::move(s)), progress(std::move(pr)), triangles(params.has_colours, sink, stats) {}
+    Emitter(const ModelWriterParams& params, ProgressCounter& c, Emit e)
+        : p(params), counter(c), emit(std::move(e)), triangles(params.has_colours, emit, stats) {}
 
-    int keep(Pending&& t) {
-        const int h = next_handle++;
-        pending.emplace(h, std::move(t));
-        return h;
-    }
-    Pending take(int handle) {
-        auto it = pending.find(handle);
-        if (it == pending.end()) throw std::invalid_argument("unknown or already used treelet handle " + std::to_string(handle));
-        Pending t = std::move(it->second);
-        pending.erase(it);
-        return t;
+    void ensure_level(std::size_t level) {
+        if (level_buf.size() > level) return;
+        level_buf.resize(level + 1);
+        level_patches.resize(level + 1);
+        stats.level_blocks.resize(level + 1, 0);
+        stats.level_bytes.resize(level + 1, 0);
     }
 
     void flush_level(std::size_t level) {
+        if (level >= level_buf.size()) return;
         auto& buf = level_buf[level];
         if (buf.empty()) return;
-        sink(static_cast<int>(level), buf.data(), buf.size());
         stats.level_blocks[level]++;
         stats.level_bytes[level] += buf.size();
+        emit(static_cast<int>(level), std::move(buf), std::move(level_patches[level]));
         buf.clear();
+        level_patches[level].clear();
     }
 
     // Places sibling treelets contiguously in one block of `level`; returns the block id
     // and the first one's offset.
     std::pair<std::uint32_t, std::size_t> place(std::size_t level, const Pending* a, const Pending* b) {
-        if (level_buf.size() <= level) {
-            level_buf.resize(level + 1);
-            stats.level_blocks.resize(level + 1, 0);
-            stats.level_bytes.resize(level + 1, 0);
-        }
+        ensure_level(level);
         auto& buf = level_buf[level];
         const std::size_t need = (a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0);
         if (buf.size() + need > kBlockSize) flush_level(level);
         const std::size_t off = buf.size();
-        if (a) buf.insert(buf.end(), a->bytes.begin(), a->bytes.end());
-        if (b) buf.insert(buf.end(), b->bytes.begin(), b->bytes.end());
+        for (const Pending* t : {a, b}) {
+            if (t == nullptr) continue;
+            for (const Patch& q : t->patches) {
+                level_patches[level].push_back({static_cast<std::uint32_t>(buf.size()) + q.offset, q.target});
+            }
+            buf.insert(buf.end(), t->bytes.begin(), t->bytes.end());
+        }
         stats.treelets += (a ? 1 : 0) + (b ? 1 : 0);
         return {static_cast<std::uint32_t>(stats.level_blocks[level]), off};
     }
@@ -443,7 +480,7 @@ struct ModelWriter::Impl {
         node.radius = 0.5f * length(e);
     }
 
-    void serialise(std::vector<LocalNode>& nodes, Pending& out) {
+    void serialise(std::vector<LocalNode>& nodes, std::size_t level, Pending& out) {
         std::size_t cursor = 0;
         for (LocalNode& n : nodes) {
             n.offset = cursor;
@@ -477,12 +514,14 @@ struct ModelWriter::Impl {
                     put(n.offset + 4, float_bits(n.split));
                     put(n.offset + 8, float_bits(n.radius));
                     put(n.offset + 12, n.child_block);
+                    out.patches.push_back({static_cast<std::uint32_t>(n.offset + 12), static_cast<int>(level + 1)});
                     for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
                     break;
                 }
                 case LocalNode::Leaf:
                     put(n.offset, leaf_word(n.first, n.count));
                     put(n.offset + 4, n.tri_block);
+                    out.patches.push_back({static_cast<std::uint32_t>(n.offset + 4), -1});
                     break;
             }
         }
@@ -521,17 +560,26 @@ struct ModelWriter::Impl {
         }
     }
 
-    Pending emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level) {
+    // Emits the treelet rooted at kd node `root` and everything below it. `children`,
+    // when given, holds its LOD nodes' child treelets already emitted (in order).
+    Pending emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level,
+                            std::vector<Pending>* children = nullptr) {
         std::vector<LocalNode> nodes;
         nodes.reserve(7);
         collect_kd(root, cell, 0, nodes);
         Pending self;
+        std::size_t next_child = 0;
         for (LocalNode& n : nodes) {
             if (n.kind == LocalNode::Lod) {
                 const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
                 Pending l, r;
-                if (has_l) l = emit_kd_treelet(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), level + 1);
-                if (has_r) r = emit_kd_treelet(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), level + 1);
+                if (children != nullptr) {
+                    if (has_l) l = std::move((*children)[next_child++]);
+                    if (has_r) r = std::move((*children)[next_child++]);
+                } else {
+                    if (has_l) l = emit_kd_treelet(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), level + 1);
+                    if (has_r) r = emit_kd_treelet(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), level + 1);
+                }
                 finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
                 stats.lod_nodes++;
                 stats.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
@@ -546,22 +594,102 @@ struct ModelWriter::Impl {
                 self.proxies.push_back(leaf_proxy(tris, n.count, n.cell));
                 stats.leaves++;
                 stats.references += n.count;
-                if (stats.references - last_progress >= (1u << 16)) {
-                    last_progress = stats.references;
-                    if (progress) progress(stats.references);
-                }
+                counter.add(n.count);
             } else {
                 stats.basic_nodes++;
                 stats.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
             }
         }
-        serialise(nodes, self);
+        serialise(nodes, level, self);
         return self;
+    }
+
+    // Appends a block emitted elsewhere (already rebased) to this emitter's streams.
+    void adopt(int level, std::vector<std::uint8_t>&& bytes) {
+        if (level < 0) {
+            stats.triangle_blocks++;
+            stats.triangle_bytes += bytes.size();
+            triangles.skip_block();
+        } else {
+            ensure_level(static_cast<std::size_t>(level));
+            stats.level_blocks[static_cast<std::size_t>(level)]++;
+            stats.level_bytes[static_cast<std::size_t>(level)] += bytes.size();
+        }
+        emit(level, std::move(bytes), {});
+    }
+
+    // Moves a part emitted in parallel into these streams: this emitter's partly
+    // filled blocks are closed first, so the part's blocks follow and every local id
+    // becomes base + id. Its pending root treelet is rebased the same way.
+    void merge(Emitter& part, std::vector<BufferedBlock>& blocks, Pending& root) {
+        std::vector<std::uint32_t> base(part.level_buf.size() + 1, 0);
+        for (std::size_t level = 0; level < part.level_buf.size(); ++level) {
+            ensure_level(level);
+            flush_level(level);
+            base[level] = static_cast<std::uint32_t>(stats.level_blocks[level]);
+        }
+        triangles.flush();
+        const std::uint32_t tri_base = triangles.blocks();
+        auto rebase = [&](std::uint8_t* data, const Patch& q) {
+            std::uint32_t id;
+            std::memcpy(&id, data + q.offset, 4);
+            id += q.target < 0 ? tri_base : base[static_cast<std::size_t>(q.target)];
+            std::memcpy(data + q.offset, &id, 4);
+        };
+        for (BufferedBlock& b : blocks) {
+            for (const Patch& q : b.patches) rebase(b.bytes.data(), q);
+            adopt(b.level, std::move(b.bytes));
+        }
+        blocks.clear();
+        for (const Patch& q : root.patches) rebase(root.bytes.data(), q);
+        const ModelWriterStats& s = part.stats;
+        stats.basic_nodes += s.basic_nodes;
+        stats.lod_nodes += s.lod_nodes;
+        stats.leaves += s.leaves;
+        stats.empty_children += s.empty_children;
+        stats.voxels_one += s.voxels_one;
+        stats.voxels_six += s.voxels_six;
+        stats.treelets += s.treelets;
+        stats.references += s.references;
+        stats.stored_triangles += s.stored_triangles;
+        stats.stored_vertices += s.stored_vertices;
+    }
+};
+
+}  // namespace
+
+struct ModelWriter::Impl {
+    ModelWriterParams p;
+    BlockSink sink;
+    ProgressCounter counter;
+    Emitter main;
+    std::unordered_map<int, Pending> pending;
+    int next_handle = 0;
+
+    Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
+        : p(params), sink(std::move(s)),
+          main(p, counter, [this](int level, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&&) {
+              sink(level, bytes.data(), bytes.size());
+          }) {
+        counter.sink = std::move(pr);
+    }
+
+    int keep(Pending&& t) {
+        const int h = next_handle++;
+        pending.emplace(h, std::move(t));
+        return h;
+    }
+    Pending take(int handle) {
+        auto it = pending.find(handle);
+        if (it == pending.end()) throw std::invalid_argument("unknown or already used treelet handle " + std::to_string(handle));
+        Pending t = std::move(it->second);
+        pending.erase(it);
+        return t;
     }
 };
 
 ModelWriter::ModelWriter(const ModelWriterParams& params, BlockSink sink, ProgressSink progress)
-    : impl_(std::make_unique<Impl>(params, std::move(sink), std::move(progress))), stats_(impl_->stats) {}
+    : impl_(std::make_unique<Impl>(params, std::move(sink), std::move(progress))), stats_(impl_->main.stats) {}
 
 ModelWriter::~ModelWriter() = default;
 
@@ -579,12 +707,57 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     if (tree.nodes.empty() || (tree.nodes[0].is_leaf() && tree.nodes[0].count() == 0)) {
         throw std::invalid_argument("no triangle of this subtree lies inside its cell");
     }
-    impl_->tree = &tree;
-    impl_->corners = verts;
-    impl_->ids = ids;
-    impl_->colours = impl_->p.has_colours ? colours : nullptr;
-    Pending root = impl_->emit_kd_treelet(0, cell, static_cast<std::size_t>(level));
-    impl_->tree = nullptr;
+    Emitter& m = impl_->main;
+    auto bind = [&](Emitter& e) {
+        e.tree = &tree;
+        e.corners = verts;
+        e.ids = ids;
+        e.colours = impl_->p.has_colours ? colours : nullptr;
+    };
+    bind(m);
+    const auto lvl = static_cast<std::size_t>(level);
+
+    // The subtrees below the root treelet's LOD nodes are independent: emit them in
+    // parallel into buffered streams, then merge them in order, so the file does not
+    // depend on the thread count.
+    std::vector<LocalNode> top;
+    m.collect_kd(0, cell, 0, top);
+    struct Job {
+        std::uint32_t node;
+        Box3f cell;
+    };
+    std::vector<Job> jobs;
+    for (const LocalNode& t : top) {
+        if (t.kind != LocalNode::Lod) continue;
+        if ((t.empty & kLeftEmpty) == 0) jobs.push_back({t.kd_left, child_cell(t.cell, t.axis, t.split, 0)});
+        if ((t.empty & kRightEmpty) == 0) jobs.push_back({t.kd_right, child_cell(t.cell, t.axis, t.split, 1)});
+    }
+    Pending root;
+    const unsigned lanes = impl_->p.kd.threads == 0 ? hardware_threads() : impl_->p.kd.threads;
+    if (jobs.size() >= 2) {
+        std::vector<std::vector<BufferedBlock>> buffers(jobs.size());
+        std::vector<std::unique_ptr<Emitter>> parts;
+        for (auto& buffer : buffers) {
+            parts.push_back(std::make_unique<Emitter>(
+                impl_->p, impl_->counter,
+                [&buffer](int lv, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&& patches) {
+                    buffer.push_back({lv, std::move(bytes), std::move(patches)});
+                }));
+            bind(*parts.back());
+        }
+        std::vector<Pending> roots(jobs.size());
+        ThreadPool::global().parallel_for(jobs.size(), [&](std::size_t i, unsigned) {
+            Emitter& e = *parts[i];
+            roots[i] = e.emit_kd_treelet(jobs[i].node, jobs[i].cell, lvl + 1);
+            for (std::size_t l = 0; l < e.level_buf.size(); ++l) e.flush_level(l);
+            e.triangles.flush();
+        }, lanes);
+        for (std::size_t i = 0; i < jobs.size(); ++i) m.merge(*parts[i], buffers[i], roots[i]);
+        root = m.emit_kd_treelet(0, cell, lvl, &roots);
+    } else {
+        root = m.emit_kd_treelet(0, cell, lvl);
+    }
+    m.tree = nullptr;
     stats_.emit_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count();
     return impl_->keep(std::move(root));
 }
@@ -631,6 +804,7 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
     };
     collect(collect, 0, cell, 0);
 
+    Emitter& m = impl_->main;
     Pending self;
     for (LocalNode& n : nodes) {
         if (n.kind == LocalNode::Lod) {
@@ -638,7 +812,7 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
             Pending l, r;
             if (has_l) l = impl_->take(n.child_handles[0]);
             if (has_r) r = impl_->take(n.child_handles[1]);
-            impl_->finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
+            m.finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
             stats_.lod_nodes++;
             stats_.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
         } else {
@@ -646,18 +820,19 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
             stats_.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
         }
     }
-    impl_->serialise(nodes, self);
+    m.serialise(nodes, static_cast<std::size_t>(level), self);
     return impl_->keep(std::move(self));
 }
 
 void ModelWriter::finish(int root) {
+    Emitter& m = impl_->main;
     Pending r = impl_->take(root);
-    if (!impl_->level_buf.empty() && !impl_->level_buf[0].empty()) throw std::logic_error("level 0 already written");
-    impl_->place(0, &r, nullptr);
-    for (std::size_t level = 0; level < impl_->level_buf.size(); ++level) impl_->flush_level(level);
-    impl_->triangles.flush();
+    if (!m.level_buf.empty() && !m.level_buf[0].empty()) throw std::logic_error("level 0 already written");
+    m.place(0, &r, nullptr);
+    for (std::size_t level = 0; level < m.level_buf.size(); ++level) m.flush_level(level);
+    m.triangles.flush();
     if (!impl_->pending.empty()) throw std::logic_error("treelets left unplaced: the tree has more than one root");
-    if (impl_->progress) impl_->progress(stats_.references);
+    if (impl_->counter.sink) impl_->counter.sink(impl_->counter.references);
 }
 
 }  // namespace vastray
