@@ -106,16 +106,20 @@ public:
         : soup_(soup), p_(params), max_depth_(max_depth),
           spare_threads_(static_cast<int>(threads) - 1) {}
 
-    void build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    // used: the union of the references' boxes (computed by the caller's partition pass,
+    // so no node spends an extra pass over its references on it).
+    void build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out);
 
 private:
     void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
     void count_empty(int depth, Output& out);
-    void build_children(std::vector<PrimRef>& left, const Box3f& lcell, std::vector<PrimRef>& right,
-                        const Box3f& rcell, int depth, int axis, float split, Output& out);
-    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    void build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
+                        std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused, int depth,
+                        int axis, float split, Output& out);
+    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out);
     void partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
-                   const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right) const;
+                   const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right,
+                   Box3f& lused, Box3f& rused) const;
 
     const TriangleSoup& soup_;
     const KdBuildParams& p_;
@@ -143,9 +147,9 @@ void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int
 
 void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
                         const Box3f& rcell, std::vector<PrimRef>& left,
-                        std::vector<PrimRef>& right) const {
-    left.reserve(refs.size() / 2 + 16);
-    right.reserve(refs.size() / 2 + 16);
+                        std::vector<PrimRef>& right, Box3f& lused, Box3f& rused) const {
+    if (left.capacity() == 0) left.reserve(refs.size() / 2 + 16);
+    if (right.capacity() == 0) right.reserve(refs.size() / 2 + 16);
     for (const PrimRef& r : refs) {
         const float lo = r.box.lo[axis], hi = r.box.hi[axis];
         const bool planar = lo == split && hi == split;
@@ -160,19 +164,28 @@ void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const
                 Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
+                (side == 0 ? lused : rused).extend(clipped);
                 (side == 0 ? left : right).push_back({clipped, r.id});
             }
         } else {
-            if (in_left) left.push_back({Box3f::intersection(r.box, lcell), r.id});
-            if (in_right) right.push_back({Box3f::intersection(r.box, rcell), r.id});
+            if (in_left) {
+                const Box3f b = Box3f::intersection(r.box, lcell);
+                lused.extend(b);
+                left.push_back({b, r.id});
+            }
+            if (in_right) {
+                const Box3f b = Box3f::intersection(r.box, rcell);
+                rused.extend(b);
+                right.push_back({b, r.id});
+            }
         }
     }
     std::vector<PrimRef>().swap(refs);  // release the parent's list before recursing
 }
 
-void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
-                             std::vector<PrimRef>& right, const Box3f& rcell, int depth, int axis,
-                             float split, Output& out) {
+void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
+                             std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused,
+                             int depth, int axis, float split, Output& out) {
     const std::size_t self = out.nodes.size();
     const std::uint32_t empty_flags = (left.empty() ? KdNode::kLeftEmpty : 0u) |
                                       (right.empty() ? KdNode::kRightEmpty : 0u);
@@ -182,7 +195,8 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
         // One child is empty: it costs nothing but a flag; the other follows directly.
         count_empty(depth + 1, out);
         if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
-        build(left.empty() ? right : left, left.empty() ? rcell : lcell, depth + 1, out);
+        build(left.empty() ? right : left, left.empty() ? rcell : lcell, left.empty() ? rused : lused,
+              depth + 1, out);
         return;
     }
 
@@ -199,16 +213,16 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
     std::thread worker;
     if (spawn) {
         worker = std::thread([&] {
-            build(right, rcell, depth + 1, right_out);
+            build(right, rcell, rused, depth + 1, right_out);
             spare_threads_.fetch_add(1);
         });
     }
-    build(left, lcell, depth + 1, out);
+    build(left, lcell, lused, depth + 1, out);
     const std::size_t right_offset = out.nodes.size() - self;
     if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
     out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
     if (!spawn) {
-        build(right, rcell, depth + 1, out);
+        build(right, rcell, rused, depth + 1, out);
         return;
     }
     worker.join();
@@ -227,10 +241,9 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell,
 
 // Paper 000 §4.1: before any other split, cut off an empty slab holding a large share
 // of the cell. Tight cells make tight LOD voxels and let rays skip empty space early.
-bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
-    Box3f used;
-    for (const PrimRef& r : refs) used.extend(r.box);
-    used = Box3f::intersection(used, cell);
+bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& refs_used, int depth,
+                            Output& out) {
+    const Box3f used = Box3f::intersection(refs_used, cell);
     if (used.empty()) return false;
     int best_axis = -1, best_side = 0;
     float best_ratio = p_.empty_space_ratio;
@@ -251,63 +264,75 @@ bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, int d
     // Every reference lies on the occupied side of the cut (touching the plane included).
     std::vector<PrimRef> none;
     if (best_side == 0) {
-        build_children(none, lcell, refs, rcell, depth, best_axis, split, out);
+        build_children(none, lcell, Box3f{}, refs, rcell, refs_used, depth, best_axis, split, out);
     } else {
-        build_children(refs, lcell, none, rcell, depth, best_axis, split, out);
+        build_children(refs, lcell, refs_used, none, rcell, Box3f{}, depth, best_axis, split, out);
     }
     return true;
 }
 
-void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out) {
     const std::size_t n = refs.size();
     if (n == 0 || depth >= max_depth_) {
         emit_leaf(refs, cell, depth, out);
         return;
     }
-    if (try_empty_cut(refs, cell, depth, out)) return;
+    if (try_empty_cut(refs, cell, used, depth, out)) return;
     if (n <= static_cast<std::size_t>(p_.leaf_size)) {
         emit_leaf(refs, cell, depth, out);
         return;
     }
 
-    // Binned SAH over the three axes.
-    const int bins = std::max(4, p_.bins);
+    // Binned SAH over the three axes, binned in one pass over the references. Small
+    // nodes get fewer bins: past ~n candidates per axis the sweep costs more than the
+    // binning and finds nothing better.
+    const int bins = std::max(4, std::min(p_.bins, static_cast<int>(std::min<std::size_t>(n, 1u << 20)) + 4));
+    const auto nb = static_cast<std::size_t>(bins);
     const double area = cell.half_area();
+    const double ci_per_area = area > 0 ? p_.intersection_cost / area : 0.0;
     double best_cost = static_cast<double>(p_.intersection_cost) * static_cast<double>(n);
     int best_axis = -1;
     float best_split = 0;
-    std::vector<std::uint32_t> starts(static_cast<std::size_t>(bins)), ends(static_cast<std::size_t>(bins));
+    std::size_t best_left = 0, best_right = 0;
+    std::vector<std::uint32_t> starts(3 * nb, 0u), ends(3 * nb, 0u);
+    float scale[3];
+    for (int a = 0; a < 3; ++a) {
+        const float ext = cell.hi[a] - cell.lo[a];
+        scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
+    }
+    auto bin_of = [&](int a, float x) {
+        const int b = static_cast<int>((x - cell.lo[a]) * scale[a]);
+        return static_cast<std::size_t>(a) * nb + static_cast<std::size_t>(std::clamp(b, 0, bins - 1));
+    };
+    for (const PrimRef& r : refs) {
+        for (int a = 0; a < 3; ++a) {
+            starts[bin_of(a, r.box.lo[a])]++;
+            ends[bin_of(a, r.box.hi[a])]++;
+        }
+    }
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
-        std::fill(starts.begin(), starts.end(), 0u);
-        std::fill(ends.begin(), ends.end(), 0u);
-        const float scale = static_cast<float>(bins) / ext;
-        auto bin_of = [&](float x) {
-            const int b = static_cast<int>((x - lo) * scale);
-            return static_cast<std::size_t>(std::clamp(b, 0, bins - 1));
-        };
-        for (const PrimRef& r : refs) {
-            starts[bin_of(r.box.lo[a])]++;
-            ends[bin_of(r.box.hi[a])]++;
-        }
+        const std::uint32_t* st = starts.data() + static_cast<std::size_t>(a) * nb;
+        const std::uint32_t* en = ends.data() + static_cast<std::size_t>(a) * nb;
         std::size_t n_left = 0, n_right = n;
         const Vec3f e = cell.extent();
         const float o1 = e[(a + 1) % 3], o2 = e[(a + 2) % 3];
+        // Child half-areas are linear in the split position: w * perimeter + cap.
+        const float perimeter = o1 + o2, cap = o1 * o2, step = ext / static_cast<float>(bins);
         for (int i = 1; i < bins; ++i) {
-            n_left += starts[static_cast<std::size_t>(i - 1)];
-            n_right -= ends[static_cast<std::size_t>(i - 1)];
-            const float split = lo + ext * static_cast<float>(i) / static_cast<float>(bins);
-            const float wl = split - lo, wr = cell.hi[a] - split;
-            const double al = static_cast<double>(wl) * (o1 + o2) + static_cast<double>(o1) * o2;
-            const double ar = static_cast<double>(wr) * (o1 + o2) + static_cast<double>(o1) * o2;
+            n_left += st[i - 1];
+            n_right -= en[i - 1];
+            const float wl = step * static_cast<float>(i), wr = ext - wl;
             const double cost = p_.traversal_cost +
-                                p_.intersection_cost * (al * static_cast<double>(n_left) +
-                                                        ar * static_cast<double>(n_right)) / area;
+                                ci_per_area * (static_cast<double>(wl * perimeter + cap) * static_cast<double>(n_left) +
+                                               static_cast<double>(wr * perimeter + cap) * static_cast<double>(n_right));
             if (cost < best_cost) {
                 best_cost = cost;
                 best_axis = a;
-                best_split = split;
+                best_split = lo + wl;
+                best_left = n_left;
+                best_right = n_right;
             }
         }
     }
@@ -320,15 +345,20 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, int depth, Ou
         const Vec3f e = cell.extent();
         best_axis = e.x >= e.y && e.x >= e.z ? 0 : (e.y >= e.z ? 1 : 2);
         best_split = 0.5f * (cell.lo[best_axis] + cell.hi[best_axis]);
+        best_left = best_right = n / 2;
     }
 
     Box3f lcell = cell, rcell = cell;
     lcell.hi[best_axis] = best_split;
     rcell.lo[best_axis] = best_split;
     std::vector<PrimRef> left, right;
-    partition(refs, best_axis, best_split, lcell, rcell, left, right);
+    // The bin counts give the child sizes (planar references aside): no regrowth.
+    left.reserve(best_left + 16);
+    right.reserve(best_right + 16);
+    Box3f lused, rused;
+    partition(refs, best_axis, best_split, lcell, rcell, left, right, lused, rused);
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
-    build_children(left, lcell, right, rcell, depth, best_axis, best_split, out);
+    build_children(left, lcell, lused, right, rcell, rused, depth, best_axis, best_split, out);
 }
 
 }  // namespace
@@ -385,8 +415,9 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
         std::count_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }));
     refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id >= kOutside; }),
                refs.end());
-    for (const Box3f& b : chunk_bounds) tree.bounds.extend(b);
-    if (cell != nullptr) tree.bounds = *cell;
+    Box3f used;
+    for (const Box3f& b : chunk_bounds) used.extend(b);
+    tree.bounds = cell != nullptr ? *cell : used;
     if (tree.bounds.empty()) tree.bounds = Box3f{{0, 0, 0}, {0, 0, 0}};
 
     int max_depth = params.max_depth;
@@ -399,7 +430,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     Output out;
     out.nodes.reserve(soup.count * 2);
     out.tri_ids.reserve(soup.count * 2);
-    builder.build(refs, tree.bounds, 0, out);
+    builder.build(refs, tree.bounds, used, 0, out);
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);

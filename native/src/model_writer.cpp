@@ -314,33 +314,53 @@ struct Emitter {
     FaceSamples sample_voxel(const Box3f& cell, const Pending* a, const Pending* b) const {
         FaceSamples out;
         bool have[6] = {};
-        const int k = std::max(1, p.voxel_rays_per_axis);
+        const int k = std::clamp(p.voxel_rays_per_axis, 1, 8);
+        std::vector<const Proxy*> proxies;
+        proxies.reserve(16);
+        for (const Pending* t : {a, b}) {
+            if (t == nullptr) continue;
+            for (const Proxy& q : t->proxies) proxies.push_back(&q);
+        }
+        const Proxy* hit[64];
+        float depth[64];
         for (int f = 0; f < 6; ++f) {
             const int axis = f / 2, side = f % 2, u = (axis + 1) % 3, v = (axis + 2) % 3;
-            Vec3f colour, normal;
-            int hits = 0;
-            for (int i = 0; i < k; ++i) {
-                const float pu = cell.lo[u] + (cell.hi[u] - cell.lo[u]) * (static_cast<float>(i) + 0.5f) / static_cast<float>(k);
-                for (int j = 0; j < k; ++j) {
-                    const float pv = cell.lo[v] + (cell.hi[v] - cell.lo[v]) * (static_cast<float>(j) + 0.5f) / static_cast<float>(k);
-                    const Proxy* best = nullptr;
-                    float best_d = std::numeric_limits<float>::infinity();
-                    for (const Pending* t : {a, b}) {
-                        if (t == nullptr) continue;
-                        for (const Proxy& q : t->proxies) {
-                            if (pu < q.box.lo[u] || pu > q.box.hi[u] || pv < q.box.lo[v] || pv > q.box.hi[v]) continue;
-                            const float d = side == 0 ? q.box.lo[axis] : -q.box.hi[axis];
-                            if (d < best_d) {
-                                best_d = d;
-                                best = &q;
-                            }
+            const float du = (cell.hi[u] - cell.lo[u]) / static_cast<float>(k);
+            const float dv = (cell.hi[v] - cell.lo[v]) / static_cast<float>(k);
+            std::fill(hit, hit + k * k, nullptr);
+            std::fill(depth, depth + k * k, std::numeric_limits<float>::infinity());
+            // Ray (i, j) passes through (lo + (i + 0.5) du, lo + (j + 0.5) dv): each proxy
+            // covers a rectangle of rays, found by arithmetic instead of testing each ray.
+            auto range = [k](float lo, float hi, float origin, float step, int& first, int& last) {
+                if (!(step > 0)) {
+                    first = 0;
+                    last = lo <= origin && origin <= hi ? k - 1 : -1;
+                    return;
+                }
+                first = std::max(0, static_cast<int>(std::ceil((lo - origin) / step - 0.5f)));
+                last = std::min(k - 1, static_cast<int>(std::floor((hi - origin) / step - 0.5f)));
+            };
+            for (const Proxy* q : proxies) {
+                int i0, i1, j0, j1;
+                range(q->box.lo[u], q->box.hi[u], cell.lo[u], du, i0, i1);
+                range(q->box.lo[v], q->box.hi[v], cell.lo[v], dv, j0, j1);
+                const float d = side == 0 ? q->box.lo[axis] : -q->box.hi[axis];
+                for (int i = i0; i <= i1; ++i) {
+                    for (int j = j0; j <= j1; ++j) {
+                        if (d < depth[i * k + j]) {
+                            depth[i * k + j] = d;
+                            hit[i * k + j] = q;
                         }
                     }
-                    if (best == nullptr) continue;
-                    colour += best->s.colour[f];
-                    normal += best->s.normal[f];
-                    ++hits;
                 }
+            }
+            Vec3f colour, normal;
+            int hits = 0;
+            for (int r = 0; r < k * k; ++r) {
+                if (hit[r] == nullptr) continue;
+                colour += hit[r]->s.colour[f];
+                normal += hit[r]->s.normal[f];
+                ++hits;
             }
             if (hits > 0 && dot(normal, normal) > 0) {
                 out.colour[f] = colour / static_cast<float>(hits);
