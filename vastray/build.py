@@ -494,11 +494,15 @@ class _Builder:
 
         node_levels = len(stats["level_blocks"])
         order = [*range(node_levels), -1]
-        levels: list[tuple[int, int]] = []
+        levels: list[tuple[int, int, int, int]] = []
         entries: list[tuple[int, int, int, int]] = []
         for level in order:
             es = self.level_entries.get(level, [])
-            levels.append((len(entries), len(es)))
+            if level >= 0:
+                contents = (stats["level_nodes"][level], stats["level_voxels"][level])
+            else:
+                contents = (stats["stored_triangles"], stats["stored_vertices"])
+            levels.append((len(entries), len(es), *contents))
             entries.extend(es)
         stored_total = sum(e[0] for e in entries)
         fields = {

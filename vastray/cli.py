@@ -189,13 +189,21 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         f"size       {stats['file_bytes'] / 2**20:.2f} MiB, {stats['bytes_per_triangle']:.1f} B/triangle, "
         f"{stats['blocks']:,} blocks, compression {stats['compression_ratio']:.2f}x"
     )
-    print(f"{'level':>10} {'blocks':>8} {'raw MiB':>10} {'stored MiB':>11} {'ratio':>6}")
+    print(
+        f"{'LOD level':>10} {'nodes':>12} {'voxels':>12} {'blocks':>8} {'raw MiB':>10} "
+        f"{'stored MiB':>11} {'ratio':>6}"
+    )
     for lv in stats["levels"]:
         ratio = lv["raw_bytes"] / lv["stored_bytes"] if lv["stored_bytes"] else 1.0
+        if lv["level"] == "triangles":
+            counts = f"{lv['triangle_records']:>12,} {lv['vertices']:>12,}"
+        else:
+            counts = f"{lv['nodes']:>12,} {lv['voxels']:>12,}"
         print(
-            f"{lv['level']!s:>10} {lv['blocks']:>8,} {lv['raw_bytes'] / 2**20:>10.2f} "
+            f"{lv['level']!s:>10} {counts} {lv['blocks']:>8,} {lv['raw_bytes'] / 2**20:>10.2f} "
             f"{lv['stored_bytes'] / 2**20:>11.2f} {ratio:>6.2f}"
         )
+    print("(triangle level: triangle records and vertices, counted once per block that stores them)")
     if args.verify:
         print(f"verified   all {stats['blocks']:,} blocks (checksums and decompression)")
     return 0

@@ -62,7 +62,9 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
 assert _HEADER_STRUCT.size <= HEADER_SIZE
 _HEADER_CRC_AT = _HEADER_STRUCT.size - 4
-_LEVEL = struct.Struct("<II")  # first block, block count
+# first block, block count, then what the level holds: node levels count their nodes
+# and LOD voxels, the triangle level its triangle records and vertices.
+_LEVEL = struct.Struct("<IIQQ")
 _ENTRY = struct.Struct("<QIIII")  # offset, stored size, raw size, crc32 of stored bytes, codec
 
 
@@ -104,7 +106,7 @@ def _unpack_header(data: bytes) -> dict[str, Any]:
 def write_model_file(
     out: BinaryIO,
     fields: dict[str, Any],
-    levels: list[tuple[int, int]],
+    levels: list[tuple[int, int, int, int]],
     entries: list[tuple[int, int, int, int]],
     block_data: Iterator[bytes],
 ) -> int:
@@ -114,8 +116,8 @@ def write_model_file(
     index_size = _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
     data_offset = HEADER_SIZE + index_size
     index = bytearray()
-    for first, count in levels:
-        index += _LEVEL.pack(first, count)
+    for first, count, items, extra in levels:
+        index += _LEVEL.pack(first, count, items, extra)
     offset = data_offset
     for stored, raw, crc, codec in entries:
         index += _ENTRY.pack(offset, stored, raw, crc, codec)
@@ -192,7 +194,10 @@ class ModelFile:
         index = self._file.read(index_size)
         if zlib.crc32(index) != h["index_crc32"]:
             raise self._fail("block index checksum mismatch (the index is corrupted)")
-        self.levels = [_LEVEL.unpack_from(index, _LEVEL.size * i) for i in range(h["level_count"])]
+        table = [_LEVEL.unpack_from(index, _LEVEL.size * i) for i in range(h["level_count"])]
+        self.levels = [(first, count) for first, count, _, _ in table]
+        # Per level: (nodes, LOD voxels) for node levels, (triangle records, vertices) for the last.
+        self.level_contents = [(items, extra) for _, _, items, extra in table]
         base = _LEVEL.size * h["level_count"]
         self.blocks = [
             BlockEntry(*_ENTRY.unpack_from(index, base + _ENTRY.size * i)) for i in range(h["block_count"])
@@ -285,14 +290,19 @@ class ModelFile:
         levels = []
         for level, (first, count) in enumerate(self.levels):
             entries = self.blocks[first : first + count]
-            levels.append(
-                {
-                    "level": level if level < self.node_levels else "triangles",
-                    "blocks": count,
-                    "raw_bytes": sum(e.raw_size for e in entries),
-                    "stored_bytes": sum(e.stored_size for e in entries),
-                }
+            items, extra = self.level_contents[level]
+            row: dict[str, Any] = {
+                "level": level if level < self.node_levels else "triangles",
+                "blocks": count,
+            }
+            if level < self.node_levels:
+                row.update(nodes=items, voxels=extra)
+            else:
+                row.update(triangle_records=items, vertices=extra)
+            row.update(
+                raw_bytes=sum(e.raw_size for e in entries), stored_bytes=sum(e.stored_size for e in entries)
             )
+            levels.append(row)
         stored = sum(e.stored_size for e in self.blocks)
         return {
             "path": str(self.path),

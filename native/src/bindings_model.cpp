@@ -110,6 +110,8 @@ public:
         d["triangle_bytes"] = s.triangle_bytes;
         d["level_blocks"] = s.level_blocks;
         d["level_bytes"] = s.level_bytes;
+        d["level_nodes"] = s.level_nodes;
+        d["level_voxels"] = s.level_voxels;
         d["kd_build_ms"] = s.kd_build_ms;
         d["emit_ms"] = s.emit_ms;
         d["max_depth"] = s.max_depth;

@@ -35,11 +35,12 @@ struct Proxy {
     FaceSamples s;
 };
 
-// A block id written into a node that the merge of a parallel part must rebase: the
-// u32 at `offset` refers to a block of `target` (a node level, or -1 for triangles).
+// A reference that the merge of a part emitted in parallel must resolve. unit < 0: the
+// u32 at `offset` is a triangle block id local to the part. unit >= 0: `offset` is a LOD
+// node whose child treelets are the part's placement unit `unit`, not yet in a block.
 struct Patch {
     std::uint32_t offset;
-    int target;
+    int unit;
 };
 
 struct Pending {
@@ -66,6 +67,7 @@ struct LocalNode {
     int sample_count = 0;
     std::uint32_t kd_node = 0;              // leaf (in-core): its kd node
     std::uint32_t tri_block = 0, first = 0, count = 0;
+    int unit = -1;                          // LOD (deferred placement): the children's unit
     std::size_t offset = 0;
 };
 
@@ -248,17 +250,26 @@ struct BufferedBlock {
     std::vector<Patch> patches;
 };
 
+// Sibling treelets a deferred emitter would have placed in a block of `level`.
+struct Unit {
+    std::size_t level;
+    Pending data;
+};
+
 // Emits treelets and triangle blocks into one set of level streams. The writer has a
-// main emitter that feeds the sink; parts of a subtree emitted in parallel get their
-// own, which buffer their blocks (with local block ids) until merged in order.
+// main emitter that feeds the sink. Parts of a subtree emitted in parallel get their
+// own, which defer placing treelets (they record placement units instead) and buffer
+// their triangle blocks; the main emitter merges them in order, packing the units into
+// its own blocks, so nodes pack exactly as if one thread had emitted everything.
 struct Emitter {
     const ModelWriterParams& p;
     ProgressCounter& counter;
     ModelWriterStats stats;
     Emit emit;
     std::vector<std::vector<std::uint8_t>> level_buf;
-    std::vector<std::vector<Patch>> level_patches;
     TriangleBlocks triangles;
+    bool defer = false;
+    std::vector<Unit> units;
 
     // The subtree being emitted.
     const KdTree* tree = nullptr;
@@ -272,9 +283,10 @@ struct Emitter {
     void ensure_level(std::size_t level) {
         if (level_buf.size() > level) return;
         level_buf.resize(level + 1);
-        level_patches.resize(level + 1);
         stats.level_blocks.resize(level + 1, 0);
         stats.level_bytes.resize(level + 1, 0);
+        stats.level_nodes.resize(level + 1, 0);
+        stats.level_voxels.resize(level + 1, 0);
     }
 
     void flush_level(std::size_t level) {
@@ -283,9 +295,8 @@ struct Emitter {
         if (buf.empty()) return;
         stats.level_blocks[level]++;
         stats.level_bytes[level] += buf.size();
-        emit(static_cast<int>(level), std::move(buf), std::move(level_patches[level]));
+        emit(static_cast<int>(level), std::move(buf), {});
         buf.clear();
-        level_patches[level].clear();
     }
 
     // Places sibling treelets contiguously in one block of `level`; returns the block id
@@ -296,12 +307,9 @@ struct Emitter {
         const std::size_t need = (a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0);
         if (buf.size() + need > kBlockSize) flush_level(level);
         const std::size_t off = buf.size();
+        // (Patches are for deferred parts only; here every id is final.)
         for (const Pending* t : {a, b}) {
-            if (t == nullptr) continue;
-            for (const Patch& q : t->patches) {
-                level_patches[level].push_back({static_cast<std::uint32_t>(buf.size()) + q.offset, q.target});
-            }
-            buf.insert(buf.end(), t->bytes.begin(), t->bytes.end());
+            if (t != nullptr) buf.insert(buf.end(), t->bytes.begin(), t->bytes.end());
         }
         stats.treelets += (a ? 1 : 0) + (b ? 1 : 0);
         return {static_cast<std::uint32_t>(stats.level_blocks[level]), off};
@@ -492,15 +500,30 @@ struct Emitter {
         const FaceSamples s = sample_voxel(node.cell, a, b);
         const FaceSamples seen = store_voxel(s, node);
         self.proxies.push_back({node.cell, seen});
-        const auto [block, off] = place(level + 1, a, b);
-        node.child_block = block;
-        node.child_off8 = static_cast<std::uint32_t>(off / 8);
+        if (defer) {
+            Unit u{level + 1, {}};
+            for (const Pending* t : {a, b}) {
+                if (t == nullptr) continue;
+                for (const Patch& q : t->patches) {
+                    u.data.patches.push_back({static_cast<std::uint32_t>(u.data.bytes.size()) + q.offset, q.unit});
+                }
+                u.data.bytes.insert(u.data.bytes.end(), t->bytes.begin(), t->bytes.end());
+            }
+            node.unit = static_cast<int>(units.size());
+            units.push_back(std::move(u));
+        } else {
+            const auto [block, off] = place(level + 1, a, b);
+            node.child_block = block;
+            node.child_off8 = static_cast<std::uint32_t>(off / 8);
+        }
         node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
         const Vec3f e = node.cell.extent();
         node.radius = 0.5f * length(e);
     }
 
     void serialise(std::vector<LocalNode>& nodes, std::size_t level, Pending& out) {
+        ensure_level(level);
+        stats.level_nodes[level] += nodes.size();
         std::size_t cursor = 0;
         for (LocalNode& n : nodes) {
             n.offset = cursor;
@@ -526,6 +549,7 @@ struct Emitter {
                     break;
                 }
                 case LocalNode::Lod: {
+                    stats.level_voxels[level]++;
                     const auto voxel4 = static_cast<std::uint32_t>((voxel_at[i] - n.offset) / 4);
                     if (voxel4 > 127 || n.right_from_left8 > 63 || n.child_off8 > 8191) {
                         throw std::logic_error("LOD node field overflow");
@@ -534,7 +558,7 @@ struct Emitter {
                     put(n.offset + 4, float_bits(n.split));
                     put(n.offset + 8, float_bits(n.radius));
                     put(n.offset + 12, n.child_block);
-                    out.patches.push_back({static_cast<std::uint32_t>(n.offset + 12), static_cast<int>(level + 1)});
+                    if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});
                     for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
                     break;
                 }
@@ -638,30 +662,41 @@ struct Emitter {
         emit(level, std::move(bytes), {});
     }
 
-    // Moves a part emitted in parallel into these streams: this emitter's partly
-    // filled blocks are closed first, so the part's blocks follow and every local id
-    // becomes base + id. Its pending root treelet is rebased the same way.
-    void merge(Emitter& part, std::vector<BufferedBlock>& blocks, Pending& root) {
-        std::vector<std::uint32_t> base(part.level_buf.size() + 1, 0);
-        for (std::size_t level = 0; level < part.level_buf.size(); ++level) {
-            ensure_level(level);
-            flush_level(level);
-            base[level] = static_cast<std::uint32_t>(stats.level_blocks[level]);
-        }
+    // Moves a part emitted in parallel into these streams: its triangle blocks follow
+    // ours (their ids become base + id), and its placement units are packed into our
+    // node blocks in the order the part made them, children before parents, so each
+    // LOD node learns its children's block and offset before it is placed itself.
+    void merge(Emitter& part, std::vector<BufferedBlock>& triangle_blocks, Pending& root) {
         triangles.flush();
         const std::uint32_t tri_base = triangles.blocks();
-        auto rebase = [&](std::uint8_t* data, const Patch& q) {
-            std::uint32_t id;
-            std::memcpy(&id, data + q.offset, 4);
-            id += q.target < 0 ? tri_base : base[static_cast<std::size_t>(q.target)];
-            std::memcpy(data + q.offset, &id, 4);
+        for (BufferedBlock& b : triangle_blocks) adopt(b.level, std::move(b.bytes));
+        triangle_blocks.clear();
+        std::vector<std::pair<std::uint32_t, std::size_t>> placed(part.units.size());
+        auto resolve = [&](Pending& t) {
+            for (const Patch& q : t.patches) {
+                std::uint8_t* at = t.bytes.data() + q.offset;
+                std::uint32_t w;
+                if (q.unit < 0) {
+                    std::memcpy(&w, at, 4);
+                    w += tri_base;
+                    std::memcpy(at, &w, 4);
+                    continue;
+                }
+                const auto [block, off] = placed[static_cast<std::size_t>(q.unit)];
+                std::memcpy(&w, at, 4);
+                w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(off / 8) << 17);
+                std::memcpy(at, &w, 4);
+                std::memcpy(at + 12, &block, 4);
+            }
+            t.patches.clear();
         };
-        for (BufferedBlock& b : blocks) {
-            for (const Patch& q : b.patches) rebase(b.bytes.data(), q);
-            adopt(b.level, std::move(b.bytes));
+        for (std::size_t u = 0; u < part.units.size(); ++u) {
+            Unit& unit = part.units[u];
+            resolve(unit.data);
+            placed[u] = place(unit.level, &unit.data, nullptr);
         }
-        blocks.clear();
-        for (const Patch& q : root.patches) rebase(root.bytes.data(), q);
+        part.units.clear();
+        resolve(root);
         const ModelWriterStats& s = part.stats;
         stats.basic_nodes += s.basic_nodes;
         stats.lod_nodes += s.lod_nodes;
@@ -669,10 +704,14 @@ struct Emitter {
         stats.empty_children += s.empty_children;
         stats.voxels_one += s.voxels_one;
         stats.voxels_six += s.voxels_six;
-        stats.treelets += s.treelets;
         stats.references += s.references;
         stats.stored_triangles += s.stored_triangles;
         stats.stored_vertices += s.stored_vertices;
+        for (std::size_t level = 0; level < s.level_nodes.size(); ++level) {
+            ensure_level(level);
+            stats.level_nodes[level] += s.level_nodes[level];
+            stats.level_voxels[level] += s.level_voxels[level];
+        }
     }
 };
 
@@ -763,13 +802,13 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
                 [&buffer](int lv, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&& patches) {
                     buffer.push_back({lv, std::move(bytes), std::move(patches)});
                 }));
+            parts.back()->defer = true;
             bind(*parts.back());
         }
         std::vector<Pending> roots(jobs.size());
         ThreadPool::global().parallel_for(jobs.size(), [&](std::size_t i, unsigned) {
             Emitter& e = *parts[i];
             roots[i] = e.emit_kd_treelet(jobs[i].node, jobs[i].cell, lvl + 1);
-            for (std::size_t l = 0; l < e.level_buf.size(); ++l) e.flush_level(l);
             e.triangles.flush();
         }, lanes);
         for (std::size_t i = 0; i < jobs.size(); ++i) m.merge(*parts[i], buffers[i], roots[i]);

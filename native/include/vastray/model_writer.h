@@ -43,6 +43,7 @@ struct ModelWriterStats {
     std::uint64_t degenerate = 0;           // zero-area triangles left out
     std::uint64_t triangle_blocks = 0;
     std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels
+    std::vector<std::uint64_t> level_nodes, level_voxels;  // nodes and LOD voxels per node level
     std::uint64_t triangle_bytes = 0;
     double kd_build_ms = 0, emit_ms = 0;
     int max_depth = 0;
