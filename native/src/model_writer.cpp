@@ -452,7 +452,7 @@ struct Emitter {
         Proxy q;
         Vec3f csum[6], nsum[6];
         float wsum[6] = {}, area_sum = 0;
-        Vec3f cflat;
+        Vec3f cflat, nflat, first_normal;
         for (std::uint32_t i = 0; i < count; ++i) {
             const Vec3f* v = corners + 3 * static_cast<std::size_t>(tris[i]);
             for (int k = 0; k < 3; ++k) q.box.extend(v[k]);
@@ -468,6 +468,10 @@ struct Emitter {
             }
             cflat += c * area;
             area_sum += area;
+            // Unoriented mean normal (signs aligned to the first triangle), for faces that
+            // see the leaf edge-on.
+            if (dot(first_normal, first_normal) == 0) first_normal = n;
+            nflat += n * (dot(n, first_normal) < 0 ? -area : area);
             for (int f = 0; f < 6; ++f) {
                 // Weighted by the area seen from face f, oriented towards that viewer.
                 const float proj = dot(n, outward(f));
@@ -485,8 +489,12 @@ struct Emitter {
                 q.s.colour[f] = csum[f] / wsum[f];
                 q.s.normal[f] = normalize(nsum[f]);
             } else {
+                // Edge-on (every triangle parallel to the view): the surface normal still
+                // says how the leaf shades from nearby directions.
                 q.s.colour[f] = area_sum > 0 ? cflat / area_sum : grey;
-                q.s.normal[f] = outward(f);
+                const Vec3f o = outward(f);
+                const float side = dot(nflat, o) < 0 ? -1.0f : 1.0f;
+                q.s.normal[f] = dot(nflat, nflat) > 0 ? normalize(nflat) * side : o;
             }
         }
         return q;

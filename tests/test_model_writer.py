@@ -1,0 +1,105 @@
+"""What the model writer computes, beyond the layout: LOD voxel samples that follow the
+surface (normal, colour) and respect occlusion, and output that does not depend on the
+number of threads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from modelwalk import decode_sample, walk
+
+from vastray.build import BuildOptions, build_model
+from vastray.modelfile import ModelFile
+
+# 5-bit colour channels and 6-bit cube-face normal coordinates, plus averaging slack.
+COLOUR_TOL = 1.0 / 31 + 1e-3
+NORMAL_TOL = 0.05
+
+
+def write_ply(path: Path, corners: np.ndarray, colours: np.ndarray) -> None:
+    """Binary PLY, one vertex per corner, per-face RGB."""
+    n = len(corners)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {3 * n}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"element face {n}\nproperty list uchar int vertex_indices\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
+    faces = np.zeros(n, dtype=[("n", "u1"), ("v", "<i4", (3,)), ("rgb", "u1", (3,))])
+    faces["n"] = 3
+    faces["v"] = np.arange(3 * n, dtype=np.int32).reshape(n, 3)
+    faces["rgb"] = colours
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(corners.astype("<f4").reshape(-1, 3).tobytes())
+        f.write(faces.tobytes())
+
+
+def grid_plane(size: float, cells: int, y: float) -> np.ndarray:
+    """A square in the XZ plane at height y, split into 2 * cells^2 triangles."""
+    t = np.linspace(-size / 2, size / 2, cells + 1)
+    x0, z0 = np.meshgrid(t[:-1], t[:-1], indexing="ij")
+    x1, z1 = x0 + (t[1] - t[0]), z0 + (t[1] - t[0])
+    x0, z0, x1, z1 = (a.ravel() for a in (x0, z0, x1, z1))
+    ys = np.full_like(x0, y)
+    a = np.stack([x0, ys, z0], axis=1)
+    b = np.stack([x1, ys, z0], axis=1)
+    c = np.stack([x1, ys, z1], axis=1)
+    d = np.stack([x0, ys, z1], axis=1)
+    return np.concatenate([np.stack([a, b, c], axis=1), np.stack([a, c, d], axis=1)])
+
+
+def lod_nodes(path: Path) -> list:
+    with ModelFile(path) as model:
+        return [n for n in walk(model) if n.kind == "lod"]
+
+
+def test_voxels_of_a_flat_plane_are_one_sample_with_its_normal_and_colour(tmp_path: Path) -> None:
+    corners = grid_plane(16.0, 48, 0.0)
+    colour = np.array([200, 60, 30], dtype=np.uint8)
+    write_ply(tmp_path / "plane.ply", corners, np.tile(colour, (len(corners), 1)))
+    build_model(tmp_path / "plane.ply", tmp_path / "plane.vast")
+    nodes = lod_nodes(tmp_path / "plane.vast")
+    assert len(nodes) > 20
+    for node in nodes:
+        assert len(node.samples) == 1, "six faces of a flat patch say the same thing"
+        c, n = decode_sample(node.samples[0])
+        np.testing.assert_allclose(c, colour / 255.0, atol=COLOUR_TOL)
+        assert abs(abs(n[1]) - 1.0) < NORMAL_TOL, f"voxel normal {n} is not the plane's (0, ±1, 0)"
+
+
+def test_voxels_respect_occlusion_between_two_stacked_planes(tmp_path: Path) -> None:
+    # Red below, blue above, wide and close together: the top levels split x and z and
+    # keep cells that hold both planes. Looking up from below sees red, down from above
+    # sees blue; an average of the two (ignoring occlusion) would be purple on both.
+    red, blue = np.array([220, 20, 20], np.uint8), np.array([20, 20, 220], np.uint8)
+    low, high = grid_plane(16.0, 40, 0.0), grid_plane(16.0, 40, 1.0)
+    corners = np.concatenate([low, high])
+    colours = np.concatenate([np.tile(red, (len(low), 1)), np.tile(blue, (len(high), 1))])
+    write_ply(tmp_path / "planes.ply", corners, colours)
+    build_model(tmp_path / "planes.ply", tmp_path / "planes.vast")
+    with ModelFile(tmp_path / "planes.vast") as model:
+        centre_y = model.header["centre"][1]
+        nodes = [n for n in walk(model) if n.kind == "lod"]
+    spanning = [n for n in nodes if n.lo[1] + centre_y <= 0.0 and n.hi[1] + centre_y >= 1.0]
+    assert len(spanning) >= 4, "expected several voxels whose cells hold both planes"
+    for node in spanning:
+        assert len(node.samples) == 6
+        below_colour, below_normal = decode_sample(node.samples[2])  # face -y: viewer below
+        above_colour, above_normal = decode_sample(node.samples[3])  # face +y: viewer above
+        np.testing.assert_allclose(below_colour, red / 255.0, atol=COLOUR_TOL)
+        np.testing.assert_allclose(above_colour, blue / 255.0, atol=COLOUR_TOL)
+        # Face samples are oriented towards their viewer.
+        assert below_normal[1] < -1 + NORMAL_TOL and above_normal[1] > 1 - NORMAL_TOL
+
+
+@pytest.mark.parametrize("memory", [2 << 30, 5 << 20], ids=["in-core", "out-of-core"])
+def test_output_does_not_depend_on_the_thread_count(models_folder: Path, tmp_path: Path, memory: int) -> None:
+    source = models_folder / "stanford-bunny.obj"
+    one = build_model(source, tmp_path / "one.vast", BuildOptions(threads=1, memory=memory))
+    two = build_model(source, tmp_path / "two.vast", BuildOptions(threads=2, memory=memory))
+    assert (one["parts"] > 1) == (memory < 1 << 30)
+    assert (tmp_path / "one.vast").read_bytes() == (tmp_path / "two.vast").read_bytes()
+    assert two["triangles"] == one["triangles"] > 0
