@@ -19,9 +19,12 @@ dev: $(BIN)/python
 	$(BIN)/pip install -q scikit-build-core pybind11
 	$(BIN)/pip install -q --no-build-isolation -e '.[test,bench]'
 
+# Builds the demo into the out-of-core format, then renders the built model.
 run: install
 	@mkdir -p out
-	$(BIN)/vastray render demo --shading sun -o out/demo.png
+	$(BIN)/vastray build demo -o out/demo.vast --force
+	$(BIN)/vastray inspect out/demo.vast
+	$(BIN)/vastray render out/demo.vast --shading sun -o out/demo.png
 
 lint: install
 	$(BIN)/ruff check .
@@ -32,6 +35,7 @@ test: lint
 bench: $(BIN)/python
 	$(BIN)/pip install -q '.[bench]'
 	$(BIN)/python bench/rays.py
+	$(BIN)/python bench/build.py
 
 clean:
 	rm -rf build out .pytest_cache .ruff_cache
