@@ -108,15 +108,17 @@ public:
 
     // used: the union of the references' boxes (computed by the caller's partition pass,
     // so no node spends an extra pass over its references on it).
-    void build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out);
+    // bad: splits on the path from the root that duplicated most of their references.
+    void build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad, Output& out);
 
 private:
     void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
     void count_empty(int depth, Output& out);
     void build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
                         std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused, int depth,
-                        int axis, float split, Output& out);
-    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out);
+                        int bad, int axis, float split, Output& out);
+    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
+                       Output& out);
     void partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
                    const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right,
                    Box3f& lused, Box3f& rused) const;
@@ -185,7 +187,7 @@ void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const
 
 void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
                              std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused,
-                             int depth, int axis, float split, Output& out) {
+                             int depth, int bad, int axis, float split, Output& out) {
     const std::size_t self = out.nodes.size();
     const std::uint32_t empty_flags = (left.empty() ? KdNode::kLeftEmpty : 0u) |
                                       (right.empty() ? KdNode::kRightEmpty : 0u);
@@ -196,7 +198,7 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, con
         count_empty(depth + 1, out);
         if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
         build(left.empty() ? right : left, left.empty() ? rcell : lcell, left.empty() ? rused : lused,
-              depth + 1, out);
+              depth + 1, bad, out);
         return;
     }
 
@@ -213,16 +215,16 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, con
     std::thread worker;
     if (spawn) {
         worker = std::thread([&] {
-            build(right, rcell, rused, depth + 1, right_out);
+            build(right, rcell, rused, depth + 1, bad, right_out);
             spare_threads_.fetch_add(1);
         });
     }
-    build(left, lcell, lused, depth + 1, out);
+    build(left, lcell, lused, depth + 1, bad, out);
     const std::size_t right_offset = out.nodes.size() - self;
     if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
     out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
     if (!spawn) {
-        build(right, rcell, rused, depth + 1, out);
+        build(right, rcell, rused, depth + 1, bad, out);
         return;
     }
     worker.join();
@@ -242,7 +244,7 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, con
 // Paper 000 §4.1: before any other split, cut off an empty slab holding a large share
 // of the cell. Tight cells make tight LOD voxels and let rays skip empty space early.
 bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& refs_used, int depth,
-                            Output& out) {
+                            int bad, Output& out) {
     const Box3f used = Box3f::intersection(refs_used, cell);
     if (used.empty()) return false;
     int best_axis = -1, best_side = 0;
@@ -264,20 +266,21 @@ bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const
     // Every reference lies on the occupied side of the cut (touching the plane included).
     std::vector<PrimRef> none;
     if (best_side == 0) {
-        build_children(none, lcell, Box3f{}, refs, rcell, refs_used, depth, best_axis, split, out);
+        build_children(none, lcell, Box3f{}, refs, rcell, refs_used, depth, bad, best_axis, split, out);
     } else {
-        build_children(refs, lcell, refs_used, none, rcell, Box3f{}, depth, best_axis, split, out);
+        build_children(refs, lcell, refs_used, none, rcell, Box3f{}, depth, bad, best_axis, split, out);
     }
     return true;
 }
 
-void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, Output& out) {
+void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
+                    Output& out) {
     const std::size_t n = refs.size();
     if (n == 0 || depth >= max_depth_) {
         emit_leaf(refs, cell, depth, out);
         return;
     }
-    if (try_empty_cut(refs, cell, used, depth, out)) return;
+    if (try_empty_cut(refs, cell, used, depth, bad, out)) return;
     if (n <= static_cast<std::size_t>(p_.leaf_size)) {
         emit_leaf(refs, cell, depth, out);
         return;
@@ -345,7 +348,12 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
         const Vec3f e = cell.extent();
         best_axis = e.x >= e.y && e.x >= e.z ? 0 : (e.y >= e.z ? 1 : 2);
         best_split = 0.5f * (cell.lo[best_axis] + cell.hi[best_axis]);
-        best_left = best_right = n / 2;
+        best_left = best_right = 0;
+        for (const PrimRef& r : refs) {
+            const float lo = r.box.lo[best_axis], hi = r.box.hi[best_axis];
+            best_left += lo < best_split || (lo == best_split && hi == best_split) ? 1 : 0;
+            best_right += hi > best_split || (lo == best_split && hi == best_split) ? 1 : 0;
+        }
     }
 
     Box3f lcell = cell, rcell = cell;
@@ -355,10 +363,21 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     // The bin counts give the child sizes (planar references aside): no regrowth.
     left.reserve(best_left + 16);
     right.reserve(best_right + 16);
+    // The SAH cannot see duplication: where triangles meet at a vertex (fans) or run
+    // through many cells, a split can copy most references to both sides and still
+    // score a gain on flat cells. A path may take a few such splits, then the node
+    // becomes a leaf instead of doubling its references level after level.
+    constexpr int kMaxBadSplits = 3;
+    const bool duplicating = 2 * (best_left + best_right) > 3 * n;
+    if (duplicating && bad >= kMaxBadSplits) {
+        emit_leaf(refs, cell, depth, out);
+        return;
+    }
     Box3f lused, rused;
     partition(refs, best_axis, best_split, lcell, rcell, left, right, lused, rused);
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
-    build_children(left, lcell, lused, right, rcell, rused, depth, best_axis, best_split, out);
+    build_children(left, lcell, lused, right, rcell, rused, depth, bad + (duplicating ? 1 : 0), best_axis,
+                   best_split, out);
 }
 
 }  // namespace
@@ -388,7 +407,14 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
                 continue;
             }
             Box3f box;
-            if (cell != nullptr) {
+            for (int k = 0; k < 3; ++k) box.extend(soup.v(i, k));
+            const bool inside = cell == nullptr || (cell->lo.x <= box.lo.x && cell->lo.y <= box.lo.y &&
+                                                    cell->lo.z <= box.lo.z && box.hi.x <= cell->hi.x &&
+                                                    box.hi.y <= cell->hi.y && box.hi.z <= cell->hi.z);
+            // Only a triangle the cell cuts gets a clipped (and conservatively widened)
+            // box. Widening every box would make all triangles sharing a vertex on a
+            // split plane straddle it: at the centre of a fan, every one of them.
+            if (!inside) {
                 box = clip_to_box(soup.v(i, 0), soup.v(i, 1), soup.v(i, 2), *cell);
                 // Touching the cell only in rounding still keeps the triangle (never drop
                 // a triangle from a cell it may overlap); one clearly outside is left out.
@@ -403,8 +429,6 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
                 } else {
                     box = Box3f::intersection(widen(box), *cell);
                 }
-            } else {
-                for (int k = 0; k < 3; ++k) box.extend(soup.v(i, k));
             }
             refs[i] = {box, static_cast<std::uint32_t>(i)};
             bounds.extend(box);
@@ -430,7 +454,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     Output out;
     out.nodes.reserve(soup.count * 2);
     out.tri_ids.reserve(soup.count * 2);
-    builder.build(refs, tree.bounds, used, 0, out);
+    builder.build(refs, tree.bounds, used, 0, 0, out);
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);

@@ -84,21 +84,47 @@ private:
         }
     }
 
-    void leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
-        const std::size_t b = block_of(tri_level_, tri_block, from);
-        const std::uint8_t* data = in_.blocks[b];
+    struct TriangleBlockView {
+        std::size_t block = 0;
+        const std::uint8_t* data = nullptr;
+        std::uint32_t lists = 0, tris = 0, verts = 0;
+        TriangleBlockLayout layout;
+    };
+
+    TriangleBlockView triangle_block(std::size_t b) const {
+        TriangleBlockView v;
+        v.block = b;
+        v.data = in_.blocks[b];
         if (in_.sizes[b] < 16) bad(b, "triangle block shorter than its header");
         std::uint32_t header[4];
-        std::memcpy(header, data, sizeof header);
-        const TriangleBlockLayout l = TriangleBlockLayout::of(header[0], header[1], header[2], in_.has_colours);
-        if (l.end != in_.sizes[b]) bad(b, "triangle block size does not match its section counts");
-        const std::uint32_t first = leaf_first(w), count = leaf_count(w);
-        if (first + count > header[0]) bad(b, "leaf list runs past the list section");
+        std::memcpy(header, v.data, sizeof header);
+        v.lists = header[0];
+        v.tris = header[1];
+        v.verts = header[2];
+        v.layout = TriangleBlockLayout::of(v.lists, v.tris, v.verts, in_.has_colours);
+        if (v.layout.end != in_.sizes[b]) bad(b, "triangle block size does not match its section counts");
+        return v;
+    }
+
+    // A leaf's entries run from `first` to the end of its block's list and, for leaves
+    // too big for one block, on from entry 0 of the following triangle blocks.
+    void leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
+        TriangleBlockView tb = triangle_block(block_of(tri_level_, tri_block, from));
+        std::uint32_t entry = leaf_first(w);
+        const std::uint32_t count = leaf_count(w);
         nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), count));
-        for (std::uint32_t i = 0; i < count; ++i) {
+        for (std::uint32_t i = 0; i < count; ++i, ++entry) {
+            while (entry >= tb.lists) {
+                if (tb.block + 1 >= in_.blocks.size()) bad(tb.block, "leaf list runs past the last triangle block");
+                tb = triangle_block(tb.block + 1);
+                entry = 0;
+            }
+            const std::size_t b = tb.block;
+            const std::uint8_t* data = tb.data;
+            const TriangleBlockLayout& l = tb.layout;
             std::uint16_t local;
-            std::memcpy(&local, data + l.list + 2 * (first + i), 2);
-            if (local >= header[1]) bad(b, "list entry points past the triangle section");
+            std::memcpy(&local, data + l.list + 2 * std::size_t{entry}, 2);
+            if (local >= tb.tris) bad(b, "list entry points past the triangle section");
             std::uint32_t id;
             std::memcpy(&id, data + l.ids + 4 * std::size_t{local}, 4);
             if (id >= seen_.size()) bad(b, "triangle id " + std::to_string(id) + " is out of range");
@@ -108,7 +134,7 @@ private:
             for (int k = 0; k < 3; ++k) {
                 std::uint16_t v;
                 std::memcpy(&v, data + l.triangles + 6 * std::size_t{local} + 2 * static_cast<std::size_t>(k), 2);
-                if (v >= header[2]) bad(b, "triangle points past the vertex section");
+                if (v >= tb.verts) bad(b, "triangle points past the vertex section");
                 std::memcpy(&vertices_[3 * std::size_t{id} + static_cast<std::size_t>(k)], data + l.vertices + 12 * std::size_t{v}, 12);
             }
             if (in_.has_colours) {

@@ -89,6 +89,8 @@ public:
         std::size_t i = Hash{}(key) & mask_;
         for (;;) {
             if (values_[i] == kFree) {
+                // Callers bound what a block can hold well below this; never loop forever.
+                if (4 * (used_.size() + 1) > 3 * (mask_ + 1)) throw std::length_error("block dedup table full");
                 keys_[i] = key;
                 values_[i] = fresh;
                 used_.push_back(i);
@@ -140,25 +142,45 @@ public:
     // A triangle block emitted elsewhere took the next id (parallel merge).
     void skip_block() { ++blocks_; }
 
+    // A leaf's list normally lies in one block. A leaf too big for one (a fan of
+    // thousands of triangles around a vertex, which no split can separate) continues
+    // at entry 0 of the following triangle blocks.
     std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                      const Vec3f* corners, const std::uint32_t* ids,
                                                      const std::uint32_t* colours) {
-        const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
-        insert(tris, count, corners, ids, colours);
-        if (layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
-        // Too full: close the block as it was before this leaf and start a fresh one.
-        list_.resize(list0);
-        ids_.resize(tri0);
-        tri_verts_.resize(3 * tri0);
-        if (has_colours_) colours_.resize(tri0);
-        verts_.resize(vert0);
-        flush();
-        insert(tris, count, corners, ids, colours);
-        if (layout().end > kBlockSize) {
-            throw std::length_error("a kd-tree leaf with " + std::to_string(count) +
-                                    " triangles does not fit in one 64 KB triangle block");
+        // Bounded so the dedup tables (32768 slots) never fill: 3 vertices per triangle.
+        constexpr std::uint32_t kWhole = 4096;
+        if (count <= kWhole) {
+            const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
+            insert(tris, count, corners, ids, colours);
+            if (layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
+            // Too full: close the block as it was before this leaf and try a fresh one.
+            truncate(list0, tri0, vert0);
+            flush();
+            insert(tris, count, corners, ids, colours);
+            if (layout().end <= kBlockSize) return {blocks_, 0};
+            truncate(0, 0, 0);
+            id_map_.clear();
+            vertex_map_.clear();
+        } else {
+            flush();
         }
-        return {blocks_, 0};
+        // Worst case for one more triangle: list entry, record, id, colour, 3 vertices.
+        constexpr std::size_t kWorst = 2 + 6 + 4 + 4 + 36 + 8;
+        const std::uint32_t start = blocks_;
+        for (std::uint32_t i = 0; i < count; ++i) {
+            if (layout().end + kWorst > kBlockSize) flush();
+            insert(tris + i, 1, corners, ids, colours);
+        }
+        return {start, 0};
+    }
+
+    void truncate(std::size_t list_size, std::size_t tris, std::size_t verts) {
+        list_.resize(list_size);
+        ids_.resize(tris);
+        tri_verts_.resize(3 * tris);
+        if (has_colours_) colours_.resize(tris);
+        verts_.resize(verts);
     }
 
     void flush() {
