@@ -186,6 +186,10 @@ class ModelFile:
             )
         if h["block_size"] != BLOCK_SIZE or h["header_size"] != HEADER_SIZE:
             raise self._fail("unsupported block or header size")
+        if h["codec"] != CODEC_LZ4:
+            raise self._fail(f"unsupported block codec family {h['codec']}")
+        if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~(FLAG_COLOURS | FLAG_TRIANGLE_IDS):
+            raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         self.header = h
         index_size = _LEVEL.size * h["level_count"] + _ENTRY.size * h["block_count"]
         if h["index_offset"] + index_size != h["data_offset"] or h["data_offset"] > size:
