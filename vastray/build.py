@@ -29,7 +29,9 @@ import tempfile
 import threading
 import time
 import zlib
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,6 +55,7 @@ CHUNK_BYTES_PER_TRIANGLE = 300
 MAX_CHUNK = 1 << 19
 MIN_INCORE_TRIANGLES = 20_000
 MAX_OUT_OF_CORE_LEVELS = 16
+MAX_INFLIGHT_BLOCKS = 64  # blocks being compressed at once (4 MiB of raw data)
 DEFAULT_MEMORY = 2 << 30
 
 
@@ -117,6 +120,9 @@ class _Input:
     estimate: int  # triangle count for progress (exact for files)
     chunks: Callable[[], Iterator[tuple[np.ndarray, np.ndarray | None]]]
     rereadable: bool  # reading twice is cheap (files, meshes); generators are not
+    # Bounds of the input's vertices when known without a pass over its triangles
+    # (indexed formats). The model centre is their midpoint, as in the in-core Scene.
+    bounds: Callable[[], tuple[np.ndarray, np.ndarray] | None] = lambda: None
 
 
 def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
@@ -158,7 +164,9 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
             for part in stream.chunks(chunk):
                 yield part.corners, part.colors
 
-        return _Input(path.stem, stream.has_colors, stream.triangle_count, streamed, True)
+        return _Input(
+            path.stem, stream.has_colors, stream.triangle_count, streamed, True, stream.vertex_bounds
+        )
 
     from vastray.ingest import load_mesh
 
@@ -170,11 +178,18 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
             colours = None if mesh.face_colors is None else mesh.face_colors[first : first + chunk]
             yield mesh.vertices[faces], colours
 
-    return _Input(path.stem, mesh.face_colors is not None, mesh.triangle_count, loaded, True)
+    return _Input(
+        path.stem,
+        mesh.face_colors is not None,
+        mesh.triangle_count,
+        loaded,
+        True,
+        lambda: (mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)),
+    )
 
 
-def _record_dtype(colours: bool) -> np.dtype:
-    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", "<f4", (9,)), ("id", "<u4")]
+def _record_dtype(colours: bool, corner_type: str = "<f4") -> np.dtype:
+    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", corner_type, (9,)), ("id", "<u4")]
     if colours:
         fields.append(("rgb", "<u4"))
     return np.dtype(fields)
@@ -222,9 +237,12 @@ class _Builder:
         self.cancel = cancel
         self.start = time.perf_counter()
         self.dtype = _record_dtype(source.has_colours)
+        self.staged_dtype = _record_dtype(source.has_colours, corner_type="<f8")
         self.phase_seconds: dict[str, float] = {}
         self.level_files: dict[int, Any] = {}
         self.level_entries: dict[int, list[tuple[int, int, int, int]]] = {}
+        self.compressor = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1))
+        self.inflight: deque[tuple[int, Future[tuple[bytes, int, int, int]]]] = deque()
         self.warnings: list[str] = []
 
     # -- plumbing ---------------------------------------------------------------------------
@@ -247,27 +265,30 @@ class _Builder:
     def read(self, scratch: Path) -> tuple[Path, int, int, int, np.ndarray, np.ndarray, np.ndarray]:
         """Writes root records; returns (path, count, input count, degenerate, centre, lo, hi)."""
         total = 0
-        origin: np.ndarray | None = None
         lo = np.full(3, np.inf)
         hi = np.full(3, -np.inf)
         staged = scratch / "input.f32"
-        if self.src.rereadable:
+        known = self.src.bounds() if self.src.rereadable else None
+        if known is not None:
+            lo, hi = known
+            total = self.src.estimate
+        elif self.src.rereadable:
             for corners, _ in self.src.chunks():
                 lo = np.minimum(lo, corners.min(axis=(0, 1)))
                 hi = np.maximum(hi, corners.max(axis=(0, 1)))
                 total += len(corners)
                 self.report("read", total, 2 * self.src.estimate, message="bounds")
         else:
-            # A generator runs once: stage float32 relative to a provisional origin (the
-            # first chunk's centre), which keeps precision for far-away models.
+            # A generator runs once and the centre is known only at its end: stage the
+            # corners in double, so the records get exactly float32(vertex - centre), as
+            # files and the in-core Scene do (float32 relative to a provisional origin
+            # would round twice).
             with open(staged, "wb") as f:
                 for corners, colours in self.src.chunks():
-                    if origin is None:
-                        origin = 0.5 * (corners.min(axis=(0, 1)) + corners.max(axis=(0, 1)))
                     lo = np.minimum(lo, corners.min(axis=(0, 1)))
                     hi = np.maximum(hi, corners.max(axis=(0, 1)))
-                    rec = np.empty(len(corners), self.dtype)
-                    rec["c"] = (corners - origin).reshape(-1, 9)
+                    rec = np.empty(len(corners), self.staged_dtype)
+                    rec["c"] = corners.reshape(-1, 9)
                     rec["id"] = np.arange(total, total + len(corners), dtype=np.uint32)
                     if colours is not None:
                         rec["rgb"] = _pack_rgb(colours)
@@ -279,6 +300,7 @@ class _Builder:
         if total >= 2**32 - 1:
             raise ValueError(f"{self.src.name}: {total} triangles; the format's ids hold at most 2^32 - 2")
         centre = 0.5 * (lo + hi)
+        first_pass = 0 if known is not None else total  # progress: the bounds pass, if any
 
         root = scratch / "root.tri"
         count = 0
@@ -302,14 +324,13 @@ class _Builder:
                     first += len(corners)
                     yield rec
             else:
-                assert origin is not None
-                shift = origin - centre
-                staged_recs = np.memmap(staged, dtype=self.dtype, mode="r")
-                for first in range(0, len(staged_recs), self.opt.chunk()):
-                    rec = np.array(staged_recs[first : first + self.opt.chunk()])
-                    rec["c"] = (rec["c"].astype(np.float64) + np.tile(shift, 3)).astype(np.float32)
+                for staged_rec in _read_records(staged, self.staged_dtype, self.opt.chunk()):
+                    rec = np.empty(len(staged_rec), self.dtype)
+                    rec["c"] = (staged_rec["c"] - np.tile(centre, 3)).astype(np.float32)
+                    rec["id"] = staged_rec["id"]
+                    if self.src.has_colours:
+                        rec["rgb"] = staged_rec["rgb"]
                     yield rec
-                del staged_recs
 
         with open(root, "wb") as f:
             for rec in local_chunks():
@@ -325,7 +346,7 @@ class _Builder:
                 rec.tofile(f)
                 count += len(rec)
                 done += len(keep)
-                self.report("read", total + done, 2 * total, message="writing records")
+                self.report("read", first_pass + done, first_pass + total, message="writing records")
         staged.unlink(missing_ok=True)
         if count == 0:
             raise MeshError(f"{self.src.name}: all {total} triangles are degenerate (zero area)")
@@ -375,9 +396,7 @@ class _Builder:
         tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
         thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
         try:
-            recs = np.memmap(path, dtype=self.dtype, mode="r")
-            for first in range(0, count, self.opt.chunk()):
-                rec = np.array(recs[first : first + self.opt.chunk()])
+            for rec in _read_records(path, self.dtype, self.opt.chunk()):
                 c = rec["c"].reshape(-1, 3, 3)
                 clo, chi = c.min(axis=1), c.max(axis=1)
                 for s, mask in enumerate(_slot_masks(split, clo, chi)):
@@ -391,7 +410,6 @@ class _Builder:
                     thi[s] = np.maximum(thi[s], np.minimum(chi[mask].max(axis=0), hi_c))
                 self.sifted += len(rec)
                 self.report("split", self.sifted, self.sift_estimate, message=f"level {split.level}")
-            del recs
         finally:
             for f in files:
                 f.close()
@@ -408,16 +426,21 @@ class _Builder:
     # -- phase 3: build ---------------------------------------------------------------------
 
     def sink(self, level: int, raw: bytes) -> None:
-        stored = lz4.block.compress(raw, mode="default", store_size=False)
-        codec = modelfile.CODEC_LZ4
-        if len(stored) >= len(raw):
-            stored, codec = raw, modelfile.CODEC_STORED
+        # Compression runs on worker threads (lz4 and crc32 release the GIL) while the
+        # native writer goes on; blocks are written in the order they were made.
+        self.inflight.append((level, self.compressor.submit(_compress, raw)))
+        while self.inflight and (self.inflight[0][1].done() or len(self.inflight) > MAX_INFLIGHT_BLOCKS):
+            self.write_block()
+
+    def write_block(self) -> None:
+        level, future = self.inflight.popleft()
+        stored, raw_size, crc, codec = future.result()
         f = self.level_files.get(level)
         if f is None:
             f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")
             self.level_entries[level] = []
         f.write(stored)
-        self.level_entries[level].append((len(stored), len(raw), zlib.crc32(stored), codec))
+        self.level_entries[level].append((len(stored), raw_size, crc, codec))
 
     def emit(self, node: _Part | _Split, writer: native.ModelWriter) -> int:
         if isinstance(node, _Split):
@@ -487,6 +510,8 @@ class _Builder:
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
+        while self.inflight:
+            self.write_block()
         stats = writer.stats
         for f in self.level_files.values():
             f.close()
@@ -560,12 +585,43 @@ class _Builder:
             "seconds": time.perf_counter() - self.start,
             "phase_seconds": dict(self.phase_seconds),
             "triangles_per_second": count / max(1e-9, time.perf_counter() - self.start),
-            "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "peak_rss_bytes": peak_rss_bytes(),
             "warnings": self.warnings,
             **{k: stats[k] for k in ("basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six",
                                      "references", "stored_triangles", "stored_vertices", "kd_build_ms",
                                      "emit_ms", "max_depth")},
         }  # fmt: skip
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory. Linux's VmHWM belongs to the process's own
+    address space; ru_maxrss also carries the peak of a parent it was forked from (a
+    server, a notebook), so it is only the fallback."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _compress(raw: bytes) -> tuple[bytes, int, int, int]:
+    """(stored bytes, raw size, crc32 of the stored bytes, codec) for one block."""
+    stored = lz4.block.compress(raw, mode="default", store_size=False)
+    codec = modelfile.CODEC_LZ4
+    if len(stored) >= len(raw):
+        stored, codec = raw, modelfile.CODEC_STORED
+    return stored, len(raw), zlib.crc32(stored), codec
+
+
+def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarray]:
+    """Sequential chunks of a scratch file. Plain reads, not a memory map: pages already
+    processed must not stay in the resident set, which the budget is measured on."""
+    with open(path, "rb") as f:
+        while len(rec := np.fromfile(f, dtype=dtype, count=chunk)):
+            yield rec
 
 
 def _pack_rgb(colours: np.ndarray) -> np.ndarray:
@@ -671,6 +727,7 @@ def build_model(
         os.replace(partial, out)
         return report
     finally:
+        builder.compressor.shutdown(wait=True, cancel_futures=True)
         for f in builder.level_files.values():
             f.close()
         partial.unlink(missing_ok=True)

@@ -1,6 +1,9 @@
 """Streaming readers for triangle inputs larger than memory: binary PLY, binary STL and
-raw float32 triangle soup. Each memory-maps its file and yields bounded chunks of
-triangles, so a builder can pass over a 10^8-triangle file holding one chunk at a time.
+raw float32 triangle soup. Each yields bounded chunks of triangles, so a builder can
+pass over a 10^8-triangle file holding one chunk at a time. Sequential data is read
+with plain reads, not memory maps, so pages already processed never count towards the
+process's resident memory; PLY vertices (indexed at random) are mapped one chunk at a
+time.
 (Ordinary sizes and other formats go through `vastray.ingest`, which uses trimesh.)"""
 
 from __future__ import annotations
@@ -41,6 +44,11 @@ class TriangleSource:
     def chunks(self, size: int = DEFAULT_CHUNK) -> Iterator[TriangleChunk]:
         raise NotImplementedError
 
+    def vertex_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Bounds of the file's vertices when they are cheaper to get than by reading
+        every triangle (an indexed format), else None."""
+        return None
+
     def _check(self, corners: np.ndarray, first: int) -> None:
         bad = ~np.isfinite(corners).all(axis=(1, 2))
         if bad.any():
@@ -61,11 +69,13 @@ class RawSoupSource(TriangleSource):
     def chunks(self, size: int = DEFAULT_CHUNK) -> Iterator[TriangleChunk]:
         if self.triangle_count == 0:
             return
-        data = np.memmap(self.path, dtype="<f4", mode="r", shape=(self.triangle_count, 3, 3))
-        for first in range(0, self.triangle_count, size):
-            corners = np.asarray(data[first : first + size], dtype=np.float64)
-            self._check(corners, first)
-            yield TriangleChunk(corners, None)
+        with open(self.path, "rb") as f:
+            for first in range(0, self.triangle_count, size):
+                count = min(size, self.triangle_count - first)
+                data = np.fromfile(f, dtype="<f4", count=9 * count).reshape(count, 3, 3)
+                corners = data.astype(np.float64)
+                self._check(corners, first)
+                yield TriangleChunk(corners, None)
 
 
 class StlSource(TriangleSource):
@@ -92,11 +102,14 @@ class StlSource(TriangleSource):
     def chunks(self, size: int = DEFAULT_CHUNK) -> Iterator[TriangleChunk]:
         if self.triangle_count == 0:
             return
-        records = np.memmap(self.path, dtype=self._RECORD, mode="r", offset=84, shape=(self.triangle_count,))
-        for first in range(0, self.triangle_count, size):
-            corners = np.asarray(records["corners"][first : first + size], dtype=np.float64)
-            self._check(corners, first)
-            yield TriangleChunk(corners, None)
+        with open(self.path, "rb") as f:
+            f.seek(84)
+            for first in range(0, self.triangle_count, size):
+                count = min(size, self.triangle_count - first)
+                records = np.fromfile(f, dtype=self._RECORD, count=count)
+                corners = records["corners"].astype(np.float64)
+                self._check(corners, first)
+                yield TriangleChunk(corners, None)
 
 
 class PlySource(TriangleSource):
@@ -182,28 +195,48 @@ class PlySource(TriangleSource):
         f_off, f_count, f_dtype = self._face
         if f_count == 0:
             return
-        vertices = np.memmap(self.path, dtype=v_dtype, mode="r", offset=v_off, shape=(v_count,))
-        faces = np.memmap(self.path, dtype=f_dtype, mode="r", offset=f_off, shape=(f_count,))
-        for first in range(0, f_count, size):
-            block = faces[first : first + size]
-            if (block["n"] != 3).any():
-                index = first + int(np.argmax(block["n"] != 3))
-                raise MeshError(
-                    f"{self.path}: face {index} is not a triangle; only triangle PLY can be streamed"
+        with open(self.path, "rb") as f:
+            f.seek(f_off)
+            for first in range(0, f_count, size):
+                block = np.fromfile(f, dtype=f_dtype, count=min(size, f_count - first))
+                if (block["n"] != 3).any():
+                    index = first + int(np.argmax(block["n"] != 3))
+                    raise MeshError(
+                        f"{self.path}: face {index} is not a triangle; only triangle PLY can be streamed"
+                    )
+                idx = np.asarray(block["v"], dtype=np.int64)
+                if (idx < 0).any() or (idx >= v_count).any():
+                    index = first + int(np.argmax(((idx < 0) | (idx >= v_count)).any(axis=1)))
+                    raise MeshError(f"{self.path}: face {index} references a vertex outside 0..{v_count - 1}")
+                # Vertices are indexed at random: map them for this chunk only, so the
+                # pages it touched leave the resident set when the map goes.
+                vertices = np.memmap(self.path, dtype=v_dtype, mode="r", offset=v_off, shape=(v_count,))
+                corners = np.stack(
+                    [np.asarray(vertices[axis][idx], dtype=np.float64) for axis in "xyz"], axis=-1
                 )
-            idx = np.asarray(block["v"], dtype=np.int64)
-            if (idx < 0).any() or (idx >= v_count).any():
-                index = first + int(np.argmax(((idx < 0) | (idx >= v_count)).any(axis=1)))
-                raise MeshError(f"{self.path}: face {index} references a vertex outside 0..{v_count - 1}")
-            # Gathering through the memmap touches only the pages the chunk needs.
-            corners = np.stack([np.asarray(vertices[axis][idx], dtype=np.float64) for axis in "xyz"], axis=-1)
-            self._check(corners, first)
-            colors = (
-                np.stack([np.asarray(block[c], dtype=np.uint8) for c in ("red", "green", "blue")], axis=1)
-                if self.has_colors
-                else None
-            )
-            yield TriangleChunk(corners, colors)
+                del vertices
+                self._check(corners, first)
+                colors = (
+                    np.stack([np.asarray(block[c], dtype=np.uint8) for c in ("red", "green", "blue")], axis=1)
+                    if self.has_colors
+                    else None
+                )
+                yield TriangleChunk(corners, colors)
+
+    def vertex_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        assert self._vertex is not None
+        v_off, v_count, v_dtype = self._vertex
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        with open(self.path, "rb") as f:
+            f.seek(v_off)
+            for first in range(0, v_count, DEFAULT_CHUNK):
+                block = np.fromfile(f, dtype=v_dtype, count=min(DEFAULT_CHUNK, v_count - first))
+                xyz = np.stack([np.asarray(block[a], dtype=np.float64) for a in "xyz"], axis=1)
+                if not np.isfinite(xyz).all():
+                    index = first + int(np.argmax(~np.isfinite(xyz).all(axis=1)))
+                    raise MeshError(f"{self.path}: vertex {index} has a non-finite coordinate")
+                lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
+        return lo, hi
 
 
 def open_triangles(path: str | os.PathLike[str]) -> TriangleSource:

@@ -100,6 +100,32 @@ Box3f clip_to_box(const Vec3f& a, const Vec3f& b, const Vec3f& c, const Box3f& b
     return r;
 }
 
+// Exact triangle/box overlap by separating axes (Akenine-Möller 2001), in double: the
+// box's three axes, the triangle's normal and the nine edge-axis cross products.
+bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, const Vec3d& lo, const Vec3d& hi) {
+    const Vec3d centre = (lo + hi) * 0.5, half = (hi - lo) * 0.5;
+    const Vec3d v[3] = {Vec3d(fa) - centre, Vec3d(fb) - centre, Vec3d(fc) - centre};
+    for (int a = 0; a < 3; ++a) {
+        const double mn = std::min({v[0][a], v[1][a], v[2][a]}), mx = std::max({v[0][a], v[1][a], v[2][a]});
+        if (mn > half[a] || mx < -half[a]) return false;
+    }
+    const Vec3d e[3] = {v[1] - v[0], v[2] - v[1], v[0] - v[2]};
+    auto separated = [&](const Vec3d& axis) {
+        const double p0 = dot(v[0], axis), p1 = dot(v[1], axis), p2 = dot(v[2], axis);
+        const double r = half.x * std::abs(axis.x) + half.y * std::abs(axis.y) + half.z * std::abs(axis.z);
+        return std::min({p0, p1, p2}) > r || std::max({p0, p1, p2}) < -r;
+    };
+    if (separated(cross(e[0], e[1]))) return false;
+    for (const Vec3d& edge : e) {
+        for (int a = 0; a < 3; ++a) {
+            Vec3d unit;
+            unit[a] = 1;
+            if (separated(cross(edge, unit))) return false;
+        }
+    }
+    return true;
+}
+
 class Builder {
 public:
     Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
@@ -136,15 +162,30 @@ void Builder::count_empty(int depth, Output& out) {
 }
 
 void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
-    out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(out.tri_ids.size()),
-                                     static_cast<std::uint32_t>(refs.size())));
-    for (const PrimRef& r : refs) out.tri_ids.push_back(r.id);
+    // Reference boxes are conservative (a clipped box can touch a cell the triangle
+    // misses): keep exactly the triangles that touch the cell, grown by a few ulps so
+    // that nothing a ray could hit inside it is dropped.
+    Vec3d lo(cell.lo), hi(cell.hi);
+    for (int a = 0; a < 3; ++a) {
+        const double m = std::max(std::abs(lo[a]), std::abs(hi[a]));
+        const double eps = m * 16.0 * std::numeric_limits<float>::epsilon() + std::numeric_limits<float>::min();
+        lo[a] -= eps;
+        hi[a] += eps;
+    }
+    const std::size_t first = out.tri_ids.size();
+    for (const PrimRef& r : refs) {
+        if (triangle_overlaps_box(soup_.v(r.id, 0), soup_.v(r.id, 1), soup_.v(r.id, 2), lo, hi)) {
+            out.tri_ids.push_back(r.id);
+        }
+    }
+    const std::size_t kept = out.tri_ids.size() - first;
+    out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(kept)));
     out.stats.leaves++;
-    if (refs.empty()) out.stats.empty_leaves++;
-    out.stats.references += refs.size();
+    if (kept == 0) out.stats.empty_leaves++;
+    out.stats.references += kept;
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
     out.sah_area_sum += static_cast<double>(p_.intersection_cost) * cell.half_area() *
-                        static_cast<double>(refs.size());
+                        static_cast<double>(kept);
 }
 
 void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,

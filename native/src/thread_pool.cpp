@@ -2,6 +2,7 @@
 
 #include <cstdlib>
 #include <string>
+#include <utility>
 
 namespace vastray {
 
@@ -90,7 +91,9 @@ void ThreadPool::parallel_for(std::size_t count,
         std::unique_lock<std::mutex> lock(mutex_);
         done_.wait(lock, [&] { return active_ == 0; });
         job_ = nullptr;
-        error = error_;
+        // Take the error out: a kept exception_ptr would live on in this static pool
+        // until exit, and one that wraps a Python error must die while Python does.
+        error = std::exchange(error_, nullptr);
     }
     if (error) std::rethrow_exception(error);
 }
