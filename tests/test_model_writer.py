@@ -103,3 +103,26 @@ def test_output_does_not_depend_on_the_thread_count(models_folder: Path, tmp_pat
     assert (one["parts"] > 1) == (memory < 1 << 30)
     assert (tmp_path / "one.vast").read_bytes() == (tmp_path / "two.vast").read_bytes()
     assert two["triangles"] == one["triangles"] > 0
+
+
+def test_a_fan_too_big_for_one_block_continues_into_the_next(tmp_path: Path) -> None:
+    # 20,000 thin triangles around one vertex (a finely tessellated disc): no split can
+    # separate them near the centre, so some leaf holds more than a 64 KB block fits.
+    n = 20_000
+    angles = np.linspace(0.0, 2 * np.pi, n + 1)
+    rim = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
+    corners = np.stack([np.zeros((n, 3)), rim[1:], rim[:-1]], axis=1)
+    colours = np.tile(np.array([90, 160, 90], np.uint8), (n, 1))
+    write_ply(tmp_path / "fan.ply", corners, colours)
+    report = build_model(tmp_path / "fan.ply", tmp_path / "fan.vast")
+    assert report["triangles"] == n
+    with ModelFile(tmp_path / "fan.vast") as model:
+        leaves = [node for node in walk(model) if node.kind == "leaf"]
+        biggest = max(len(node.ids) for node in leaves)
+        assert biggest > 2500, "the test needs a leaf larger than one triangle block"
+        assert sorted({int(i) for node in leaves for i in node.ids}) == list(range(n))
+        scene = model.to_scene()
+    # Every triangle decodes to its input vertices, through the native decoder too.
+    origins = np.column_stack([corners.mean(axis=1)[:, 0], np.full(n, 1.0), corners.mean(axis=1)[:, 2]])
+    hits = scene.intersect(origins, np.tile([0.0, -1.0, 0.0], (n, 1)))
+    assert (hits["prim"] == np.arange(n)).mean() > 0.999

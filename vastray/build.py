@@ -309,43 +309,34 @@ class _Builder:
         box_hi = np.full(3, -np.inf, dtype=np.float32)
         done = 0
 
-        def local_chunks() -> Iterator[np.ndarray]:
-            nonlocal done
+        def source_chunks() -> Iterator[tuple[np.ndarray, np.ndarray | None, int]]:
+            """(corners in double, colours, first input id) per chunk, in input order."""
             if self.src.rereadable:
                 first = 0
                 for corners, colours in self.src.chunks():
-                    rec = np.empty(len(corners), self.dtype)
-                    # The subtraction happens in double, as in the in-core Scene, so both
-                    # paths store bit-identical float32 vertices.
-                    rec["c"] = (corners - centre).astype(np.float32).reshape(-1, 9)
-                    rec["id"] = np.arange(first, first + len(corners), dtype=np.uint32)
-                    if colours is not None:
-                        rec["rgb"] = _pack_rgb(colours)
+                    yield corners, colours, first
                     first += len(corners)
-                    yield rec
             else:
                 for staged_rec in _read_records(staged, self.staged_dtype, self.opt.chunk()):
-                    rec = np.empty(len(staged_rec), self.dtype)
-                    rec["c"] = (staged_rec["c"] - np.tile(centre, 3)).astype(np.float32)
-                    rec["id"] = staged_rec["id"]
+                    colours = None
                     if self.src.has_colours:
-                        rec["rgb"] = staged_rec["rgb"]
-                    yield rec
+                        rgb = staged_rec["rgb"]
+                        colours = np.stack([rgb & 255, (rgb >> 8) & 255, (rgb >> 16) & 255], axis=1)
+                    yield staged_rec["c"].reshape(-1, 3, 3), colours, int(staged_rec["id"][0])
 
         with open(root, "wb") as f:
-            for rec in local_chunks():
-                c = rec["c"].reshape(-1, 3, 3).astype(np.float64)
-                n = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
-                keep = (n != 0).any(axis=1)
-                degenerate += int(len(rec) - keep.sum())
-                rec = rec[keep]
-                if len(rec):
-                    pts = rec["c"].reshape(-1, 3)
-                    box_lo = np.minimum(box_lo, pts.min(axis=0))
-                    box_hi = np.maximum(box_hi, pts.max(axis=0))
-                rec.tofile(f)
-                count += len(rec)
-                done += len(keep)
+            for corners, colours, first in source_chunks():
+                # Native: float32(vertex - centre) computed in double, as in the in-core
+                # Scene (bit-identical vertices on both paths); zero-area triangles (in
+                # those float32 coordinates) are left out and counted.
+                records, dropped, lo_k, hi_k = native.make_records(corners, colours, first, centre.tolist())
+                degenerate += dropped
+                if len(records):
+                    box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
+                    box_hi = np.maximum(box_hi, np.asarray(hi_k, dtype=np.float32))
+                records.tofile(f)
+                count += len(records)
+                done += len(corners)
                 self.report("read", first_pass + done, first_pass + total, message="writing records")
         staged.unlink(missing_ok=True)
         if count == 0:
@@ -395,19 +386,22 @@ class _Builder:
         counts = [0] * 8
         tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
         thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
+        cell_lo = np.array([c[0] for c in cells], dtype=np.float32)
+        cell_hi = np.array([c[1] for c in cells], dtype=np.float32)
         try:
             for rec in _read_records(path, self.dtype, self.opt.chunk()):
-                c = rec["c"].reshape(-1, 3, 3)
-                clo, chi = c.min(axis=1), c.max(axis=1)
-                for s, mask in enumerate(_slot_masks(split, clo, chi)):
-                    if not mask.any():
-                        continue
-                    sel = rec[mask]
-                    sel.tofile(files[s])
-                    counts[s] += len(sel)
-                    lo_c, hi_c = cells[s]
-                    tlo[s] = np.minimum(tlo[s], np.maximum(clo[mask].min(axis=0), lo_c))
-                    thi[s] = np.maximum(thi[s], np.minimum(chi[mask].max(axis=0), hi_c))
+                # One native pass per chunk: a triangle goes to each cell whose closed
+                # half-spaces its bounding box touches.
+                parts, bounds = native.sift8(
+                    rec.view(np.uint8).reshape(len(rec), self.dtype.itemsize), split.axes, split.splits,
+                    cell_lo, cell_hi,
+                )  # fmt: skip
+                for s, part in enumerate(parts):
+                    if len(part):
+                        part.tofile(files[s])
+                        counts[s] += len(part)
+                        tlo[s] = np.minimum(tlo[s], bounds[s, :3])
+                        thi[s] = np.maximum(thi[s], bounds[s, 3:])
                 self.sifted += len(rec)
                 self.report("split", self.sifted, self.sift_estimate, message=f"level {split.level}")
         finally:
@@ -673,16 +667,6 @@ def _slot_cells(split: _Split) -> list[tuple[np.ndarray, np.ndarray]]:
     return [cells[7 + s] for s in range(8)]
 
 
-def _slot_masks(split: _Split, clo: np.ndarray, chi: np.ndarray) -> list[np.ndarray]:
-    # A triangle goes to each side whose closed half-space its bounding box touches.
-    masks = {0: np.ones(len(clo), dtype=bool)}
-    for h in range(7):
-        a, v = split.axes[h], np.float32(split.splits[h])
-        masks[2 * h + 1] = masks[h] & (clo[:, a] <= v)
-        masks[2 * h + 2] = masks[h] & (chi[:, a] >= v)
-    return [masks[7 + s] for s in range(8)]
-
-
 def _parts(node: _Part | _Split | None) -> Iterator[_Part]:
     if isinstance(node, _Part):
         yield node
@@ -722,6 +706,7 @@ def build_model(
     builder = _Builder(src, out, opt, progress, cancel)
     try:
         report = builder.run(scratch, partial)
+        builder.report("write", 1, 1, unit="bytes", message="renaming")  # last chance to cancel
         if out.exists() and not opt.overwrite:
             raise FileExistsError(f"{out} appeared during the build; not replacing it")
         os.replace(partial, out)

@@ -117,8 +117,15 @@ class _PhaseBars:
 
 def _cmd_build(args: argparse.Namespace) -> int:
     import signal
+    import threading
 
-    from vastray.build import STATED_OVERHEAD_BYTES, BuildOptions, build_model, parse_memory
+    from vastray.build import (
+        STATED_OVERHEAD_BYTES,
+        BuildCancelledError,
+        BuildOptions,
+        build_model,
+        parse_memory,
+    )
 
     options = BuildOptions(
         memory=parse_memory(args.memory),
@@ -126,13 +133,29 @@ def _cmd_build(args: argparse.Namespace) -> int:
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
     )
-    # SIGTERM (docker stop, kill) cleans up like Ctrl-C does.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
+    # event at every progress step and cleans up. (A KeyboardInterrupt raised wherever
+    # the main thread happens to be, inside callbacks from native worker code, was not
+    # reliably delivered.)
+    cancel = threading.Event()
+    received: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        received.append(signum)
+        cancel.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     bars = _PhaseBars()
     try:
-        report = build_model(args.input, args.output, options, progress=bars)
+        report = build_model(args.input, args.output, options, progress=bars, cancel=cancel)
+    except BuildCancelledError:
+        bars.close()
+        print("vastray: interrupted; removed the partial model and scratch files", file=sys.stderr)
+        return 128 + received[0] if received else 130
     finally:
         bars.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in report["phase_seconds"].items())
     print(
         f"built      {report['output']}: {report['triangles']:,} triangles in {report['seconds']:.1f} s "

@@ -1,0 +1,209 @@
+"""An independent pure-Python walker of a built model (a test helper).
+
+It reads blocks through `ModelFile.read_block` and decodes them from the bit layouts in
+native/include/vastray/format.h alone, without the native decoder: treelets from the
+root (level 0, block 0, offset 0), node cells from the root cell and the split planes,
+leaves with their triangles (input ids, float32 vertices, colours) and LOD nodes with
+their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
+order (left before right).
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vastray.modelfile import ModelFile
+
+INNER = 1 << 31
+LOD = 1 << 30
+LEFT_EMPTY = 1 << 2
+RIGHT_EMPTY = 1 << 3
+ONE_SAMPLE = 1 << 31
+TREELET_HEIGHT = 3
+
+
+class WalkError(ValueError):
+    """The model's blocks do not follow the layout in format.h."""
+
+
+@dataclass
+class Node:
+    kind: str  # "basic", "lod" or "leaf"
+    level: int  # LOD level of the treelet holding the node
+    depth: int  # depth inside its treelet (0, 1 or 2)
+    lo: np.ndarray  # float32 (3,) cell
+    hi: np.ndarray
+    # inner nodes
+    axis: int = -1
+    split: float = 0.0
+    empty: tuple[bool, bool] = (False, False)  # (left child empty, right child empty)
+    # LOD nodes
+    radius: float = 0.0
+    samples: list[int] = field(default_factory=list)  # raw 32-bit samples, 1 or 6
+    # leaves
+    ids: np.ndarray | None = None  # (k,) uint32 input triangle ids
+    vertices: np.ndarray | None = None  # (k, 3, 3) float32, relative to the model centre
+    colours: np.ndarray | None = None  # (k,) uint32 0x00BBGGRR, when the model has colours
+
+    @property
+    def global_depth(self) -> int:
+        return TREELET_HEIGHT * self.level + self.depth
+
+    def child_cell(self, side: int) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = self.lo.copy(), self.hi.copy()
+        (hi if side == 0 else lo)[self.axis] = np.float32(self.split)
+        return lo, hi
+
+
+def decode_sample(s: int) -> tuple[np.ndarray, np.ndarray]:
+    """(colour in [0, 1]^3, unit normal) of one voxel sample (format.h unpack_sample)."""
+    colour = np.array([(s >> shift) & 31 for shift in (0, 5, 10)], dtype=np.float64) / 31.0
+    axis = ((s >> 16) & 3) % 3
+
+    def s6(v: int) -> float:
+        return (v - 64 if v & 32 else v) / 31.0
+
+    n = np.zeros(3)
+    n[axis] = -1.0 if (s >> 15) & 1 else 1.0
+    n[(axis + 1) % 3] = s6((s >> 18) & 63)
+    n[(axis + 2) % 3] = s6((s >> 24) & 63)
+    return colour, n / np.linalg.norm(n)
+
+
+def _pad4(n: int) -> int:
+    return (n + 3) & ~3
+
+
+@dataclass
+class TriangleBlock:
+    list: np.ndarray  # (entries,) uint16: triangle index in this block
+    triangles: np.ndarray  # (tris, 3) uint16: vertex indices
+    ids: np.ndarray  # (tris,) uint32
+    colours: np.ndarray | None  # (tris,) uint32
+    vertices: np.ndarray  # (verts, 3) float32
+
+    @classmethod
+    def parse(cls, raw: bytes, has_colours: bool) -> TriangleBlock:
+        entries, tris, verts, _ = struct.unpack_from("<4I", raw)
+        at_tri = 16 + _pad4(2 * entries)
+        at_ids = at_tri + _pad4(6 * tris)
+        at_col = at_ids + 4 * tris
+        at_vert = at_col + (4 * tris if has_colours else 0)
+        if at_vert + 12 * verts != len(raw):
+            raise WalkError(f"triangle block of {len(raw)} bytes does not match its section counts")
+        return cls(
+            np.frombuffer(raw, "<u2", entries, 16),
+            np.frombuffer(raw, "<u2", 3 * tris, at_tri).reshape(tris, 3),
+            np.frombuffer(raw, "<u4", tris, at_ids),
+            np.frombuffer(raw, "<u4", tris, at_col) if has_colours else None,
+            np.frombuffer(raw, "<f4", 3 * verts, at_vert).reshape(verts, 3),
+        )
+
+
+class Walker:
+    def __init__(self, model: ModelFile) -> None:
+        self.model = model
+        self.tri_level = len(model.levels) - 1
+        self.raw: dict[int, bytes] = {}  # the blocks read so far, by block id
+        self.tri_blocks: dict[int, TriangleBlock] = {}  # parsed so far, by id relative to the level
+
+    def block(self, level: int, relative: int) -> bytes:
+        first, count = self.model.levels[level]
+        if not 0 <= relative < count:
+            raise WalkError(f"block {relative} is outside level {level} ({count} blocks)")
+        key = first + relative
+        if key not in self.raw:
+            self.raw[key] = self.model.read_block(key)
+        return self.raw[key]
+
+    def word(self, data: bytes, off: int) -> int:
+        if off + 4 > len(data):
+            raise WalkError(f"node word at {off} runs past the block end ({len(data)} bytes)")
+        return struct.unpack_from("<I", data, off)[0]
+
+    def triangles(self, relative: int) -> TriangleBlock:
+        if relative not in self.tri_blocks:
+            raw = self.block(self.tri_level, relative)
+            self.tri_blocks[relative] = TriangleBlock.parse(raw, self.model.has_colours)
+        return self.tri_blocks[relative]
+
+    def leaf(
+        self, level: int, depth: int, lo: np.ndarray, hi: np.ndarray, first: int, count: int, block: int
+    ) -> Node:
+        """A leaf's list entries run from `first` to the end of its triangle block's list
+        and, for a leaf too big for one block, on from entry 0 of the following blocks."""
+        ids: list[np.ndarray] = []
+        vertices: list[np.ndarray] = []
+        colours: list[np.ndarray] = []
+        while count > 0:
+            tb = self.triangles(block)
+            if first > len(tb.list):
+                raise WalkError("leaf list starts past the list section")
+            local = tb.list[first : first + count].astype(np.int64)
+            ids.append(tb.ids[local])
+            vertices.append(tb.vertices[tb.triangles[local].astype(np.int64)])
+            if tb.colours is not None:
+                colours.append(tb.colours[local])
+            count -= len(local)
+            block, first = block + 1, 0
+        return Node(
+            "leaf", level, depth, lo, hi,
+            ids=np.concatenate(ids) if ids else np.zeros(0, np.uint32),
+            vertices=np.concatenate(vertices) if vertices else np.zeros((0, 3, 3), np.float32),
+            colours=np.concatenate(colours) if colours else self._no_colours(),
+        )  # fmt: skip
+
+    def _no_colours(self) -> np.ndarray | None:
+        return np.zeros(0, np.uint32) if self.model.has_colours else None
+
+    def walk(self) -> Iterator[Node]:
+        h = self.model.header
+        lo = np.array(h["cell_lo"], dtype=np.float32)
+        hi = np.array(h["cell_hi"], dtype=np.float32)
+        # (level, block relative to the level, offset, treelet depth, cell)
+        stack = [(0, 0, 0, 0, lo, hi)]
+        while stack:
+            level, block, off, depth, lo, hi = stack.pop()
+            data = self.block(level, block)
+            w, w1 = self.word(data, off), self.word(data, off + 4)
+            if not w & INNER:
+                yield self.leaf(level, depth, lo, hi, w & 0xFFFF, (w >> 16) & 0x7FFF, w1)
+                continue
+            node = Node("lod" if w & LOD else "basic", level, depth, lo, hi)
+            node.axis = w & 3
+            node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
+            has_l, has_r = not w & LEFT_EMPTY, not w & RIGHT_EMPTY
+            node.empty = (not has_l, not has_r)
+            if node.axis > 2:
+                raise WalkError(f"split axis {node.axis}")
+            if w & LOD:
+                voxel = off + 4 * ((w >> 4) & 127)
+                node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
+                first_sample = self.word(data, voxel)
+                n = 1 if first_sample & ONE_SAMPLE else 6
+                node.samples = [self.word(data, voxel + 4 * i) for i in range(n)]
+                child_level, child_block = level + 1, self.word(data, off + 12)
+                if child_level >= self.tri_level:
+                    raise WalkError("LOD node in the last node level")
+                l_off = 8 * ((w >> 17) & 8191)
+                r_off = l_off + 8 * ((w >> 11) & 63) if has_l else l_off
+                child_depth = 0
+            else:
+                child_level, child_block, child_depth = level, block, depth + 1
+                l_off = off + 8
+                r_off = off + 8 * ((w >> 4) & 63) if has_l else off + 8
+            yield node
+            # Right first on the stack so the left subtree is walked first.
+            if has_r:
+                stack.append((child_level, child_block, r_off, child_depth, *node.child_cell(1)))
+            if has_l:
+                stack.append((child_level, child_block, l_off, child_depth, *node.child_cell(0)))
+
+
+def walk(model: ModelFile) -> Iterator[Node]:
+    """Every node of `model`, depth first, left before right."""
+    return Walker(model).walk()
