@@ -736,7 +736,7 @@ def test_build_stays_within_its_memory_budget(tmp_path: Path) -> None:
     out = tmp_path / "grid.vast"
     child = subprocess.run(
         [sys.executable, "-c", _MEMORY_CHILD, str(soup), str(out), str(budget)],
-        capture_output=True, text=True, timeout=240,
+        cwd=tmp_path, capture_output=True, text=True, timeout=240,
     )  # fmt: skip
     assert child.returncode == 0, child.stderr
     result = json.loads(child.stdout)
@@ -768,7 +768,7 @@ def test_reported_peak_rss_is_the_builders_own(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-c", _BIG_PARENT, _MEMORY_CHILD, "scene:plant:30000:1", str(tmp_path / "m.vast"),
          str(32 << 20)],
-        capture_output=True, text=True, timeout=120,
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     out = json.loads(result.stdout)
@@ -862,7 +862,7 @@ def test_process_exits_cleanly_after_a_cancelled_build(tmp_path: Path, ooc_ply: 
     outlives the interpreter."""
     result = subprocess.run(
         [sys.executable, "-c", _CANCEL_CHILD, str(ooc_ply), str(tmp_path / "m.vast"), str(SMALL_MEMORY)],
-        capture_output=True, text=True, timeout=120,
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert result.stdout == "cancelled\n", result.stderr
     assert result.returncode == 0, f"exit status {result.returncode} after a cancelled build"

@@ -706,7 +706,8 @@ def build_model(
     builder = _Builder(src, out, opt, progress, cancel)
     try:
         report = builder.run(scratch, partial)
-        builder.report("write", 1, 1, unit="bytes", message="renaming")  # last chance to cancel
+        if cancel is not None and cancel.is_set():  # the last chance: nothing is in place yet
+            raise BuildCancelledError("build cancelled")
         if out.exists() and not opt.overwrite:
             raise FileExistsError(f"{out} appeared during the build; not replacing it")
         os.replace(partial, out)
