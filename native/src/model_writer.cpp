@@ -50,7 +50,7 @@ struct Pending {
 };
 
 // Where finished blocks go: straight to the sink, or into a buffer for a later merge.
-using Emit = std::function<void(int level, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&& patches)>;
+using Emit = std::function<void(int level, std::vector<std::uint8_t>&& bytes)>;
 
 struct LocalNode {
     enum Kind { Basic, Lod, Leaf } kind = Basic;
@@ -200,7 +200,7 @@ public:
         stats_.stored_vertices += verts_.size();
         stats_.triangle_blocks++;
         stats_.triangle_bytes += out.size();
-        emit_(-1, std::move(out), {});
+        emit_(-1, std::move(out));
         ++blocks_;
         list_.clear();
         ids_.clear();
@@ -266,11 +266,6 @@ struct ProgressCounter {
     }
 };
 
-struct BufferedBlock {
-    int level;
-    std::vector<std::uint8_t> bytes;
-    std::vector<Patch> patches;
-};
 
 // Sibling treelets a deferred emitter would have placed in a block of `level`.
 struct Unit {
@@ -317,7 +312,7 @@ struct Emitter {
         if (buf.empty()) return;
         stats.level_blocks[level]++;
         stats.level_bytes[level] += buf.size();
-        emit(static_cast<int>(level), std::move(buf), {});
+        emit(static_cast<int>(level), std::move(buf));
         buf.clear();
     }
 
@@ -678,28 +673,22 @@ struct Emitter {
         return self;
     }
 
-    // Appends a block emitted elsewhere (already rebased) to this emitter's streams.
-    void adopt(int level, std::vector<std::uint8_t>&& bytes) {
-        if (level < 0) {
-            stats.triangle_blocks++;
-            stats.triangle_bytes += bytes.size();
-            triangles.skip_block();
-        } else {
-            ensure_level(static_cast<std::size_t>(level));
-            stats.level_blocks[static_cast<std::size_t>(level)]++;
-            stats.level_bytes[static_cast<std::size_t>(level)] += bytes.size();
-        }
-        emit(level, std::move(bytes), {});
+    // Appends a triangle block a parallel part made: it takes the next triangle block id.
+    void adopt_triangle_block(std::vector<std::uint8_t>&& bytes) {
+        stats.triangle_blocks++;
+        stats.triangle_bytes += bytes.size();
+        triangles.skip_block();
+        emit(-1, std::move(bytes));
     }
 
     // Moves a part emitted in parallel into these streams: its triangle blocks follow
     // ours (their ids become base + id), and its placement units are packed into our
     // node blocks in the order the part made them, children before parents, so each
     // LOD node learns its children's block and offset before it is placed itself.
-    void merge(Emitter& part, std::vector<BufferedBlock>& triangle_blocks, Pending& root) {
+    void merge(Emitter& part, std::vector<std::vector<std::uint8_t>>& triangle_blocks, Pending& root) {
         triangles.flush();
         const std::uint32_t tri_base = triangles.blocks();
-        for (BufferedBlock& b : triangle_blocks) adopt(b.level, std::move(b.bytes));
+        for (auto& b : triangle_blocks) adopt_triangle_block(std::move(b));
         triangle_blocks.clear();
         std::vector<std::pair<std::uint32_t, std::size_t>> placed(part.units.size());
         auto resolve = [&](Pending& t) {
@@ -757,7 +746,7 @@ struct ModelWriter::Impl {
 
     Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
         : p(params), sink(std::move(s)),
-          main(p, counter, [this](int level, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&&) {
+          main(p, counter, [this](int level, std::vector<std::uint8_t>&& bytes) {
               sink(level, bytes.data(), bytes.size());
           }) {
         counter.sink = std::move(pr);
@@ -824,13 +813,14 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     Pending root;
     const unsigned lanes = impl_->p.kd.threads == 0 ? hardware_threads() : impl_->p.kd.threads;
     if (jobs.size() >= 2) {
-        std::vector<std::vector<BufferedBlock>> buffers(jobs.size());
+        // Parts buffer only triangle blocks: their treelets go out as placement units.
+        std::vector<std::vector<std::vector<std::uint8_t>>> buffers(jobs.size());
         std::vector<std::unique_ptr<Emitter>> parts;
         for (auto& buffer : buffers) {
             parts.push_back(std::make_unique<Emitter>(
                 impl_->p, impl_->counter,
-                [&buffer](int lv, std::vector<std::uint8_t>&& bytes, std::vector<Patch>&& patches) {
-                    buffer.push_back({lv, std::move(bytes), std::move(patches)});
+                [&buffer](int, std::vector<std::uint8_t>&& bytes) {
+                    buffer.push_back(std::move(bytes));
                 }));
             parts.back()->defer = true;
             bind(*parts.back());
