@@ -188,8 +188,8 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
     )
 
 
-def _record_dtype(colours: bool, corner_type: str = "<f4") -> np.dtype:
-    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", corner_type, (9,)), ("id", "<u4")]
+def _record_dtype(colours: bool) -> np.dtype:
+    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", "<f4", (9,)), ("id", "<u4")]
     if colours:
         fields.append(("rgb", "<u4"))
     return np.dtype(fields)
@@ -218,6 +218,8 @@ class _Split:
     level: int
     axes: list[int]
     splits: list[float]
+    slot_lo: np.ndarray  # (8, 3) float32: the cells of the eight children
+    slot_hi: np.ndarray
     children: list[_Part | _Split | None] = field(default_factory=list)
 
 
@@ -237,7 +239,11 @@ class _Builder:
         self.cancel = cancel
         self.start = time.perf_counter()
         self.dtype = _record_dtype(source.has_colours)
-        self.staged_dtype = _record_dtype(source.has_colours, corner_type="<f8")
+        # A generator's triangles as they came, in input order (ids follow from position).
+        staged: list[tuple[str, str, tuple[int]]] = [("c", "<f8", (9,))]
+        if source.has_colours:
+            staged.append(("rgb", "u1", (3,)))
+        self.staged_dtype = np.dtype(staged)
         self.phase_seconds: dict[str, float] = {}
         self.level_files: dict[int, Any] = {}
         self.level_entries: dict[int, list[tuple[int, int, int, int]]] = {}
@@ -289,9 +295,8 @@ class _Builder:
                     hi = np.maximum(hi, corners.max(axis=(0, 1)))
                     rec = np.empty(len(corners), self.staged_dtype)
                     rec["c"] = corners.reshape(-1, 9)
-                    rec["id"] = np.arange(total, total + len(corners), dtype=np.uint32)
                     if colours is not None:
-                        rec["rgb"] = _pack_rgb(colours)
+                        rec["rgb"] = colours
                     rec.tofile(f)
                     total += len(corners)
                     self.report("read", total, 2 * max(total, self.src.estimate), message="staging")
@@ -309,27 +314,22 @@ class _Builder:
         box_hi = np.full(3, -np.inf, dtype=np.float32)
         done = 0
 
-        def source_chunks() -> Iterator[tuple[np.ndarray, np.ndarray | None, int]]:
-            """(corners in double, colours, first input id) per chunk, in input order."""
+        def source_chunks() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+            """(corners in double, colours) per chunk, in input order."""
             if self.src.rereadable:
-                first = 0
-                for corners, colours in self.src.chunks():
-                    yield corners, colours, first
-                    first += len(corners)
+                yield from self.src.chunks()
             else:
                 for staged_rec in _read_records(staged, self.staged_dtype, self.opt.chunk()):
-                    colours = None
-                    if self.src.has_colours:
-                        rgb = staged_rec["rgb"]
-                        colours = np.stack([rgb & 255, (rgb >> 8) & 255, (rgb >> 16) & 255], axis=1)
-                    yield staged_rec["c"].reshape(-1, 3, 3), colours, int(staged_rec["id"][0])
+                    colours = staged_rec["rgb"] if self.src.has_colours else None
+                    yield staged_rec["c"].reshape(-1, 3, 3), colours
 
         with open(root, "wb") as f:
-            for corners, colours, first in source_chunks():
+            for corners, colours in source_chunks():
                 # Native: float32(vertex - centre) computed in double, as in the in-core
                 # Scene (bit-identical vertices on both paths); zero-area triangles (in
-                # those float32 coordinates) are left out and counted.
-                records, dropped, lo_k, hi_k = native.make_records(corners, colours, first, centre.tolist())
+                # those float32 coordinates) are left out and counted. A triangle's id is
+                # its position in the input (`done` triangles precede this chunk).
+                records, dropped, lo_k, hi_k = native.make_records(corners, colours, done, centre.tolist())
                 degenerate += dropped
                 if len(records):
                     box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
@@ -354,7 +354,6 @@ class _Builder:
         tight_lo: np.ndarray,
         tight_hi: np.ndarray,
         level: int,
-        scratch: Path,
         limit: int,
     ) -> _Part | _Split:
         if count <= limit:
@@ -363,9 +362,9 @@ class _Builder:
             self.warnings.append(f"out-of-core splitting stopped at level {level} with {count:,} triangles")
             return _Part(path, count, lo, hi, level)
         split = _choose_splits(lo, hi, tight_lo, tight_hi, level)
-        kids = self.sift(path, count, split, scratch)
+        kids = self.sift(path, split)
         path.unlink()
-        for slot, kid in enumerate(kids):
+        for kid in kids:
             if kid is None:
                 split.children.append(None)
                 continue
@@ -376,25 +375,21 @@ class _Builder:
                 self.warnings.append(f"{kcount:,} triangles in one cell could not be split further")
                 split.children.append(_Part(kpath, kcount, clo, chi, level + 1))
             else:
-                split.children.append(self.plan(kpath, kcount, clo, chi, tlo, thi, level + 1, scratch, limit))
-            del slot
+                split.children.append(self.plan(kpath, kcount, clo, chi, tlo, thi, level + 1, limit))
         return split
 
-    def sift(self, path: Path, count: int, split: _Split, scratch: Path) -> list[Any]:
-        cells = _slot_cells(split)
-        files = [open(scratch / f"n{os.getpid()}-{id(split)}-{s}.tri", "wb") for s in range(8)]
+    def sift(self, path: Path, split: _Split) -> list[Any]:
+        files = [open(self.scratch / f"n{id(split)}-{s}.tri", "wb") for s in range(8)]
         counts = [0] * 8
         tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
         thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
-        cell_lo = np.array([c[0] for c in cells], dtype=np.float32)
-        cell_hi = np.array([c[1] for c in cells], dtype=np.float32)
         try:
             for rec in _read_records(path, self.dtype, self.opt.chunk()):
                 # One native pass per chunk: a triangle goes to each cell whose closed
                 # half-spaces its bounding box touches.
                 parts, bounds = native.sift8(
                     rec.view(np.uint8).reshape(len(rec), self.dtype.itemsize), split.axes, split.splits,
-                    cell_lo, cell_hi,
+                    split.slot_lo, split.slot_hi,
                 )  # fmt: skip
                 for s, part in enumerate(parts):
                     if len(part):
@@ -414,7 +409,7 @@ class _Builder:
                 fpath.unlink()
                 out.append(None)
             else:
-                out.append((fpath, counts[s], cells[s][0], cells[s][1], tlo[s], thi[s]))
+                out.append((fpath, counts[s], split.slot_lo[s], split.slot_hi[s], tlo[s], thi[s]))
         return out
 
     # -- phase 3: build ---------------------------------------------------------------------
@@ -481,7 +476,7 @@ class _Builder:
             n //= 8
             levels_needed += 1
         self.sift_estimate = max(1, count * levels_needed)
-        tree = self.plan(root, count, lo, hi, lo, hi, 0, scratch, limit)
+        tree = self.plan(root, count, lo, hi, lo, hi, 0, limit)
         t = self.timed("split", t)
 
         parts = list(_parts(tree))
@@ -618,11 +613,6 @@ def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarra
             yield rec
 
 
-def _pack_rgb(colours: np.ndarray) -> np.ndarray:
-    c = colours.astype(np.uint32)
-    return c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
-
-
 def _choose_splits(
     lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray, tight_hi: np.ndarray, level: int
 ) -> _Split:
@@ -651,20 +641,9 @@ def _choose_splits(
                 c_lo[axis] = value
             cells[child] = (c_lo, c_hi)
             boxes[child] = (np.maximum(blo, c_lo), np.minimum(bhi, c_hi))
-    return _Split(lo.astype(np.float32), hi.astype(np.float32), level, axes, splits)
-
-
-def _slot_cells(split: _Split) -> list[tuple[np.ndarray, np.ndarray]]:
-    cells = {0: (split.lo.copy(), split.hi.copy())}
-    for h in range(7):
-        clo, chi = cells[h]
-        a, v = split.axes[h], np.float32(split.splits[h])
-        left = (clo.copy(), chi.copy())
-        left[1][a] = v
-        right = (clo.copy(), chi.copy())
-        right[0][a] = v
-        cells[2 * h + 1], cells[2 * h + 2] = left, right
-    return [cells[7 + s] for s in range(8)]
+    slot_lo = np.array([cells[7 + s][0] for s in range(8)], dtype=np.float32)
+    slot_hi = np.array([cells[7 + s][1] for s in range(8)], dtype=np.float32)
+    return _Split(lo.astype(np.float32), hi.astype(np.float32), level, axes, splits, slot_lo, slot_hi)
 
 
 def _parts(node: _Part | _Split | None) -> Iterator[_Part]:
