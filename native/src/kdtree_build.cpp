@@ -456,19 +456,13 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
             // box. Widening every box would make all triangles sharing a vertex on a
             // split plane straddle it: at the centre of a fan, every one of them.
             if (!inside) {
-                box = clip_to_box(soup.v(i, 0), soup.v(i, 1), soup.v(i, 2), *cell);
+                const Box3f clipped = clip_to_box(soup.v(i, 0), soup.v(i, 1), soup.v(i, 2), *cell);
                 // Touching the cell only in rounding still keeps the triangle (never drop
                 // a triangle from a cell it may overlap); one clearly outside is left out.
+                box = Box3f::intersection(widen(clipped.empty() ? box : clipped), *cell);
                 if (box.empty()) {
-                    Box3f full;
-                    for (int k = 0; k < 3; ++k) full.extend(soup.v(i, k));
-                    box = Box3f::intersection(widen(full), *cell);
-                    if (box.empty()) {
-                        refs[i] = {Box3f{}, kOutside};
-                        continue;
-                    }
-                } else {
-                    box = Box3f::intersection(widen(box), *cell);
+                    refs[i] = {Box3f{}, kOutside};
+                    continue;
                 }
             }
             refs[i] = {box, static_cast<std::uint32_t>(i)};

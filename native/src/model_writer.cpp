@@ -546,6 +546,8 @@ struct Emitter {
         node.radius = 0.5f * length(e);
     }
 
+    // Lays out a finished treelet; every node passes here once, so the node statistics
+    // are kept here too.
     void serialise(std::vector<LocalNode>& nodes, std::size_t level, Pending& out) {
         ensure_level(level);
         stats.level_nodes[level] += nodes.size();
@@ -553,6 +555,11 @@ struct Emitter {
         for (LocalNode& n : nodes) {
             n.offset = cursor;
             cursor += n.kind == LocalNode::Lod ? 16 : 8;
+            std::uint64_t& kind_count = n.kind == LocalNode::Lod    ? stats.lod_nodes
+                                        : n.kind == LocalNode::Leaf ? stats.leaves
+                                                                    : stats.basic_nodes;
+            ++kind_count;
+            stats.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
         }
         std::vector<std::size_t> voxel_at(nodes.size(), 0);
         for (std::size_t i = 0; i < nodes.size(); ++i) {
@@ -650,8 +657,6 @@ struct Emitter {
                     if (has_r) r = emit_kd_treelet(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), level + 1);
                 }
                 finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
-                stats.lod_nodes++;
-                stats.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
             } else if (n.kind == LocalNode::Leaf) {
                 const KdNode& k = tree->nodes[n.kd_node];
                 const std::uint32_t* tris = tree->tri_ids.data() + k.first();
@@ -661,12 +666,8 @@ struct Emitter {
                 n.tri_block = block;
                 n.first = first;
                 self.proxies.push_back(leaf_proxy(tris, n.count, n.cell));
-                stats.leaves++;
                 stats.references += n.count;
                 counter.add(n.count);
-            } else {
-                stats.basic_nodes++;
-                stats.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
             }
         }
         serialise(nodes, level, self);
@@ -886,18 +887,12 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
     Emitter& m = impl_->main;
     Pending self;
     for (LocalNode& n : nodes) {
-        if (n.kind == LocalNode::Lod) {
-            const bool has_l = n.child_handles[0] >= 0, has_r = n.child_handles[1] >= 0;
-            Pending l, r;
-            if (has_l) l = impl_->take(n.child_handles[0]);
-            if (has_r) r = impl_->take(n.child_handles[1]);
-            m.finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
-            stats_.lod_nodes++;
-            stats_.empty_children += (has_l ? 0 : 1) + (has_r ? 0 : 1);
-        } else {
-            stats_.basic_nodes++;
-            stats_.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
-        }
+        if (n.kind != LocalNode::Lod) continue;
+        const bool has_l = n.child_handles[0] >= 0, has_r = n.child_handles[1] >= 0;
+        Pending l, r;
+        if (has_l) l = impl_->take(n.child_handles[0]);
+        if (has_r) r = impl_->take(n.child_handles[1]);
+        m.finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
     }
     m.serialise(nodes, static_cast<std::size_t>(level), self);
     return impl_->keep(std::move(self));
