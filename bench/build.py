@@ -56,6 +56,7 @@ from common import (  # bench/ is a folder of scripts, not a package
     markdown_table,
     models_dir,
     parse_count,
+    save_figure,
 )
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -1160,10 +1161,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> None:
     top = max([r["peak_rss_bytes"] for r in ok] + [budget], default=GiB) / MiB
     ax_mem.set_ylim(top=top * 30)  # room for the legend above the data
     ax_mem.legend(fontsize=6, ncol=2, loc="upper left")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, title, path)
 
 
 # ----------------------------------------------------------------------------- main

@@ -326,6 +326,16 @@ def fmt(value: float, digits: int = 2) -> str:
     return f"{value:.{digits}f}"
 
 
+def save_figure(fig: Any, title: str, path: Path) -> None:
+    """Titles, lays out, writes (PNG, 110 dpi) and closes a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def geometric_mean(values: Iterable[float]) -> float:
     vals = [v for v in values if v is not None and math.isfinite(v) and v > 0]
     return math.exp(sum(math.log(v) for v in vals) / len(vals)) if vals else math.nan

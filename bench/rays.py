@@ -54,6 +54,7 @@ from common import (  # bench/ is a folder of scripts, not a package
     models_dir,
     parse_count,
     pin_native,
+    save_figure,
     timed,
 )
 
@@ -648,10 +649,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
         ax.grid(axis="y", alpha=0.3)
         ax.margins(y=0.12)
     axes[1].set_xticks(x, labels, rotation=35, ha="right")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, title, path)
 
 
 # ----------------------------------------------------------------------------- main
