@@ -7,6 +7,7 @@
 #include <memory>
 #include <stdexcept>
 
+#include "bindings_common.h"
 #include "vastray/lz4.h"
 #include "vastray/render.h"
 #include "vastray/scene.h"
@@ -38,17 +39,8 @@ std::vector<double> broadcast(const py::object& value, std::size_t n, const char
     return std::vector<double>(arr.data(), arr.data() + n);
 }
 
-Vec3d to_vec3(const std::vector<double>& v, const char* name) {
-    if (v.size() != 3) throw std::invalid_argument(std::string(name) + " must have three components");
-    return {v[0], v[1], v[2]};
-}
-
-template <typename T>
-py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
-    auto* heap = new std::vector<T>(std::move(v));
-    py::capsule owner(heap, [](void* p) { delete static_cast<std::vector<T>*>(p); });
-    return py::array_t<T>(shape, heap->data(), owner);
-}
+using bindings::to_numpy;
+using bindings::to_vec3;
 
 std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::object colors,
                                   int leaf_size, float traversal_cost, float intersection_cost,
@@ -147,42 +139,14 @@ py::dict render_frame(const Scene& s, const std::vector<double>& eye, const std:
                       const std::vector<double>& up, double fov, int width, int height,
                       const std::string& shading, int ao_samples, double ao_distance,
                       const std::vector<double>& sun, unsigned threads, int tile_size, int packets) {
-    Camera cam;
-    cam.eye = to_vec3(eye, "eye");
-    cam.target = to_vec3(target, "target");
-    cam.up = to_vec3(up, "up");
-    cam.fov_deg = fov;
-    cam.width = width;
-    cam.height = height;
-    RenderParams params;
-    params.shading = parse_shading(shading);
-    params.ao_samples = ao_samples;
-    params.ao_distance = ao_distance;
-    params.sun_direction = to_vec3(sun, "sun");
-    params.threads = threads;
-    params.tile_size = tile_size;
-    if (packets != 1 && packets != 4 && packets != 16) throw std::invalid_argument("packets must be 1, 4 or 16");
-    params.packets = packets;
+    const bindings::RenderArgs a = bindings::render_args(eye, target, up, fov, width, height, shading, ao_samples,
+                                                         ao_distance, sun, threads, tile_size, packets);
     Frame f;
     {
         py::gil_scoped_release release;
-        f = render(s, cam, params);
+        f = render(s, a.camera, a.params);
     }
-    const py::ssize_t h = height, w = width;
-    py::dict d;
-    d["image"] = to_numpy(std::move(f.rgb), {h, w, 3});
-    d["depth"] = to_numpy(std::move(f.depth), {h, w});
-    d["prim"] = to_numpy(std::move(f.prim), {h, w});
-    py::dict st;
-    st["primary_rays"] = f.stats.primary_rays;
-    st["secondary_rays"] = f.stats.secondary_rays;
-    st["rays"] = f.stats.primary_rays + f.stats.secondary_rays;
-    st["node_visits"] = f.stats.node_visits;
-    st["triangle_tests"] = f.stats.triangle_tests;
-    st["milliseconds"] = f.stats.milliseconds;
-    st["threads"] = f.stats.threads;
-    d["stats"] = st;
-    return d;
+    return bindings::frame_dict(std::move(f));
 }
 
 py::dict reference(DoubleArray vertices, UIntArray faces, DoubleArray origins, DoubleArray directions,
@@ -223,6 +187,7 @@ py::bytes lz4_decompress(const py::bytes& data, std::size_t raw_size) {
 }  // namespace
 
 void bind_model(py::module_& m);  // bindings_model.cpp
+void bind_cache(py::module_& m);  // bindings_cache.cpp
 
 PYBIND11_MODULE(native, m) {
     m.doc() = "vastray native core: kd-tree build, watertight ray tracing, tiled rendering";
@@ -257,6 +222,7 @@ PYBIND11_MODULE(native, m) {
              "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
 
     bind_model(m);
+    bind_cache(m);
 
     m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),
           "Decode one LZ4 block (block format, no frame) of exactly raw_size bytes; ValueError if corrupt");

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <stdexcept>
 
+#include "vastray/shading.h"
 #include "vastray/thread_pool.h"
 #include "vastray/traverse_packet.h"
 
@@ -33,43 +34,12 @@ Shading parse_shading(const std::string& name) {
 
 namespace {
 
-// PCG-style integer hash: deterministic per (pixel, sample) random numbers, so AO images
-// are reproducible and independent of how tiles are scheduled over threads.
-std::uint32_t hash32(std::uint32_t x) {
-    x ^= x >> 16;
-    x *= 0x7feb352du;
-    x ^= x >> 15;
-    x *= 0x846ca68bu;
-    x ^= x >> 16;
-    return x;
-}
-float unit_float(std::uint32_t h) { return static_cast<float>(h >> 8) * (1.0f / 16777216.0f); }
-
-struct Basis {
-    Vec3f n, s, t;
-    explicit Basis(const Vec3f& normal) : n(normal) {
-        // Duff et al. 2017 branchless orthonormal basis.
-        const float sign = std::copysign(1.0f, n.z);
-        const float a = -1.0f / (sign + n.z);
-        const float b = n.x * n.y * a;
-        s = {1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x};
-        t = {b, sign + n.y * n.y * a, -n.y};
-    }
-};
+using namespace shading;
 
 class FrameRenderer {
 public:
     FrameRenderer(const Scene& scene, const Camera& cam, const RenderParams& params, Frame& frame)
-        : scene_(scene), params_(params), frame_(frame) {
-        const Vec3d w = normalize(cam.target - cam.eye);
-        const Vec3d u = normalize(cross(w, cam.up));
-        const Vec3d v = cross(u, w);
-        const double tan_half = std::tan(cam.fov_deg * 0.5 * 3.14159265358979323846 / 180.0);
-        const double aspect = static_cast<double>(cam.width) / cam.height;
-        forward_ = w;
-        right_ = u * (tan_half * aspect);
-        upv_ = v * tan_half;
-        eye_ = cam.eye;
+        : scene_(scene), params_(params), frame_(frame), camera_(cam) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
@@ -138,11 +108,9 @@ private:
     }
 
     Ray primary_ray(int x, int y) const {
-        const double sx = 2.0 * (x + 0.5) / frame_.width - 1.0;
-        const double sy = 1.0 - 2.0 * (y + 0.5) / frame_.height;
         WorldRay wr;
-        wr.org = eye_;
-        wr.dir = normalize(forward_ + right_ * sx + upv_ * sy);
+        wr.org = camera_.eye;
+        wr.dir = camera_.direction(x, y);
         return scene_.to_local(wr);
     }
 
@@ -151,11 +119,7 @@ private:
         const std::size_t px = static_cast<std::size_t>(y) * frame_.width + x;
         std::uint8_t* rgb = frame_.rgb.data() + 3 * px;
         if (hit.prim == kNoHit) {
-            // Quiet vertical gradient: the model should stand out, not the background.
-            const float g = static_cast<float>(y) / static_cast<float>(std::max(1, height - 1));
-            rgb[0] = static_cast<std::uint8_t>(58 - 30 * g);
-            rgb[1] = static_cast<std::uint8_t>(64 - 32 * g);
-            rgb[2] = static_cast<std::uint8_t>(76 - 36 * g);
+            background(y, height, rgb);
             return;
         }
         frame_.depth[px] = hit.t;
@@ -168,29 +132,19 @@ private:
             if (dot(n, ray.dir) > 0) n = -n;  // shade the side the viewer sees
             colour = colour * shade(ray, hit, n, x, y, c, s);
         }
-        for (int k = 0; k < 3; ++k) {
-            rgb[k] = static_cast<std::uint8_t>(std::clamp(colour[k], 0.0f, 1.0f) * 255.0f + 0.5f);
-        }
+        store_rgb(colour, rgb);
     }
 
     Vec3f base_colour(std::uint32_t prim) const {
-        if (!scene_.has_colors()) return {0.78f, 0.78f, 0.76f};
+        if (!scene_.has_colors()) return default_colour();
         const std::uint8_t* c = scene_.color(prim);
         return Vec3f(c[0], c[1], c[2]) * (1.0f / 255.0f);
     }
 
-    // Secondary rays start from the barycentric hit point (more accurate than o + t d)
-    // pushed off the surface by a bound on its float error, and never report the
-    // triangle they start on.
+    // Secondary rays never report the triangle they start on.
     Ray spawn(const Hit& hit, const Vec3f& n, const Vec3f& dir) const {
-        const Vec3f* v = scene_.tri_vertices() + 3 * static_cast<std::size_t>(hit.prim);
-        const Vec3f p = v[0] * (1.0f - hit.u - hit.v) + v[1] * hit.u + v[2] * hit.v;
-        const float mag = std::max({std::abs(v[0].x), std::abs(v[0].y), std::abs(v[0].z),
-                                    std::abs(v[1].x), std::abs(v[1].y), std::abs(v[1].z),
-                                    std::abs(v[2].x), std::abs(v[2].y), std::abs(v[2].z)});
-        const float offset = 32.0f * std::numeric_limits<float>::epsilon() * mag + 1e-30f;
         Ray r;
-        r.org = p + n * offset;
+        r.org = offset_origin(scene_.tri_vertices() + 3 * static_cast<std::size_t>(hit.prim), hit, n);
         r.dir = dir;
         r.tmin = 0;
         return r;
@@ -200,7 +154,7 @@ private:
                 RenderStats& s) const {
         switch (params_.shading) {
             case Shading::Headlight:
-                return 0.12f + 0.88f * std::abs(dot(n, ray.dir));
+                return headlight(n, ray.dir);
             case Shading::Sun: {
                 const float lambert = dot(n, sun_);
                 float visible = 0;
@@ -210,30 +164,21 @@ private:
                     ++s.secondary_rays;
                     visible = scene_.trace<true>(shadow, occluder, c, hit.prim) ? 0.0f : 1.0f;
                 }
-                return 0.18f + 0.82f * lambert * visible;
+                return sun(lambert, visible);
             }
             case Shading::AmbientOcclusion: {
                 const int samples = std::max(1, params_.ao_samples);
                 const Basis basis(n);
                 int open = 0;
-                const auto pixel_seed = static_cast<std::uint32_t>(y) * 0x9E3779B1u ^
-                                        static_cast<std::uint32_t>(x) * 0x85EBCA77u;
                 for (int k = 0; k < samples; ++k) {
-                    const std::uint32_t h1 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k)));
-                    const std::uint32_t h2 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k + 1)));
-                    // Cosine-weighted hemisphere sample (Malley's method).
-                    const float r = std::sqrt(unit_float(h1));
-                    const float phi = 6.28318530718f * unit_float(h2);
-                    const float lx = r * std::cos(phi), ly = r * std::sin(phi);
-                    const float lz = std::sqrt(std::max(0.0f, 1.0f - lx * lx - ly * ly));
-                    const Vec3f dir = basis.s * lx + basis.t * ly + basis.n * lz;
+                    const Vec3f dir = ao_direction(basis, x, y, k);
                     Ray probe = spawn(hit, n, dir);
                     probe.tmax = ao_distance_;
                     Hit occluder;
                     ++s.secondary_rays;
                     if (!scene_.trace<true>(probe, occluder, c, hit.prim)) ++open;
                 }
-                return 0.08f + 0.92f * static_cast<float>(open) / static_cast<float>(samples);
+                return ambient(open, samples);
             }
             case Shading::Normal:
                 break;
@@ -244,7 +189,7 @@ private:
     const Scene& scene_;
     const RenderParams& params_;
     Frame& frame_;
-    Vec3d eye_, forward_, right_, upv_;
+    CameraRays camera_;
     float ao_distance_ = 1;
     Vec3f sun_;
 };
@@ -252,11 +197,7 @@ private:
 }  // namespace
 
 Frame render(const Scene& scene, const Camera& camera, const RenderParams& params) {
-    camera.validate();
-    if (!all_finite(params.sun_direction) || !(dot(params.sun_direction, params.sun_direction) > 0)) {
-        throw std::invalid_argument("sun direction must be a finite non-zero vector");
-    }
-    if (params.ao_samples < 1 || params.ao_samples > 1024) throw std::invalid_argument("ao_samples must be in [1, 1024]");
+    validate(camera, params);
     const auto start = std::chrono::steady_clock::now();
     Frame frame;
     frame.width = camera.width;

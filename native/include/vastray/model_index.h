@@ -1,0 +1,58 @@
+// A built model opened for block reads: its header fields and block index, checked on
+// open (docs/FORMAT.md §4, §5, §13), and a verified read of any block. This is the
+// native reader behind the block cache; vastray/modelfile.py is the Python reader used
+// by the builder and `vastray inspect`.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "vastray/vecmath.h"
+
+namespace vastray {
+
+struct BlockEntry {
+    std::uint64_t offset = 0;
+    std::uint32_t stored_size = 0, raw_size = 0, crc32 = 0, codec = 0;
+};
+
+class ModelIndex {
+public:
+    // Throws std::runtime_error naming the path and what is wrong.
+    explicit ModelIndex(const std::string& path);
+    ~ModelIndex();
+    ModelIndex(const ModelIndex&) = delete;
+    ModelIndex& operator=(const ModelIndex&) = delete;
+
+    const std::string& path() const { return path_; }
+    bool has_colours() const { return has_colours_; }
+    const Vec3d& centre() const { return centre_; }
+    const Box3f& root_cell() const { return root_cell_; }
+    std::uint64_t triangle_count() const { return triangle_count_; }
+    std::uint64_t input_triangles() const { return input_triangles_; }
+    std::uint64_t file_size() const { return file_size_; }
+    std::size_t block_count() const { return entries_.size(); }
+    std::size_t level_count() const { return level_first_.size() - 1; }
+    // First global block id of each level; one extra entry holds block_count.
+    const std::vector<std::uint32_t>& level_first() const { return level_first_; }
+    const BlockEntry& entry(std::size_t block) const { return entries_[block]; }
+    std::size_t level_of(std::size_t block) const;
+
+    // Reads, checks and decodes block `block` into `out` (at least raw_size bytes), using
+    // `scratch` for the stored bytes. Safe to call from several threads at once (pread).
+    // Returns an empty string on success, else what went wrong; never throws.
+    std::string read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const;
+
+private:
+    std::string path_;
+    int fd_ = -1;
+    bool has_colours_ = false;
+    Vec3d centre_;
+    Box3f root_cell_;
+    std::uint64_t triangle_count_ = 0, input_triangles_ = 0, file_size_ = 0;
+    std::vector<std::uint32_t> level_first_;
+    std::vector<BlockEntry> entries_;
+};
+
+}  // namespace vastray

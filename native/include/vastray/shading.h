@@ -1,0 +1,116 @@
+// Pieces shared by the in-core and the out-of-core (LOD) frame renderers: the camera's
+// primary rays, reproducible random numbers for AO, the hemisphere basis, the shading
+// terms of each mode and the background. Both renderers must agree on these, so a full-
+// detail out-of-core image equals the in-core one pixel for pixel.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+#include "vastray/render.h"
+
+namespace vastray::shading {
+
+// PCG-style integer hash: deterministic per (pixel, sample) random numbers, so AO images
+// are reproducible and independent of how tiles are scheduled over threads.
+inline std::uint32_t hash32(std::uint32_t x) {
+    x ^= x >> 16;
+    x *= 0x7feb352du;
+    x ^= x >> 15;
+    x *= 0x846ca68bu;
+    x ^= x >> 16;
+    return x;
+}
+inline float unit_float(std::uint32_t h) { return static_cast<float>(h >> 8) * (1.0f / 16777216.0f); }
+
+struct Basis {
+    Vec3f n, s, t;
+    explicit Basis(const Vec3f& normal) : n(normal) {
+        // Duff et al. 2017 branchless orthonormal basis.
+        const float sign = std::copysign(1.0f, n.z);
+        const float a = -1.0f / (sign + n.z);
+        const float b = n.x * n.y * a;
+        s = {1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x};
+        t = {b, sign + n.y * n.y * a, -n.y};
+    }
+};
+
+// Cosine-weighted hemisphere direction (Malley's method) for AO sample k of a pixel.
+inline Vec3f ao_direction(const Basis& basis, int x, int y, int k) {
+    const auto pixel_seed = static_cast<std::uint32_t>(y) * 0x9E3779B1u ^ static_cast<std::uint32_t>(x) * 0x85EBCA77u;
+    const std::uint32_t h1 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k)));
+    const std::uint32_t h2 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k + 1)));
+    const float r = std::sqrt(unit_float(h1));
+    const float phi = 6.28318530718f * unit_float(h2);
+    const float lx = r * std::cos(phi), ly = r * std::sin(phi);
+    const float lz = std::sqrt(std::max(0.0f, 1.0f - lx * lx - ly * ly));
+    return basis.s * lx + basis.t * ly + basis.n * lz;
+}
+
+// World-space primary rays of a pinhole camera.
+struct CameraRays {
+    Vec3d eye, forward, right, up;
+    int width = 1, height = 1;
+    double pixel_angle = 0;  // width of a pixel at unit distance on the view axis
+
+    explicit CameraRays(const Camera& cam) : width(cam.width), height(cam.height) {
+        const Vec3d w = normalize(cam.target - cam.eye);
+        const Vec3d u = normalize(cross(w, cam.up));
+        const Vec3d v = cross(u, w);
+        const double tan_half = std::tan(cam.fov_deg * 0.5 * 3.14159265358979323846 / 180.0);
+        const double aspect = static_cast<double>(cam.width) / cam.height;
+        eye = cam.eye;
+        forward = w;
+        right = u * (tan_half * aspect);
+        up = v * tan_half;
+        pixel_angle = 2.0 * tan_half / cam.height;
+    }
+    Vec3d direction(int x, int y) const {
+        const double sx = 2.0 * (x + 0.5) / width - 1.0;
+        const double sy = 1.0 - 2.0 * (y + 0.5) / height;
+        return normalize(forward + right * sx + up * sy);
+    }
+};
+
+// Quiet vertical gradient: the model should stand out, not the background.
+inline void background(int y, int height, std::uint8_t* rgb) {
+    const float g = static_cast<float>(y) / static_cast<float>(std::max(1, height - 1));
+    rgb[0] = static_cast<std::uint8_t>(58 - 30 * g);
+    rgb[1] = static_cast<std::uint8_t>(64 - 32 * g);
+    rgb[2] = static_cast<std::uint8_t>(76 - 36 * g);
+}
+
+inline void store_rgb(const Vec3f& colour, std::uint8_t* rgb) {
+    for (int k = 0; k < 3; ++k) rgb[k] = static_cast<std::uint8_t>(std::clamp(colour[k], 0.0f, 1.0f) * 255.0f + 0.5f);
+}
+
+inline Vec3f default_colour() { return {0.78f, 0.78f, 0.76f}; }
+
+inline float headlight(const Vec3f& n, const Vec3f& dir) { return 0.12f + 0.88f * std::abs(dot(n, dir)); }
+inline float sun(float lambert, float visible) { return 0.18f + 0.82f * lambert * visible; }
+inline float ambient(int open, int samples) {
+    return 0.08f + 0.92f * static_cast<float>(open) / static_cast<float>(samples);
+}
+
+// Where a secondary ray starts on a triangle: the barycentric point (more accurate than
+// o + t d) pushed off the surface by a bound on its float error.
+inline Vec3f offset_origin(const Vec3f* v, const Hit& hit, const Vec3f& n) {
+    const Vec3f p = v[0] * (1.0f - hit.u - hit.v) + v[1] * hit.u + v[2] * hit.v;
+    const float mag = std::max({std::abs(v[0].x), std::abs(v[0].y), std::abs(v[0].z), std::abs(v[1].x),
+                                std::abs(v[1].y), std::abs(v[1].z), std::abs(v[2].x), std::abs(v[2].y),
+                                std::abs(v[2].z)});
+    const float offset = 32.0f * std::numeric_limits<float>::epsilon() * mag + 1e-30f;
+    return p + n * offset;
+}
+
+// Checks shared by both renderers' entry points.
+inline void validate(const Camera& camera, const RenderParams& params) {
+    camera.validate();
+    if (!all_finite(params.sun_direction) || !(dot(params.sun_direction, params.sun_direction) > 0)) {
+        throw std::invalid_argument("sun direction must be a finite non-zero vector");
+    }
+    if (params.ao_samples < 1 || params.ao_samples > 1024) throw std::invalid_argument("ao_samples must be in [1, 1024]");
+}
+
+}  // namespace vastray::shading

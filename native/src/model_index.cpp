@@ -1,0 +1,163 @@
+#include "vastray/model_index.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <stdexcept>
+
+#include "vastray/crc32.h"
+#include "vastray/format.h"
+#include "vastray/lz4.h"
+
+namespace vastray {
+
+namespace {
+
+constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
+constexpr std::uint32_t kVersion = 1;
+constexpr std::size_t kHeaderSize = 256;
+constexpr std::uint32_t kFlagColours = 1u, kFlagTriangleIds = 2u;
+constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
+constexpr std::size_t kHeaderCrcAt = 196;
+
+template <typename T>
+T load(const std::uint8_t* p) {
+    T v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+}
+
+bool read_exact(int fd, std::uint8_t* out, std::size_t size, std::uint64_t offset) {
+    while (size > 0) {
+        const ssize_t n = ::pread(fd, out, size, static_cast<off_t>(offset));
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) return false;
+        out += n;
+        size -= static_cast<std::size_t>(n);
+        offset += static_cast<std::uint64_t>(n);
+    }
+    return true;
+}
+
+}  // namespace
+
+ModelIndex::ModelIndex(const std::string& path) : path_(path) {
+    auto fail = [&](const std::string& what) -> std::runtime_error {
+        return std::runtime_error(path_ + ": " + what);
+    };
+    fd_ = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+    if (fd_ < 0) throw fail(std::string("cannot open: ") + std::strerror(errno));
+    try {
+        struct stat st {};
+        if (::fstat(fd_, &st) != 0) throw fail(std::string("cannot stat: ") + std::strerror(errno));
+        const auto size = static_cast<std::uint64_t>(st.st_size);
+        std::uint8_t h[kHeaderSize] = {};
+        if (size < 8 || !read_exact(fd_, h, 8, 0) || std::memcmp(h, kMagic, 8) != 0) {
+            throw fail("not a vastray model (bad magic bytes)");
+        }
+        if (size < kHeaderSize || !read_exact(fd_, h, kHeaderSize, 0)) {
+            throw fail("truncated: shorter than the 256-byte header");
+        }
+        const auto version = load<std::uint32_t>(h + 8);
+        if (version != kVersion) {
+            throw fail("format version " + std::to_string(version) + " is not supported (this vastray reads version 1)");
+        }
+        std::uint8_t zeroed[kHeaderSize];
+        std::memcpy(zeroed, h, kHeaderSize);
+        std::memset(zeroed + kHeaderCrcAt, 0, 4);
+        if (crc32(zeroed, kHeaderSize) != load<std::uint32_t>(h + kHeaderCrcAt)) {
+            throw fail("header checksum mismatch (the header is corrupted)");
+        }
+        file_size_ = load<std::uint64_t>(h + 184);
+        if (file_size_ != size) throw fail("file size differs from its header (truncated or appended to)");
+        if (load<std::uint32_t>(h + 12) != kHeaderSize || load<std::uint32_t>(h + 20) != format::kBlockSize) {
+            throw fail("unsupported block or header size");
+        }
+        if (load<std::uint32_t>(h + 24) != 1) throw fail("unsupported block codec family");
+        const auto flags = load<std::uint32_t>(h + 16);
+        if (!(flags & kFlagTriangleIds) || (flags & ~(kFlagColours | kFlagTriangleIds))) {
+            throw fail("unsupported attribute flags");
+        }
+        has_colours_ = (flags & kFlagColours) != 0;
+        const auto level_count = load<std::uint32_t>(h + 28);
+        for (int a = 0; a < 3; ++a) {
+            centre_[a] = load<double>(h + 32 + 8 * a);
+            root_cell_.lo[a] = load<float>(h + 56 + 4 * a);
+            root_cell_.hi[a] = load<float>(h + 68 + 4 * a);
+        }
+        triangle_count_ = load<std::uint64_t>(h + 80);
+        input_triangles_ = load<std::uint64_t>(h + 88);
+        const auto block_count = load<std::uint64_t>(h + 152);
+        const auto index_offset = load<std::uint64_t>(h + 160);
+        const auto data_offset = load<std::uint64_t>(h + 168);
+        if (level_count < 2 || block_count == 0 || block_count > (1ull << 32)) throw fail("implausible level or block count");
+        const std::uint64_t index_size = kLevelRecord * level_count + kEntryRecord * block_count;
+        if (index_offset + index_size != data_offset || data_offset > size) throw fail("index does not fit the file");
+        std::vector<std::uint8_t> index(index_size);
+        if (!read_exact(fd_, index.data(), index.size(), index_offset)) throw fail("cannot read the block index");
+        if (crc32(index.data(), index.size()) != load<std::uint32_t>(h + 192)) {
+            throw fail("block index checksum mismatch (the index is corrupted)");
+        }
+        std::uint32_t expected = 0;
+        for (std::uint32_t l = 0; l < level_count; ++l) {
+            const auto first = load<std::uint32_t>(index.data() + kLevelRecord * l);
+            const auto count = load<std::uint32_t>(index.data() + kLevelRecord * l + 4);
+            if (first != expected || count == 0) throw fail("levels do not tile the block index");
+            level_first_.push_back(first);
+            expected += count;
+        }
+        if (expected != block_count) throw fail("levels do not cover every block");
+        level_first_.push_back(expected);
+        entries_.resize(block_count);
+        const std::uint8_t* e = index.data() + kLevelRecord * level_count;
+        for (std::size_t i = 0; i < block_count; ++i, e += kEntryRecord) {
+            BlockEntry& b = entries_[i];
+            b.offset = load<std::uint64_t>(e);
+            b.stored_size = load<std::uint32_t>(e + 8);
+            b.raw_size = load<std::uint32_t>(e + 12);
+            b.crc32 = load<std::uint32_t>(e + 16);
+            b.codec = load<std::uint32_t>(e + 20);
+            if (b.offset < data_offset || b.offset + b.stored_size > size || b.raw_size > format::kBlockSize ||
+                b.stored_size > format::kBlockSize + format::kBlockSize / 255 + 16) {
+                throw fail("block " + std::to_string(i) + " lies outside the file or is oversized");
+            }
+        }
+    } catch (...) {
+        ::close(fd_);
+        throw;
+    }
+}
+
+ModelIndex::~ModelIndex() {
+    if (fd_ >= 0) ::close(fd_);
+}
+
+std::size_t ModelIndex::level_of(std::size_t block) const {
+    const auto it = std::upper_bound(level_first_.begin(), level_first_.end() - 1, static_cast<std::uint32_t>(block));
+    return static_cast<std::size_t>(it - level_first_.begin()) - 1;
+}
+
+std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const {
+    const BlockEntry& e = entries_[block];
+    const std::string name = "block " + std::to_string(block) + " (level " + std::to_string(level_of(block)) + ")";
+    scratch.resize(e.stored_size);
+    if (!read_exact(fd_, scratch.data(), e.stored_size, e.offset)) {
+        return name + ": read failed: " + std::strerror(errno ? errno : EIO);
+    }
+    if (crc32(scratch.data(), scratch.size()) != e.crc32) return name + ": checksum mismatch (the block is corrupted)";
+    if (e.codec == 0) {
+        if (e.stored_size != e.raw_size) return name + ": stored block size differs from its raw size";
+        std::memcpy(out, scratch.data(), e.raw_size);
+        return {};
+    }
+    if (e.codec != 1) return name + ": unknown codec " + std::to_string(e.codec);
+    const Lz4Status status = lz4_decompress_block(scratch.data(), scratch.size(), out, e.raw_size);
+    if (status != Lz4Status::Ok) return name + ": LZ4 data is corrupted (" + lz4_status_message(status) + ")";
+    return {};
+}
+
+}  // namespace vastray
