@@ -11,35 +11,13 @@ from vastray import __version__
 from vastray.render import SHADING_MODES
 
 
-def _cmd_render(args: argparse.Namespace) -> int:
-    from PIL import Image
-
+def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequence[float]) -> Any:
     from vastray.camera import Camera, frame_bounds, parse_size, parse_vec3
-    from vastray.render import load_model, render
 
     width, height = parse_size(args.size)
-    build_options = {"leaf_size": args.leaf_size, "threads": args.threads}
-    model = load_model(
-        args.model, on_phase=lambda phase: print(f"{phase} ...", file=sys.stderr, flush=True), **build_options
-    )
-    scene = model.scene
-    stats = scene.build_stats
-    if model.build_seconds == 0.0:
-        print(
-            f"model      {model.name}: built model decoded in {model.load_seconds:.2f} s "
-            f"({stats['nodes']:,} nodes, {stats['memory_bytes'] / 2**20:.1f} MiB in memory)"
-        )
-    else:
-        print(
-            f"model      {model.name}: {scene.triangle_count:,} triangles, "
-            f"loaded in {model.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
-            f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
-            f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
-        )
-    lo, hi = scene.bounds
     if args.eye or args.target:
         framed = frame_bounds(lo, hi, fov=args.fov, width=width, height=height)
-        camera = Camera(
+        return Camera(
             eye=parse_vec3(args.eye) if args.eye else framed.eye,
             target=parse_vec3(args.target) if args.target else framed.target,
             up=parse_vec3(args.up),
@@ -47,20 +25,92 @@ def _cmd_render(args: argparse.Namespace) -> int:
             width=width,
             height=height,
         )
-    else:
-        camera = frame_bounds(lo, hi, fov=args.fov, width=width, height=height, up=parse_vec3(args.up))
-    frame = render(model, camera, shading=args.shading, ao_samples=args.ao_samples, threads=args.threads)
-    Image.fromarray(frame.image).save(args.output)
-    s = frame.stats
+    return frame_bounds(lo, hi, fov=args.fov, width=width, height=height, up=parse_vec3(args.up))
+
+
+def _print_render(camera: Any, shading: str, s: dict[str, Any]) -> None:
     ms = s["milliseconds"]
     mrays = s["rays"] / (ms / 1000.0) / 1e6 if ms > 0 else float("inf")
     primary = max(1, s["primary_rays"])
     print(
-        f"render     {width}x{height} {args.shading}: {ms:.1f} ms, {s['rays']:,} rays "
+        f"render     {camera.width}x{camera.height} {shading}: {ms:.1f} ms, {s['rays']:,} rays "
         f"({mrays:.2f} Mrays/s on {s['threads']} threads), "
         f"{s['node_visits'] / primary:.1f} node visits and "
         f"{s['triangle_tests'] / primary:.1f} triangle tests per pixel"
     )
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    from vastray.render import is_built_model
+
+    if is_built_model(args.model):
+        return _render_built(args)
+    return _render_in_core(args)
+
+
+def _render_built(args: argparse.Namespace) -> int:
+    """A built model through the block cache: rendered until complete at --poe."""
+    from PIL import Image
+
+    from vastray.build import parse_memory
+    from vastray.outofcore import OutOfCoreModel, make_cache
+
+    cache = make_cache(parse_memory(args.cache), args.fetchers)
+    with OutOfCoreModel(args.model, cache) as model:
+        print(
+            f"model      {model.name}: {model.triangle_count:,} triangles, {model.block_count:,} blocks "
+            f"({model.file_size / 2**20:.1f} MiB), opened in {model.open_seconds * 1000:.0f} ms; "
+            f"cache {args.cache}"
+        )
+        lo, hi = model.bounds
+        camera = _camera_from_args(args, lo, hi)
+        frame = model.render_complete(
+            camera,
+            shading=args.shading,
+            pixels_of_error=args.poe,
+            ao_samples=args.ao_samples,
+            threads=args.threads,
+        )
+        Image.fromarray(frame.image).save(args.output)
+        s = frame.stats
+        _print_render(camera, args.shading, s)
+        print(
+            f"detail     PoE {args.poe:g}: complete after {s['frames']} frame(s) in {s['seconds']:.2f} s; "
+            f"{s['voxel_hits']:,} voxel hits, working set {s['working_set_bytes'] / 2**20:.1f} MiB "
+            f"in {s['working_set_blocks']:,} blocks"
+        )
+        for error in model.errors:
+            print(f"warning    {error} (shown as coarser voxels)", file=sys.stderr)
+    print(
+        f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
+        f"--fov {camera.fov:g}"
+    )
+    print(f"wrote      {args.output}")
+    return 0
+
+
+def _render_in_core(args: argparse.Namespace) -> int:
+    from PIL import Image
+
+    from vastray.render import load_model, render
+
+    build_options = {"leaf_size": args.leaf_size, "threads": args.threads}
+    model = load_model(
+        args.model, on_phase=lambda phase: print(f"{phase} ...", file=sys.stderr, flush=True), **build_options
+    )
+    scene = model.scene
+    stats = scene.build_stats
+    print(
+        f"model      {model.name}: {scene.triangle_count:,} triangles, "
+        f"loaded in {model.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
+        f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
+        f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
+    )
+    lo, hi = scene.bounds
+    camera = _camera_from_args(args, lo, hi)
+    frame = render(model, camera, shading=args.shading, ao_samples=args.ao_samples, threads=args.threads)
+    Image.fromarray(frame.image).save(args.output)
+    _print_render(camera, args.shading, frame.stats)
     print(
         f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
         f"--fov {camera.fov:g}"
@@ -251,7 +301,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--shading", default="headlight", choices=SHADING_MODES)
     r.add_argument("--ao-samples", type=int, default=8, help="ambient-occlusion rays per pixel")
     r.add_argument("--threads", type=int, default=0, help="render threads (0: all cores)")
-    r.add_argument("--leaf-size", type=int, default=2, help="kd-tree leaf size")
+    r.add_argument("--leaf-size", type=int, default=2, help="kd-tree leaf size (meshes built in core)")
+    r.add_argument(
+        "--poe",
+        type=float,
+        default=0.0,
+        help="built models: pixels of error the level of detail may show (default 0: full detail)",
+    )
+    r.add_argument("--cache", default="1G", help="built models: block cache budget, e.g. 512M (default 1G)")
+    r.add_argument("--fetchers", type=int, default=2, help="built models: block fetcher threads (default 2)")
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("build", help="build the out-of-core model the server renders from")
@@ -290,7 +348,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vastray: interrupted", file=sys.stderr)
         return 130
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:
         # MeshError is a ValueError; the message names the file and the problem.
         print(f"vastray: error: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,209 @@
+"""Rendering built models out of core: the block cache and the models opened in it.
+
+A built model (docs/FORMAT.md) is never loaded whole. `OutOfCoreModel` opens it in a
+`native.BlockCache`: a byte budget of 64 KB slots shared by every model of the process,
+filled by fetcher threads. Frames are traced from whatever blocks are cached, with level
+of detail (paper 000): a ray stops at a voxel once the voxel looks no bigger than the
+chosen pixels of error (PoE), and where data is still missing it hits the last voxel it
+passed and asks for the block. So `render` never waits: the first frame of a model of
+any size is ready at once, and later frames refine as blocks arrive. `render_complete`
+is the full-detail (or fixed-accuracy) mode: it renders until nothing is missing.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from vastray import native
+from vastray.camera import Camera
+from vastray.modelfile import ModelError
+
+DEFAULT_CACHE_BUDGET = 1 << 30
+DEFAULT_FETCHERS = 2
+PRIORITIES = ("count", "size")  # paper 000 §5.3 request counts, paper 003 projected size
+# Node levels loaded when a model opens: a handful of blocks that give the first frame
+# voxels a few levels down instead of the single root voxel.
+OPEN_PRELOAD_LEVELS = 3
+
+
+class CacheTooSmallError(RuntimeError):
+    """A complete image of this view needs more blocks than the cache can hold at once."""
+
+
+@dataclass
+class LodFrame:
+    image: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32, inf where nothing was hit
+    prim: np.ndarray  # (H, W) int32: triangle id, -1 background, -2 voxel
+    complete: bool  # nothing was missing for this view at this accuracy
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+VOXEL_PRIM = -2
+
+_shared_lock = threading.Lock()
+_shared: native.BlockCache | None = None
+
+
+def make_cache(
+    budget: int = DEFAULT_CACHE_BUDGET, fetchers: int = DEFAULT_FETCHERS, priority: str = "count"
+) -> native.BlockCache:
+    """A new block cache. `budget` is in bytes (at least 256 KiB)."""
+    if priority not in PRIORITIES:
+        raise ValueError(f"priority must be one of {', '.join(PRIORITIES)}")
+    return native.BlockCache(int(budget), int(fetchers), priority)
+
+
+def shared_cache() -> native.BlockCache:
+    """The process-wide cache, created on first use from VASTRAY_CACHE (a size such as
+    512M; default 1G) and VASTRAY_FETCHERS (default 2)."""
+    global _shared
+    with _shared_lock:
+        if _shared is None:
+            from vastray.build import parse_memory
+
+            budget = parse_memory(os.environ.get("VASTRAY_CACHE", "1G"))
+            fetchers = int(os.environ.get("VASTRAY_FETCHERS", DEFAULT_FETCHERS))
+            _shared = make_cache(budget, fetchers)
+        return _shared
+
+
+class OutOfCoreModel:
+    """A built model opened in a block cache. Opening reads the header and index and
+    loads the coarsest levels; everything else arrives while frames are rendered."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        cache: native.BlockCache | None = None,
+        *,
+        preload_levels: int = OPEN_PRELOAD_LEVELS,
+    ) -> None:
+        self.path = str(path)
+        self.cache = cache if cache is not None else shared_cache()
+        start = time.perf_counter()
+        try:
+            self._model = self.cache.open(self.path)
+        except (ValueError, RuntimeError) as e:
+            # The native reader names the file and the problem; keep one error type.
+            raise ModelError(str(e)) from None
+        if preload_levels > 1:
+            self._model.preload_levels(preload_levels)
+        self.open_seconds = time.perf_counter() - start
+
+    @property
+    def name(self) -> str:
+        return os.path.basename(self.path)
+
+    @property
+    def bounds(self) -> tuple[list[float], list[float]]:
+        return self._model.bounds
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self._model.triangle_count)
+
+    @property
+    def block_count(self) -> int:
+        return int(self._model.block_count)
+
+    @property
+    def file_size(self) -> int:
+        return int(self._model.file_size)
+
+    @property
+    def errors(self) -> list[str]:
+        """Blocks that failed to read or verify; they render as their parent voxels."""
+        return list(self._model.errors)
+
+    def render(
+        self,
+        camera: Camera,
+        *,
+        shading: str = "headlight",
+        pixels_of_error: float = 2.0,
+        ao_samples: int = 8,
+        solid_angle: float = -1.0,
+        threads: int = 0,
+    ) -> LodFrame:
+        """One frame from what is cached now; never waits for data."""
+        out = self._model.render(
+            eye=list(camera.eye),
+            target=list(camera.target),
+            up=list(camera.up),
+            fov=camera.fov,
+            width=camera.width,
+            height=camera.height,
+            shading=shading,
+            ao_samples=ao_samples,
+            threads=threads,
+            pixels_of_error=pixels_of_error,
+            solid_angle=solid_angle,
+        )
+        return LodFrame(
+            image=out["image"],
+            depth=out["depth"],
+            prim=out["prim"],
+            complete=bool(out["complete"]),
+            stats=out["stats"],
+        )
+
+    def render_complete(
+        self,
+        camera: Camera,
+        *,
+        shading: str = "headlight",
+        pixels_of_error: float = 0.0,
+        ao_samples: int = 8,
+        solid_angle: float = -1.0,
+        threads: int = 0,
+        timeout: float = 600.0,
+    ) -> LodFrame:
+        """Renders until nothing is missing for this view at this accuracy (PoE 0: full
+        detail). Stats gain `frames` and `seconds` (the whole wait)."""
+        start = time.perf_counter()
+        frames = 0
+        stalled = 0
+        while True:
+            frame = self.render(
+                camera,
+                shading=shading,
+                pixels_of_error=pixels_of_error,
+                ao_samples=ao_samples,
+                solid_angle=solid_angle,
+                threads=threads,
+            )
+            frames += 1
+            if frame.complete or (frame.stats["bad_blocks"] and frame.stats["pending"] == 0):
+                break
+            if time.perf_counter() - start > timeout:
+                raise TimeoutError(f"{self.name}: view not complete after {timeout:g} s")
+            # Between frames, wait for at least one block; a cache that cannot make room
+            # (the view's working set is larger than the budget) makes no progress.
+            progressed = self.cache.wait_for_fetches(1000.0)
+            stalled = 0 if progressed or frame.stats["blocks_loaded"] else stalled + 1
+            if stalled >= 3:
+                totals = self.cache.totals()
+                raise CacheTooSmallError(
+                    f"{self.name}: this view needs more blocks than the cache holds "
+                    f"({totals['slot_count']} slots of 64 KiB, {frame.stats['working_set_blocks']} in use); "
+                    "raise the cache budget or the pixels of error"
+                )
+        frame.stats["frames"] = frames
+        frame.stats["seconds"] = time.perf_counter() - start
+        return frame
+
+    def close(self) -> None:
+        self._model.close()
+
+    def __enter__(self) -> OutOfCoreModel:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
