@@ -79,14 +79,16 @@ def _render_built(args: argparse.Namespace) -> int:
             f"{s['voxel_hits']:,} voxel hits, working set {s['working_set_bytes'] / 2**20:.1f} MiB "
             f"in {s['working_set_blocks']:,} blocks"
         )
-        for error in model.errors:
-            print(f"warning    {error} (shown as coarser voxels)", file=sys.stderr)
+        errors = model.errors
+        for error in errors:
+            print(f"vastray: warning: {error} (drawn as the coarser voxels above it)", file=sys.stderr)
     print(
         f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
         f"--fov {camera.fov:g}"
     )
     print(f"wrote      {args.output}")
-    return 0
+    # Damaged blocks leave an image that is not full detail: say so in the exit status.
+    return 3 if errors else 0
 
 
 def _render_in_core(args: argparse.Namespace) -> int:
