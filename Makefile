@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 
-.PHONY: run test install dev bench lint clean
+.PHONY: run test install dev bench lint clean tsan
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,16 @@ lint: install
 
 test: lint
 	$(BIN)/pytest
+
+# The native cache stress test under ThreadSanitizer (also part of `make test`).
+tsan: install
+	$(BIN)/cmake -S . -B build/tsan -G Ninja -DCMAKE_MAKE_PROGRAM=$(abspath $(BIN)/ninja) \
+		-DCMAKE_BUILD_TYPE=RelWithDebInfo -DVASTRAY_PYTHON=OFF -DVASTRAY_NATIVE_TESTS=ON -DVASTRAY_TSAN=ON
+	$(BIN)/cmake --build build/tsan --target cache_stress
+	@mkdir -p out
+	$(BIN)/vastray build scene:plant:40000:2 -o out/tsan-plant.vast --force
+	$(BIN)/vastray build scene:spheres:30000:3 -o out/tsan-spheres.vast --force
+	TSAN_OPTIONS="halt_on_error=1 exitcode=66" build/tsan/native/cache_stress out/tsan-plant.vast out/tsan-spheres.vast 60
 
 bench: $(BIN)/python
 	$(BIN)/pip install -q '.[bench]'

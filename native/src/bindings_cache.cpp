@@ -78,6 +78,7 @@ public:
         st["working_set_bytes"] = f.cache.working_set_bytes;
         st["bad_blocks"] = f.cache.bad_blocks;
         st["complete"] = f.complete;
+        st["tick"] = f.cache.tick;
         d["complete"] = f.complete;
         return d;
     }
@@ -160,6 +161,8 @@ void bind_cache(py::module_& m) {
         .def_property_readonly("errors", [](const PyCachedModel& p) {
             return p.cache().model_errors(p.model());
         })
+        .def("resident", [](const PyCachedModel& p) { return p.cache().resident(p.model()); },
+             "Resident blocks as (global block id, tick of the last frame that used it)")
         .def("preload_levels", &PyCachedModel::preload_levels, py::arg("levels"),
              "Load the first `levels` node levels now (as far as free slots allow)")
         .def("render", &PyCachedModel::render, py::arg("eye"), py::arg("target"), py::arg("up"), py::arg("fov"),

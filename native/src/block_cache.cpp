@@ -145,6 +145,7 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
 std::uint32_t BlockCache::begin_frame(FrameCacheStats& stats) {
     std::lock_guard<std::mutex> lock(mutex_);
     const std::uint32_t tick = ++tick_;
+    stats.tick = tick;
     active_ticks_.push_back(tick);
     publish_locked(&stats);
     return tick;
@@ -348,6 +349,16 @@ CacheTotals BlockCache::totals() const {
     t.models = models_.size();
     t.active_frames = active_ticks_.size();
     return t;
+}
+
+std::vector<std::pair<std::uint32_t, std::uint32_t>> BlockCache::resident(const CachedModel& model) const {
+    std::lock_guard<std::mutex> lock(mutex_);
+    std::vector<std::pair<std::uint32_t, std::uint32_t>> out;
+    for (std::size_t s = 0; s < slot_count_; ++s) {
+        if (slot_model_[s] == &model) out.emplace_back(slot_block_[s], last_used_[s].load(std::memory_order_relaxed));
+    }
+    std::sort(out.begin(), out.end());
+    return out;
 }
 
 std::vector<std::string> BlockCache::model_errors(const CachedModel& model) const {

@@ -90,6 +90,7 @@ struct CacheConfig {
 
 // Counters for one frame, filled by begin_frame/end_frame and the render threads.
 struct FrameCacheStats {
+    std::uint32_t tick = 0;         // the frame's number (slot stamps use it)
     std::uint64_t requested = 0;    // distinct blocks this frame asked for
     std::uint64_t loaded = 0;       // blocks published at the start of this frame
     std::uint64_t evicted = 0;      // blocks evicted at the end of this frame
@@ -154,6 +155,9 @@ public:
     void drain();
 
     CacheTotals totals() const;
+    // Resident blocks of a model with the tick of the frame that last used each (tests,
+    // tools): (block, tick) pairs in block order.
+    std::vector<std::pair<std::uint32_t, std::uint32_t>> resident(const CachedModel& model) const;
     // Errors met reading a model's blocks ("block 12 (level 3): checksum mismatch ...").
     std::vector<std::string> model_errors(const CachedModel& model) const;
     // Checks the bookkeeping (each slot free, retired or owned exactly once; tables
