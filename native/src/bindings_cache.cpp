@@ -53,9 +53,10 @@ public:
     py::dict render(const std::vector<double>& eye, const std::vector<double>& target, const std::vector<double>& up,
                     double fov, int width, int height, const std::string& shading, int ao_samples,
                     double ao_distance, const std::vector<double>& sun, unsigned threads, int tile_size,
-                    double pixels_of_error, double solid_angle) {
+                    double pixels_of_error, double solid_angle, int packets) {
+        if (packets != 1 && packets != 4 && packets != 16) throw std::invalid_argument("packets must be 1, 4 or 16");
         const bindings::RenderArgs a = bindings::render_args(eye, target, up, fov, width, height, shading, ao_samples,
-                                                             ao_distance, sun, threads, tile_size, 16);
+                                                             ao_distance, sun, threads, tile_size, packets);
         LodParams lod;
         lod.pixels_of_error = pixels_of_error;
         lod.solid_angle = solid_angle;
@@ -169,7 +170,7 @@ void bind_cache(py::module_& m) {
              py::arg("width"), py::arg("height"), py::arg("shading") = "headlight", py::arg("ao_samples") = 8,
              py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
              py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("pixels_of_error") = 2.0,
-             py::arg("solid_angle") = -1.0,
+             py::arg("solid_angle") = -1.0, py::arg("packets") = 1,
              "Render one frame from the cache; never waits for data (stats say what was missing)")
         .def("close", &PyCachedModel::close);
 }

@@ -4,7 +4,7 @@
 #include <cmath>
 #include <stdexcept>
 
-#include "vastray/lod_traverse.h"
+#include "vastray/lod_traverse_packet.h"
 #include "vastray/shading.h"
 #include "vastray/thread_pool.h"
 
@@ -40,22 +40,52 @@ public:
     }
 
     void render_tile(int x0, int y0, int x1, int y1, LodLane& lane, RenderStats& s) const {
-        for (int y = y0; y < y1; ++y) {
-            for (int x = x0; x < x1; ++x) trace_pixel(x, y, lane, s);
+        for (int y = y0; y < y1; y += 4) {
+            for (int x = x0; x < x1; x += 4) {
+                if (params_.packets == 16 && x + 3 < x1 && y + 3 < y1 && trace_packet<4>(x, y, lane, s)) continue;
+                for (int qy = y; qy < std::min(y + 4, y1); qy += 2) {
+                    for (int qx = x; qx < std::min(x + 4, x1); qx += 2) {
+                        if (params_.packets == 4 && qx + 1 < x1 && qy + 1 < y1 && trace_packet<2>(qx, qy, lane, s)) continue;
+                        for (int py = qy; py < std::min(qy + 2, y1); ++py) {
+                            for (int px = qx; px < std::min(qx + 2, x1); ++px) {
+                                const LodRay r = primary_ray(px, py);
+                                LodHit hit;
+                                lod_traverse<false>(lane, root_, r, hit);
+                                ++s.primary_rays;
+                                shade_pixel(px, py, r, hit, lane, s);
+                            }
+                        }
+                    }
+                }
+            }
         }
     }
 
 private:
-    void trace_pixel(int x, int y, LodLane& lane, RenderStats& s) const {
+    // A Side x Side pixel block as one packet, when its rays order every node alike.
+    template <int Side>
+    bool trace_packet(int x, int y, LodLane& lane, RenderStats& s) const {
+        constexpr int N = Side * Side;
+        LodRay rays[N];
+        LodHit hits[N];
+        for (int i = 0; i < N; ++i) rays[i] = primary_ray(x + i % Side, y + i / Side);
+        if (!lod_packet_is_coherent<N>(rays)) return false;
+        lod_traverse_packet<N>(lane, root_, rays, hits);
+        s.primary_rays += N;
+        for (int i = 0; i < N; ++i) shade_pixel(x + i % Side, y + i / Side, rays[i], hits[i], lane, s);
+        return true;
+    }
+
+    LodRay primary_ray(int x, int y) const {
         LodRay r;
-        const Vec3d d = camera_.direction(x, y);
         // Local float frame: the centre is subtracted in double, as the in-core scene does.
         r.ray.org = Vec3f(camera_.eye - centre_);
-        r.ray.dir = Vec3f(d);
+        r.ray.dir = Vec3f(camera_.direction(x, y));
         r.cone = primary_cone_;
-        LodHit hit;
-        lod_traverse<false>(lane, root_, r, hit);
-        ++s.primary_rays;
+        return r;
+    }
+
+    void shade_pixel(int x, int y, const LodRay& r, const LodHit& hit, LodLane& lane, RenderStats& s) const {
         const std::size_t px = static_cast<std::size_t>(y) * frame_.width + x;
         std::uint8_t* rgb = frame_.rgb.data() + 3 * px;
         if (hit.prim == kNoHit) {

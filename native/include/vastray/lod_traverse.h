@@ -236,19 +236,25 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
             const float priority = voxel.samples ? voxel.radius / std::max(lray.cone_t0 + tmin, 1e-30f) : 0.0f;
             const std::uint8_t* tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
             std::uint32_t entry = leaf_first(w);
+            std::uint32_t entries = 0, tris = 0, verts = 0;
+            TriangleBlockLayout l;
+            auto open_block = [&] {
+                entries = load<std::uint32_t>(tb);
+                tris = load<std::uint32_t>(tb + 4);
+                verts = load<std::uint32_t>(tb + 8);
+                l = TriangleBlockLayout::of(entries, tris, verts, lane.has_colours);
+                if (l.end > kBlockSize) tb = nullptr;  // damaged header: treat as missing
+            };
+            if (tb) open_block();
             for (std::uint32_t i = 0; tb && i < count; ++i, ++entry) {
-                std::uint32_t entries = load<std::uint32_t>(tb);
                 while (tb && entry >= entries) {
                     // A leaf too big for one block continues at entry 0 of the next.
                     ++tri_block;
                     tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
                     entry = 0;
-                    if (tb) entries = load<std::uint32_t>(tb);
+                    if (tb) open_block();
                 }
                 if (!tb) break;
-                const std::uint32_t tris = load<std::uint32_t>(tb + 4), verts = load<std::uint32_t>(tb + 8);
-                const TriangleBlockLayout l = TriangleBlockLayout::of(entries, tris, verts, lane.has_colours);
-                if (l.end > kBlockSize) break;  // damaged header
                 const std::uint32_t local = load<std::uint16_t>(tb + l.list + 2 * std::size_t{entry});
                 if (local >= tris) continue;
                 const std::uint32_t id = load<std::uint32_t>(tb + l.ids + 4 * std::size_t{local});

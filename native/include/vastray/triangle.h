@@ -30,9 +30,10 @@ struct Hit {
 
 // Per-ray shear constants, computed once per ray.
 struct ShearedRay {
-    int kx, ky, kz;
-    float sx, sy, sz;
+    int kx = 0, ky = 1, kz = 2;
+    float sx = 0, sy = 0, sz = 1;
 
+    ShearedRay() = default;
     explicit ShearedRay(const Vec3f& d) {
         const float ax = std::abs(d.x), ay = std::abs(d.y), az = std::abs(d.z);
         kz = ax > ay ? (ax > az ? 0 : 2) : (ay > az ? 1 : 2);
