@@ -33,7 +33,11 @@ BlockCache::BlockCache(const CacheConfig& config) : config_(config) {
     // when a block lands in them, so resident memory grows with use, never past the budget.
     arena_.reset(new std::uint8_t[(slot_count_ + 1) * kSlotBytes]);
     last_used_.reset(new std::atomic<std::uint32_t>[slot_count_]);
-    for (std::size_t s = 0; s < slot_count_; ++s) last_used_[s].store(0, std::memory_order_relaxed);
+    seen_.reset(new std::atomic<std::uint32_t>[slot_count_]);
+    for (std::size_t s = 0; s < slot_count_; ++s) {
+        last_used_[s].store(0, std::memory_order_relaxed);
+        seen_[s].store(0, std::memory_order_relaxed);
+    }
     slot_raw_.assign(slot_count_, 0);
     slot_model_.assign(slot_count_, nullptr);
     slot_block_.assign(slot_count_, 0);
@@ -101,9 +105,10 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
             if (model.closed_ || model.state_[block] != CachedModel::State::Absent) continue;
             if (free_slots_.empty()) {
                 reclaim_locked();
-                const std::uint32_t protect = active_ticks_.empty()
-                                                  ? tick_ + 1
-                                                  : *std::min_element(active_ticks_.begin(), active_ticks_.end());
+                // Blocks stamped with the latest tick (used by the last frame, or loaded by
+                // this preload) stay.
+                std::uint32_t protect = tick_;
+                for (const std::uint32_t t : active_ticks_) protect = std::min(protect, t);
                 evict_locked(1, protect);
                 reclaim_locked();
             }
@@ -133,6 +138,7 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
         slot_model_[static_cast<std::size_t>(slot)] = &model;
         slot_block_[static_cast<std::size_t>(slot)] = block;
         last_used_[static_cast<std::size_t>(slot)].store(tick_, std::memory_order_relaxed);
+        seen_[static_cast<std::size_t>(slot)].store(0, std::memory_order_relaxed);
         model.state_[block] = CachedModel::State::Resident;
         model.slot_of_[block].store(slot, std::memory_order_release);
         bytes_read_ += model.index().entry(block).stored_size;
@@ -158,6 +164,7 @@ void BlockCache::publish_locked(FrameCacheStats* stats) {
         slot_block_[s] = f.block;
         // Stamped as used now, so the frame that publishes it cannot evict it unseen.
         last_used_[s].store(tick_, std::memory_order_relaxed);
+        seen_[s].store(0, std::memory_order_relaxed);  // tick 0 is never a frame's
         f.model->state_[f.block] = CachedModel::State::Resident;
         f.model->slot_of_[f.block].store(f.slot, std::memory_order_release);
         ++loaded_total_;

@@ -126,8 +126,9 @@ public:
     // Drops a model's queued requests and frees its slots once no frame can use them.
     void remove_model(const std::shared_ptr<CachedModel>& model);
 
-    // Loads blocks synchronously (for opening a model: the coarse levels). Blocks that
-    // do not fit the free slots are skipped. Returns how many were loaded.
+    // Loads blocks synchronously (for opening a model: the coarse levels). It may evict
+    // blocks no frame used since the last frame began, never ones loaded by this call;
+    // blocks that still do not fit are skipped. Returns how many were loaded.
     std::size_t preload(CachedModel& model, const std::vector<std::uint32_t>& blocks);
 
     // Frame protocol. begin_frame returns the frame's tick (stamps and epochs).
@@ -141,10 +142,13 @@ public:
         return arena_.get() + static_cast<std::size_t>(slot) * kSlotBytes;
     }
     // Marks a slot used by frame `tick`; true when this is the frame's first use of it.
+    // Two stamps: `last_used_` orders eviction (publishing sets it too, to protect fresh
+    // blocks), `seen_` only records use, so working sets count exactly what frames read.
     bool touch(std::int32_t slot, std::uint32_t tick) {
-        std::atomic<std::uint32_t>& stamp = last_used_[static_cast<std::size_t>(slot)];
-        if (stamp.load(std::memory_order_relaxed) == tick) return false;
-        return stamp.exchange(tick, std::memory_order_relaxed) != tick;
+        const auto s = static_cast<std::size_t>(slot);
+        if (seen_[s].load(std::memory_order_relaxed) == tick) return false;
+        if (last_used_[s].load(std::memory_order_relaxed) != tick) last_used_[s].store(tick, std::memory_order_relaxed);
+        return seen_[s].exchange(tick, std::memory_order_relaxed) != tick;
     }
     std::uint32_t slot_raw_size(std::int32_t slot) const { return slot_raw_[static_cast<std::size_t>(slot)]; }
 
@@ -189,7 +193,7 @@ private:
     CacheConfig config_;
     std::size_t slot_count_;
     std::unique_ptr<std::uint8_t[]> arena_;
-    std::unique_ptr<std::atomic<std::uint32_t>[]> last_used_;
+    std::unique_ptr<std::atomic<std::uint32_t>[]> last_used_, seen_;
     std::vector<std::uint32_t> slot_raw_;        // raw bytes in each slot
     std::vector<CachedModel*> slot_model_;       // owner of each slot (null: free or loading)
     std::vector<std::uint32_t> slot_block_;
