@@ -222,12 +222,7 @@ LodFrame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera,
     const auto start = std::chrono::steady_clock::now();
     LodFrame out;
     Frame& frame = out.frame;
-    frame.width = camera.width;
-    frame.height = camera.height;
-    const std::size_t pixels = static_cast<std::size_t>(camera.width) * camera.height;
-    frame.rgb.assign(3 * pixels, 0);
-    frame.depth.assign(pixels, std::numeric_limits<float>::infinity());
-    frame.prim.assign(pixels, -1);
+    blank_frame(frame, camera);
 
     const ModelIndex& index = model.index();
     const LodFrameRenderer renderer(index, camera, params, lod, frame);
@@ -244,18 +239,14 @@ LodFrame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera,
         lane.block_count = static_cast<std::uint32_t>(index.block_count());
         lane.has_colours = index.has_colours();
     }
-    const int tile = std::max(4, params.tile_size);
-    const int tiles_x = (camera.width + tile - 1) / tile, tiles_y = (camera.height + tile - 1) / tile;
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;
     try {
-        pool.parallel_for(static_cast<std::size_t>(tiles_x) * tiles_y, [&](std::size_t t, unsigned lane) {
-            const int tx = static_cast<int>(t % static_cast<std::size_t>(tiles_x));
-            const int ty = static_cast<int>(t / static_cast<std::size_t>(tiles_x));
-            const int x0 = tx * tile, y0 = ty * tile;
-            renderer.render_tile(x0, y0, std::min(x0 + tile, camera.width), std::min(y0 + tile, camera.height),
-                                 lanes[lane], stats[lane]);
-        }, params.threads);
+        for_each_tile(camera, params, [&](int x0, int y0, int x1, int y1, unsigned lane) {
+            renderer.render_tile(x0, y0, x1, y1, lanes[lane], stats[lane]);
+        });
     } catch (...) {
+        // Close the frame (its requests reset the per-block counters) before passing on.
+        for (const LodLane& lane : lanes) requests.insert(requests.end(), lane.requests.begin(), lane.requests.end());
         cache.end_frame(tick, requests, out.cache);
         throw;
     }
@@ -277,7 +268,7 @@ LodFrame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera,
     }
     cache.end_frame(tick, requests, out.cache);
     out.complete = missing == 0;
-    frame.stats.threads = params.threads == 0 ? pool.lanes() : std::min(params.threads, pool.lanes());
+    frame.stats.threads = lanes_used(params);
     frame.stats.milliseconds =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     return out;

@@ -200,26 +200,14 @@ Frame render(const Scene& scene, const Camera& camera, const RenderParams& param
     validate(camera, params);
     const auto start = std::chrono::steady_clock::now();
     Frame frame;
-    frame.width = camera.width;
-    frame.height = camera.height;
-    const std::size_t pixels = static_cast<std::size_t>(camera.width) * camera.height;
-    frame.rgb.assign(3 * pixels, 0);
-    frame.depth.assign(pixels, std::numeric_limits<float>::infinity());
-    frame.prim.assign(pixels, -1);
-
+    blank_frame(frame, camera);
     const FrameRenderer renderer(scene, camera, params, frame);
-    const int tile = std::max(4, params.tile_size);
-    const int tiles_x = (camera.width + tile - 1) / tile, tiles_y = (camera.height + tile - 1) / tile;
     ThreadPool& pool = ThreadPool::global();
     std::vector<TraversalCounters> counters(pool.lanes());
     std::vector<RenderStats> stats(pool.lanes());
-    pool.parallel_for(static_cast<std::size_t>(tiles_x) * tiles_y, [&](std::size_t t, unsigned lane) {
-        const int tx = static_cast<int>(t % static_cast<std::size_t>(tiles_x));
-        const int ty = static_cast<int>(t / static_cast<std::size_t>(tiles_x));
-        const int x0 = tx * tile, y0 = ty * tile;
-        renderer.render_tile(x0, y0, std::min(x0 + tile, camera.width), std::min(y0 + tile, camera.height),
-                             counters[lane], stats[lane]);
-    }, params.threads);
+    for_each_tile(camera, params, [&](int x0, int y0, int x1, int y1, unsigned lane) {
+        renderer.render_tile(x0, y0, x1, y1, counters[lane], stats[lane]);
+    });
 
     for (std::size_t lane = 0; lane < stats.size(); ++lane) {
         frame.stats.primary_rays += stats[lane].primary_rays;
@@ -227,7 +215,7 @@ Frame render(const Scene& scene, const Camera& camera, const RenderParams& param
         frame.stats.node_visits += counters[lane].node_visits;
         frame.stats.triangle_tests += counters[lane].triangle_tests;
     }
-    frame.stats.threads = params.threads == 0 ? pool.lanes() : std::min(params.threads, pool.lanes());
+    frame.stats.threads = lanes_used(params);
     frame.stats.milliseconds = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     return frame;
 }

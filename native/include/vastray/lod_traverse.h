@@ -99,6 +99,44 @@ inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, L
     hit.sample = (s0 & format::kOneSample) ? s0 : load<std::uint32_t>(v.samples + 4 * face);
 }
 
+// A node in a cached block: the block's bytes, the node's offset, its LOD level.
+struct NodeRef {
+    const std::uint8_t* block = nullptr;
+    std::uint32_t off = 0, level = 0;
+};
+
+inline Voxel voxel_of(const NodeRef& node, std::uint32_t w) {
+    return {node.block + node.off + 4 * format::lod_voxel_off4(w), format::bits_float(load<std::uint32_t>(node.block + node.off + 8))};
+}
+
+// The block holding a LOD node's child treelets, or null when it is not cached (then it
+// is requested) or the node is damaged (points outside the next level).
+inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, float priority) {
+    if (node.level + 1 >= lane.tri_level) return nullptr;  // no node level below: damaged
+    const std::uint32_t block = lane.level_first[node.level + 1] + load<std::uint32_t>(node.block + node.off + 12);
+    return block < lane.level_first[node.level + 2] ? lane.lookup(block, priority) : nullptr;
+}
+
+// An inner node's children (null block: empty child). `child` is the child block of a
+// LOD node. False for a damaged node, whose offsets would loop or leave the block.
+inline bool children_of(const NodeRef& node, std::uint32_t w, const std::uint8_t* child, NodeRef& left,
+                        NodeRef& right) {
+    using namespace format;
+    const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
+    left = right = NodeRef{};
+    if (is_lod(w)) {
+        const std::uint32_t first = 8 * lod_child_off8(w);
+        if (has_l) left = {child, first, node.level + 1};
+        if (has_r) right = {child, has_l ? first + 8 * lod_right_from_left8(w) : first, node.level + 1};
+    } else {
+        const std::uint32_t r8 = basic_right_off8(w);
+        if (has_l && has_r && r8 < 2) return false;
+        if (has_l) left = {node.block, node.off + 8, node.level};
+        if (has_r) right = {node.block, has_l ? node.off + 8 * r8 : node.off + 8, node.level};
+    }
+    return !(left.block && left.off > kBlockSize - 8) && !(right.block && right.off > kBlockSize - 8);
+}
+
 // Root clip that also says through which face the ray enters (the axis of the largest
 // near distance), for the shading of a voxel hit on the root's children.
 inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t1, int& axis) {
@@ -115,6 +153,67 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
     }
     return true;
 }
+
+// Walks the triangles of one leaf: its run of list entries in a triangle block and, for
+// leaves too big for one block, on into the following blocks. Entries that point
+// outside their block are skipped; a block that is missing (requested) or has a
+// damaged header ends the walk with `missing()` true.
+class LeafTriangles {
+public:
+    LeafTriangles(LodLane& lane, const std::uint8_t* leaf_node, float priority)
+        : lane_(lane), priority_(priority) {
+        const std::uint32_t w = load<std::uint32_t>(leaf_node);
+        left_ = format::leaf_count(w);
+        entry_ = format::leaf_first(w);
+        block_id_ = lane.level_first[lane.tri_level] + load<std::uint32_t>(leaf_node + 4);
+        open(block_id_);
+    }
+
+    bool missing() const { return block_ == nullptr; }
+
+    // The next triangle; false at the end of the leaf or when a block is missing.
+    bool next(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& id, std::uint32_t& local) {
+        while (block_ && left_ > 0) {
+            --left_;
+            while (block_ && entry_ >= entries_) {  // a big leaf continues in the next block
+                entry_ = 0;
+                open(++block_id_);
+            }
+            if (!block_) return false;
+            const std::uint32_t e = entry_++;
+            local = load<std::uint16_t>(block_ + layout_.list + 2 * std::size_t{e});
+            if (local >= tris_) continue;
+            const std::uint8_t* corner = block_ + layout_.triangles + 6 * std::size_t{local};
+            const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
+                                i2 = load<std::uint16_t>(corner + 4);
+            if (i0 >= verts_ || i1 >= verts_ || i2 >= verts_) continue;
+            id = load<std::uint32_t>(block_ + layout_.ids + 4 * std::size_t{local});
+            v0 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i0});
+            v1 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i1});
+            v2 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i2});
+            return true;
+        }
+        return false;
+    }
+    const std::uint8_t* block() const { return block_; }
+
+private:
+    void open(std::uint32_t id) {
+        block_ = id < lane_.block_count ? lane_.lookup(id, priority_) : nullptr;
+        if (!block_) return;
+        entries_ = load<std::uint32_t>(block_);
+        tris_ = load<std::uint32_t>(block_ + 4);
+        verts_ = load<std::uint32_t>(block_ + 8);
+        layout_ = format::TriangleBlockLayout::of(entries_, tris_, verts_, lane_.has_colours);
+        if (layout_.end > format::kBlockSize) block_ = nullptr;  // damaged header: treat as missing
+    }
+
+    LodLane& lane_;
+    float priority_;
+    const std::uint8_t* block_ = nullptr;
+    std::uint32_t block_id_ = 0, left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
+    format::TriangleBlockLayout layout_;
+};
 
 }  // namespace lod_detail
 
@@ -138,10 +237,7 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
     const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
     const bool dir_negative[3] = {std::signbit(ray.dir.x), std::signbit(ray.dir.y), std::signbit(ray.dir.z)};
-    struct NodeRef {
-        const std::uint8_t* block;
-        std::uint32_t off, level;
-    };
+    using lod_detail::NodeRef;
     struct Entry {
         NodeRef node;
         float tmin, tmax;
@@ -152,8 +248,6 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     int top = 0;
     NodeRef node{block, 0, 0};
     Voxel voxel;  // the last voxel passed on the way to `node`
-    const std::uint32_t last_node_level = lane.tri_level - 1;
-
     auto take_voxel = [&](const Voxel& v, float t) {
         if (t < hit.t) lod_detail::hit_voxel(v, entry_axis, ray, t, hit);
         ++lane.voxel_hits;
@@ -171,32 +265,17 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
             ++lane.node_visits;
             const int axis = axis_of(w);
             const float split = bits_float(load<std::uint32_t>(node.block + node.off + 4));
-            const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
-            NodeRef left{nullptr, 0, 0}, right{nullptr, 0, 0};
+            const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here{node.block + node.off + 4 * lod_voxel_off4(w),
-                                 bits_float(load<std::uint32_t>(node.block + node.off + 8))};
+                const Voxel here = lod_detail::voxel_of(node, w);
                 const float reach = lray.cone_t0 + tmin;
                 if (here.radius <= reach * lray.cone) return take_voxel(here, tmin);
-                if (node.level >= last_node_level) return take_voxel(here, tmin);  // damaged: no level below
-                const std::uint32_t child_block = lane.level_first[node.level + 1] + load<std::uint32_t>(node.block + node.off + 12);
-                const std::uint8_t* child =
-                    child_block < lane.level_first[node.level + 2] ? lane.lookup(child_block, here.radius / std::max(reach, 1e-30f))
-                                                                   : nullptr;
+                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(reach, 1e-30f));
                 if (!child) return take_voxel(here, tmin);
-                const std::uint32_t first = 8 * lod_child_off8(w);
-                if (has_l) left = {child, first, node.level + 1};
-                if (has_r) right = {child, has_l ? first + 8 * lod_right_from_left8(w) : first, node.level + 1};
                 voxel = here;
-            } else {
-                if (has_l) left = {node.block, node.off + 8, node.level};
-                const std::uint32_t r8 = basic_right_off8(w);
-                if (has_r) right = {node.block, has_l ? node.off + 8 * r8 : node.off + 8, node.level};
-                if (has_l && has_r && r8 < 2) return hit.prim != kNoHit;  // damaged node: stop, never loop
             }
-            if ((left.block && left.off > kBlockSize - 8) || (right.block && right.off > kBlockSize - 8)) {
-                return hit.prim != kNoHit;  // damaged block: offsets past its end
-            }
+            NodeRef left, right;
+            if (!lod_detail::children_of(node, w, child, left, right)) return hit.prim != kNoHit;  // damaged
             const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
             const float abs_split = std::abs(t_split);
@@ -230,51 +309,21 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
             node = next;
         }
         if (leaf) {
-            const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
-            const std::uint32_t count = leaf_count(w);
-            std::uint32_t tri_block = lane.level_first[lane.tri_level] + load<std::uint32_t>(node.block + node.off + 4);
             const float priority = voxel.samples ? voxel.radius / std::max(lray.cone_t0 + tmin, 1e-30f) : 0.0f;
-            const std::uint8_t* tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
-            std::uint32_t entry = leaf_first(w);
-            std::uint32_t entries = 0, tris = 0, verts = 0;
-            TriangleBlockLayout l;
-            auto open_block = [&] {
-                entries = load<std::uint32_t>(tb);
-                tris = load<std::uint32_t>(tb + 4);
-                verts = load<std::uint32_t>(tb + 8);
-                l = TriangleBlockLayout::of(entries, tris, verts, lane.has_colours);
-                if (l.end > kBlockSize) tb = nullptr;  // damaged header: treat as missing
-            };
-            if (tb) open_block();
-            for (std::uint32_t i = 0; tb && i < count; ++i, ++entry) {
-                while (tb && entry >= entries) {
-                    // A leaf too big for one block continues at entry 0 of the next.
-                    ++tri_block;
-                    tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
-                    entry = 0;
-                    if (tb) open_block();
-                }
-                if (!tb) break;
-                const std::uint32_t local = load<std::uint16_t>(tb + l.list + 2 * std::size_t{entry});
-                if (local >= tris) continue;
-                const std::uint32_t id = load<std::uint32_t>(tb + l.ids + 4 * std::size_t{local});
+            lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
+            Vec3f v0, v1, v2;
+            std::uint32_t id, local;
+            while (triangles.next(v0, v1, v2, id, local)) {
                 if (id == skip) continue;
-                const std::uint8_t* corner = tb + l.triangles + 6 * std::size_t{local};
-                const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
-                                    i2 = load<std::uint16_t>(corner + 4);
-                if (i0 >= verts || i1 >= verts || i2 >= verts) continue;
                 ++lane.triangle_tests;
-                const Vec3f v0 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i0});
-                const Vec3f v1 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i1});
-                const Vec3f v2 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i2});
                 if (intersect_triangle(ray, sheared, v0, v1, v2, hit)) {
                     hit.prim = id;
-                    hit.tri_block = tb;
+                    hit.tri_block = triangles.block();
                     hit.local = local;
                     if (AnyHit) return true;
                 }
             }
-            if (!tb) {
+            if (triangles.missing()) {
                 // Triangles not here yet: the last voxel passed stands in for them.
                 if (voxel.samples) return take_voxel(voxel, tmin);
             } else if (hit.prim != kNoHit && hit.t * (1.0f + kSplitSlack) < tmax) {

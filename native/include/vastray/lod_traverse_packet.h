@@ -64,10 +64,7 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
     bool dir_negative[3];
     for (int a = 0; a < 3; ++a) dir_negative[a] = std::signbit(rays[0].ray.dir[a]);
 
-    struct NodeRef {
-        const std::uint8_t* block;
-        std::uint32_t off, level;
-    };
+    using lod_detail::NodeRef;
     struct Entry {
         NodeRef node;
         Voxel voxel;
@@ -78,7 +75,6 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
     int top = 0;
     NodeRef node{root, 0, 0};
     Voxel voxel;
-    const std::uint32_t last_node_level = lane.tri_level - 1;
 
     // Ray i stops at voxel v, entered at its current tmin.
     auto take_voxel = [&](const Voxel& v, int i) {
@@ -105,11 +101,9 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
             ++lane.node_visits;
             const int axis = axis_of(w);
             const float split = bits_float(load<std::uint32_t>(node.block + node.off + 4));
-            const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
-            NodeRef left{nullptr, 0, 0}, right{nullptr, 0, 0};
+            const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here{node.block + node.off + 4 * lod_voxel_off4(w),
-                                 bits_float(load<std::uint32_t>(node.block + node.off + 8))};
+                const Voxel here = lod_detail::voxel_of(node, w);
                 float nearest = kInf;
                 for (int i = 0; i < N; ++i) {
                     if (!(active >> i & 1u)) continue;
@@ -117,31 +111,17 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
                     else nearest = std::min(nearest, tmin[i]);
                 }
                 if (!(active & live)) break;
-                const std::uint8_t* child = nullptr;
-                if (node.level < last_node_level) {
-                    const std::uint32_t child_block =
-                        lane.level_first[node.level + 1] + load<std::uint32_t>(node.block + node.off + 12);
-                    if (child_block < lane.level_first[node.level + 2]) {
-                        child = lane.lookup(child_block, here.radius / std::max(cone_t0 + nearest, 1e-30f));
-                    }
-                }
+                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(cone_t0 + nearest, 1e-30f));
                 if (!child) {
                     for (int i = 0; i < N; ++i) {
                         if (active >> i & live >> i & 1u) take_voxel(here, i);
                     }
                     break;
                 }
-                const std::uint32_t first = 8 * lod_child_off8(w);
-                if (has_l) left = {child, first, node.level + 1};
-                if (has_r) right = {child, has_l ? first + 8 * lod_right_from_left8(w) : first, node.level + 1};
                 voxel = here;
-            } else {
-                if (has_l) left = {node.block, node.off + 8, node.level};
-                const std::uint32_t r8 = basic_right_off8(w);
-                if (has_r) right = {node.block, has_l ? node.off + 8 * r8 : node.off + 8, node.level};
-                if (has_l && has_r && r8 < 2) return;  // damaged node: stop, never loop
             }
-            if ((left.block && left.off > kBlockSize - 8) || (right.block && right.off > kBlockSize - 8)) return;
+            NodeRef left, right;
+            if (!lod_detail::children_of(node, w, child, left, right)) return;  // damaged node
             const float o = org[axis];
             const bool below_first = o < split || (o == split && dir_negative[axis]);
             const NodeRef first = below_first ? left : right;
@@ -210,58 +190,29 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
         }
         if (leaf) {
             const std::uint32_t active = active_mask();
-            const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
-            const std::uint32_t count = leaf_count(w);
-            std::uint32_t tri_block = lane.level_first[lane.tri_level] + load<std::uint32_t>(node.block + node.off + 4);
             float nearest = kInf;
             for (int i = 0; i < N; ++i) {
                 if (active >> i & 1u) nearest = std::min(nearest, tmin[i]);
             }
             const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + nearest, 1e-30f) : 0.0f;
-            const std::uint8_t* tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
-            std::uint32_t entry = leaf_first(w);
-            std::uint32_t entries = 0, tris = 0, verts = 0;
-            TriangleBlockLayout l;
-            auto open_block = [&] {
-                entries = load<std::uint32_t>(tb);
-                tris = load<std::uint32_t>(tb + 4);
-                verts = load<std::uint32_t>(tb + 8);
-                l = TriangleBlockLayout::of(entries, tris, verts, lane.has_colours);
-                if (l.end > kBlockSize) tb = nullptr;  // damaged header: treat as missing
-            };
-            if (tb) open_block();
-            for (std::uint32_t k = 0; tb && k < count; ++k, ++entry) {
-                while (tb && entry >= entries) {
-                    // A leaf too big for one block continues at entry 0 of the next.
-                    ++tri_block;
-                    tb = tri_block < lane.block_count ? lane.lookup(tri_block, priority) : nullptr;
-                    entry = 0;
-                    if (tb) open_block();
-                }
-                if (!tb) break;
-                const std::uint32_t local = load<std::uint16_t>(tb + l.list + 2 * std::size_t{entry});
-                if (local >= tris) continue;
-                const std::uint8_t* corner = tb + l.triangles + 6 * std::size_t{local};
-                const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
-                                    i2 = load<std::uint16_t>(corner + 4);
-                if (i0 >= verts || i1 >= verts || i2 >= verts) continue;
-                const Vec3f v0 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i0});
-                const Vec3f v1 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i1});
-                const Vec3f v2 = load<Vec3f>(tb + l.vertices + 12 * std::size_t{i2});
-                const std::uint32_t id = load<std::uint32_t>(tb + l.ids + 4 * std::size_t{local});
+            lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
+            Vec3f v0, v1, v2;
+            std::uint32_t id, local;
+            while (triangles.next(v0, v1, v2, id, local)) {
                 for (int i = 0; i < N; ++i) {
                     if (!(active >> i & 1u)) continue;
                     ++lane.triangle_tests;
                     if (intersect_triangle(rays[i].ray, sheared[i], v0, v1, v2, hits[i])) {
                         hits[i].prim = id;
-                        hits[i].tri_block = tb;
+                        hits[i].tri_block = triangles.block();
                         hits[i].local = local;
                     }
                 }
             }
+            const bool missing = triangles.missing();
             for (int i = 0; i < N; ++i) {
                 if (!(active >> i & 1u)) continue;
-                if (!tb) {
+                if (missing) {
                     if (voxel.samples) take_voxel(voxel, i);
                 } else if (hits[i].prim != kNoHit && hits[i].t * (1.0f + kSplitSlack) < tmax[i]) {
                     live &= ~(1u << i);

@@ -9,6 +9,7 @@
 #include <cstdint>
 
 #include "vastray/render.h"
+#include "vastray/thread_pool.h"
 
 namespace vastray::shading {
 
@@ -102,6 +103,33 @@ inline Vec3f offset_origin(const Vec3f* v, const Hit& hit, const Vec3f& n) {
                                 std::abs(v[2].z)});
     const float offset = 32.0f * std::numeric_limits<float>::epsilon() * mag + 1e-30f;
     return p + n * offset;
+}
+
+// A frame of the camera's size: black, depth inf, prim -1 everywhere.
+inline void blank_frame(Frame& frame, const Camera& camera) {
+    frame.width = camera.width;
+    frame.height = camera.height;
+    const std::size_t pixels = static_cast<std::size_t>(camera.width) * camera.height;
+    frame.rgb.assign(3 * pixels, 0);
+    frame.depth.assign(pixels, std::numeric_limits<float>::infinity());
+    frame.prim.assign(pixels, -1);
+}
+
+// Runs fn(x0, y0, x1, y1, lane) over the image's tiles on the global pool.
+template <typename TileFn>
+void for_each_tile(const Camera& camera, const RenderParams& params, TileFn&& fn) {
+    const int tile = std::max(4, params.tile_size);
+    const int tiles_x = (camera.width + tile - 1) / tile, tiles_y = (camera.height + tile - 1) / tile;
+    ThreadPool::global().parallel_for(static_cast<std::size_t>(tiles_x) * tiles_y, [&](std::size_t t, unsigned lane) {
+        const int x0 = static_cast<int>(t % static_cast<std::size_t>(tiles_x)) * tile;
+        const int y0 = static_cast<int>(t / static_cast<std::size_t>(tiles_x)) * tile;
+        fn(x0, y0, std::min(x0 + tile, camera.width), std::min(y0 + tile, camera.height), lane);
+    }, params.threads);
+}
+
+inline unsigned lanes_used(const RenderParams& params) {
+    const unsigned lanes = ThreadPool::global().lanes();
+    return params.threads == 0 ? lanes : std::min(params.threads, lanes);
 }
 
 // Checks shared by both renderers' entry points.
