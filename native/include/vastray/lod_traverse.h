@@ -83,9 +83,11 @@ inline T load(const std::uint8_t* p) {
 }
 
 // A voxel: its samples and enclosing radius.
+// Voxel and NodeRef are plain aggregates on purpose: traversal stacks hold 64 of them,
+// and default member initialisers would zero the whole stack for every ray.
 struct Voxel {
-    const std::uint8_t* samples = nullptr;
-    float radius = 0;
+    const std::uint8_t* samples;
+    float radius;
 };
 
 inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, LodHit& hit) {
@@ -101,8 +103,8 @@ inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, L
 
 // A node in a cached block: the block's bytes, the node's offset, its LOD level.
 struct NodeRef {
-    const std::uint8_t* block = nullptr;
-    std::uint32_t off = 0, level = 0;
+    const std::uint8_t* block;
+    std::uint32_t off, level;
 };
 
 inline Voxel voxel_of(const NodeRef& node, std::uint32_t w) {
@@ -247,7 +249,7 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     Entry stack[64];
     int top = 0;
     NodeRef node{block, 0, 0};
-    Voxel voxel;  // the last voxel passed on the way to `node`
+    Voxel voxel{nullptr, 0.0f};  // the last voxel passed on the way to `node`
     auto take_voxel = [&](const Voxel& v, float t) {
         if (t < hit.t) lod_detail::hit_voxel(v, entry_axis, ray, t, hit);
         ++lane.voxel_hits;

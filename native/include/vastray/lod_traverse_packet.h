@@ -74,7 +74,7 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
     Entry stack[64];
     int top = 0;
     NodeRef node{root, 0, 0};
-    Voxel voxel;
+    Voxel voxel{nullptr, 0.0f};
 
     // Ray i stops at voxel v, entered at its current tmin.
     auto take_voxel = [&](const Voxel& v, int i) {
