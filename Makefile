@@ -46,6 +46,7 @@ bench: $(BIN)/python
 	$(BIN)/pip install -q '.[bench]'
 	$(BIN)/python bench/rays.py
 	$(BIN)/python bench/build.py
+	$(BIN)/python bench/tradeoff.py
 
 clean:
 	rm -rf build out .pytest_cache .ruff_cache
