@@ -12,9 +12,10 @@ namespace vastray {
 
 double solid_angle_cone(const LodParams& lod, double pixel_angle) {
     if (lod.solid_angle >= 0) return std::sqrt(lod.solid_angle / 3.14159265358979323846);
-    // Default: AO averages a hemisphere, so it tolerates voxels 16x the primary rays'
-    // (a cone 8 PoE pixels wide from the hit point).
-    return 8.0 * lod.pixels_of_error * pixel_angle;
+    // Default: a cone twice the primary rays' (PoE pixels wide at unit distance). Wider
+    // cones buy little speed and darken AO: near its origin a probe then meets voxels
+    // whose boxes straddle the surface it leaves (bench/results/tradeoff-poe.md).
+    return lod.pixels_of_error * pixel_angle;
 }
 
 namespace {
