@@ -34,7 +34,6 @@ import argparse
 import csv
 import json
 import math
-import os
 import statistics
 import subprocess
 import sys
@@ -47,6 +46,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, machine_info, markdown_table, save_figure
 
+from build import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
+from vastray.build import parse_memory
 from vastray.camera import Camera, frame_bounds
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
 
@@ -57,14 +58,6 @@ GiB = 1 << 30
 
 
 # ----------------------------------------------------------------------------- models
-
-
-def drop_page_cache(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
-    finally:
-        os.close(fd)
 
 
 def built_model(size: int) -> Path:
@@ -202,21 +195,9 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
             row[f"{tag}_complete_s"] = done.stats["seconds"]
             row[f"{tag}_working_set_mib"] = done.stats["working_set_bytes"] / 2**20
             for packets in (1, 4, 16):
-                times = [
-                    model._model.render(
-                        eye=list(camera.eye),
-                        target=list(camera.target),
-                        up=list(camera.up),
-                        fov=camera.fov,
-                        width=camera.width,
-                        height=camera.height,
-                        pixels_of_error=poe,
-                        packets=packets,
-                    )["stats"]["milliseconds"]
-                    for _ in range(args.repeats)
-                ]
+                ms, _ = frame_ms(model, camera, args.repeats, pixels_of_error=poe, packets=packets)
                 key = f"{tag}_ms" if packets == 1 else f"{tag}_packets{packets}_ms"
-                row[key] = statistics.median(times)
+                row[key] = ms
         model.close()
         rows.append(row)
         print(f"  {size:.0e}: {json.dumps(row)}", file=sys.stderr, flush=True)
@@ -395,11 +376,6 @@ def plot_ooc(rows: list[dict[str, Any]], summary: dict[str, Any], out: Path) -> 
     )
 
 
-def parse_size(text: str) -> int:
-    units = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}
-    return int(float(text[:-1]) * units[text[-1].upper()]) if text[-1].upper() in units else int(text)
-
-
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--studies", default="poe,size,loading,ooc")
@@ -423,8 +399,8 @@ def main() -> int:
         int(args.loading_size),
         int(args.ooc_size),
     )
-    args.budgets = [parse_size(b) for b in args.budgets.split(",")]
-    args.ooc_cache, args.cache = parse_size(args.ooc_cache), parse_size(args.cache)
+    args.budgets = [parse_memory(b) for b in args.budgets.split(",")]
+    args.ooc_cache, args.cache = parse_memory(args.ooc_cache), parse_memory(args.cache)
     size_image = tuple(int(v) for v in args.image.split("x"))
     studies = args.studies.split(",")
     info = machine_info()

@@ -24,6 +24,17 @@ class Camera:
     width: int = 960
     height: int = 540
 
+    def native_args(self) -> dict[str, object]:
+        """The camera as the native renderers' keyword arguments."""
+        return {
+            "eye": list(self.eye),
+            "target": list(self.target),
+            "up": list(self.up),
+            "fov": self.fov,
+            "width": self.width,
+            "height": self.height,
+        }
+
     def primary_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays in pixel order (row by row, top row first), in float64 exactly as
         the native renderer computes them: pixel (x, y) looks along

@@ -131,20 +131,18 @@ class OutOfCoreModel:
         ao_samples: int = 8,
         solid_angle: float = -1.0,
         threads: int = 0,
+        packets: int = 1,
     ) -> LodFrame:
-        """One frame from what is cached now; never waits for data."""
+        """One frame from what is cached now; never waits for data. `packets` (1, 4, 16)
+        traces primary rays singly or in 2x2 / 4x4 packets: same image, other speed."""
         out = self._model.render(
-            eye=list(camera.eye),
-            target=list(camera.target),
-            up=list(camera.up),
-            fov=camera.fov,
-            width=camera.width,
-            height=camera.height,
+            **camera.native_args(),
             shading=shading,
             ao_samples=ao_samples,
             threads=threads,
             pixels_of_error=pixels_of_error,
             solid_angle=solid_angle,
+            packets=packets,
         )
         return LodFrame(
             image=out["image"],

@@ -113,12 +113,7 @@ def render(
     # The native renderer validates the camera and shading name (ValueError with the reason).
     scene = model.scene if isinstance(model, Model) else model
     out = scene.render(
-        eye=list(camera.eye),
-        target=list(camera.target),
-        up=list(camera.up),
-        fov=camera.fov,
-        width=camera.width,
-        height=camera.height,
+        **camera.native_args(),
         shading=shading,
         ao_samples=ao_samples,
         threads=threads,
