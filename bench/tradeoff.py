@@ -54,7 +54,6 @@ from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
 CACHE = Path(__file__).resolve().parent / ".cache"
 POES = (0.0, 0.5, 1.0, 2.0, 3.0, 8.0, 32.0)
 SHADINGS = ("headlight", "sun", "ao")
-GiB = 1 << 30
 
 
 # ----------------------------------------------------------------------------- models

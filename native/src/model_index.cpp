@@ -143,20 +143,26 @@ std::size_t ModelIndex::level_of(std::size_t block) const {
 
 std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const {
     const BlockEntry& e = entries_[block];
-    const std::string name = "block " + std::to_string(block) + " (level " + std::to_string(level_of(block)) + ")";
-    scratch.resize(e.stored_size);
-    if (!read_exact(fd_, scratch.data(), e.stored_size, e.offset)) {
-        return name + ": read failed: " + std::strerror(errno ? errno : EIO);
+    // Only failures pay for naming the block.
+    auto fail = [&](const std::string& what) {
+        return "block " + std::to_string(block) + " (level " + std::to_string(level_of(block)) + "): " + what;
+    };
+    if (e.codec != 0 && e.codec != 1) return fail("unknown codec " + std::to_string(e.codec));
+    if (e.codec == 0 && e.stored_size != e.raw_size) return fail("stored block size differs from its raw size");
+    // A stored block is read straight into its destination; a compressed one via scratch.
+    std::uint8_t* stored = out;
+    if (e.codec == 1) {
+        scratch.resize(e.stored_size);
+        stored = scratch.data();
     }
-    if (crc32(scratch.data(), scratch.size()) != e.crc32) return name + ": checksum mismatch (the block is corrupted)";
-    if (e.codec == 0) {
-        if (e.stored_size != e.raw_size) return name + ": stored block size differs from its raw size";
-        std::memcpy(out, scratch.data(), e.raw_size);
-        return {};
+    if (!read_exact(fd_, stored, e.stored_size, e.offset)) {
+        const int error = errno ? errno : EIO;
+        return fail(std::string("read failed: ") + std::strerror(error));
     }
-    if (e.codec != 1) return name + ": unknown codec " + std::to_string(e.codec);
-    const Lz4Status status = lz4_decompress_block(scratch.data(), scratch.size(), out, e.raw_size);
-    if (status != Lz4Status::Ok) return name + ": LZ4 data is corrupted (" + lz4_status_message(status) + ")";
+    if (crc32(stored, e.stored_size) != e.crc32) return fail("checksum mismatch (the block is corrupted)");
+    if (e.codec == 0) return {};
+    const Lz4Status status = lz4_decompress_block(stored, e.stored_size, out, e.raw_size);
+    if (status != Lz4Status::Ok) return fail(std::string("LZ4 data is corrupted (") + lz4_status_message(status) + ")");
     return {};
 }
 
