@@ -90,7 +90,7 @@ void BlockCache::remove_model(const std::shared_ptr<CachedModel>& model) {
             ++it;
         }
     }
-    if (model->loading_ == 0) models_.erase(std::remove(models_.begin(), models_.end(), model), models_.end());
+    forget_if_closed_locked(*model);
     reclaim_locked();
     work_.notify_all();
 }
@@ -124,6 +124,11 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
         std::lock_guard<std::mutex> lock(mutex_);
         --model.loading_;
         --loading_;
+        if (model.closed_) {
+            free_slots_.push_back(slot);
+            forget_if_closed_locked(model);
+            continue;
+        }
         if (!error.empty()) {
             model.state_[block] = CachedModel::State::Bad;
             model.slot_of_[block].store(CachedModel::kBad, std::memory_order_release);
@@ -263,6 +268,14 @@ std::size_t BlockCache::evict_locked(std::size_t wanted, std::uint32_t protect_f
     return n;
 }
 
+void BlockCache::forget_if_closed_locked(CachedModel& model) {
+    // A closed model leaves the list once no fetch still writes into one of its blocks.
+    if (!model.closed_ || model.loading_ > 0) return;
+    models_.erase(std::remove_if(models_.begin(), models_.end(),
+                                 [&](const std::shared_ptr<CachedModel>& m) { return m.get() == &model; }),
+                  models_.end());
+}
+
 void BlockCache::reclaim_locked() {
     // A retired slot is free once every frame that could have looked it up has ended:
     // frames are numbered in start order, so that is every frame with tick <= retirement.
@@ -297,11 +310,7 @@ void BlockCache::fetcher_loop() {
         ++fetch_generation_;
         if (model.closed_) {
             free_slots_.push_back(slot);
-            if (model.loading_ == 0) {
-                models_.erase(std::remove_if(models_.begin(), models_.end(),
-                                             [&](const std::shared_ptr<CachedModel>& m) { return m.get() == &model; }),
-                              models_.end());
-            }
+            forget_if_closed_locked(model);
         } else if (!error.empty()) {
             // Treated as missing from now on (the renderer falls back to voxels) and reported.
             model.state_[r.block] = CachedModel::State::Bad;

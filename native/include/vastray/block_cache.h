@@ -187,6 +187,7 @@ private:
 
     void fetcher_loop();
     void reclaim_locked();
+    void forget_if_closed_locked(CachedModel& model);
     std::size_t evict_locked(std::size_t wanted, std::uint32_t protect_from);
     void publish_locked(FrameCacheStats* stats);
 
