@@ -35,9 +35,7 @@ public:
         sun_ = Vec3f(normalize(params.sun_direction));
         // Projected diameter 2R / (t * pixel_angle) <= PoE  <=>  R <= t * PoE * pixel_angle / 2.
         primary_cone_ = static_cast<float>(0.5 * lod.pixels_of_error * camera_.pixel_angle);
-        ao_cone_ = lod.pixels_of_error > 0 || lod.solid_angle > 0
-                       ? static_cast<float>(solid_angle_cone(lod, camera_.pixel_angle))
-                       : 0.0f;
+        ao_cone_ = static_cast<float>(solid_angle_cone(lod, camera_.pixel_angle));  // 0 at PoE 0
     }
 
     void render_tile(int x0, int y0, int x1, int y1, LodLane& lane, RenderStats& s) const {
