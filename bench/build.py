@@ -209,8 +209,8 @@ def child_main(spec_text: str) -> int:
 
     if spec.get("baseline"):
         # The RSS of a child that has imported what a build imports, and built nothing:
-        # streamed inputs (binary PLY/STL) need vastray.streaming, whole-file ones (OBJ) trimesh.
-        from vastray.streaming import open_triangles  # noqa: F401
+        # streamed inputs (binary PLY/STL) need vastray.triangle_readers, whole-file ones (OBJ) trimesh.
+        from vastray.triangle_readers import open_triangles  # noqa: F401
 
         if spec["baseline"] == "whole":
             from vastray.ingest import load_mesh  # noqa: F401
@@ -1130,7 +1130,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> None:
                 rss = [r["peak_rss_bytes"] / MiB for r in pts]
                 ax_mem.plot(x, rss, marker=marker, ls=ls, color=colours[fam], label=f"{label}: RSS")
                 anon = [r.get("peak_anon_bytes", math.nan) / MiB for r in pts]
-                style = {"marker": marker, "mfc": "none", "ls": ls, "lw": 0.8, "color": colours[fam]}
+                style = {"marker": marker, "mfc": "none", "ls": ls, "lw": 0.8, "colour": colours[fam]}
                 ax_mem.plot(x, anon, label=f"{label}: anon", **style)
                 if kind == "ooc":
                     for r in pts:
@@ -1197,9 +1197,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--out", type=Path, default=RESULTS_DIR, help="output folder (default bench/results)")
     ap.add_argument("--name", default="build", help="output file stem (default build)")
     args = ap.parse_args(argv)
-    from vastray.build import parse_memory
+    from vastray.units import parse_bytes
 
-    args.memory = parse_memory(args.memory)
+    args.memory = parse_bytes(args.memory, "memory budget")
     args.scaling_sizes = {parse_count(x) for x in args.scaling_sizes.split(",") if x.strip()}
     args.cache = args.cache.resolve()
     return args

@@ -47,9 +47,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, machine_info, markdown_table, save_figure
 
 from build import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
-from vastray.build import parse_memory
 from vastray.camera import Camera, frame_bounds
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
+from vastray.units import parse_bytes
 
 CACHE = Path(__file__).resolve().parent / ".cache"
 POES = (0.0, 0.5, 1.0, 2.0, 3.0, 8.0, 32.0)
@@ -398,8 +398,8 @@ def main() -> int:
         int(args.loading_size),
         int(args.ooc_size),
     )
-    args.budgets = [parse_memory(b) for b in args.budgets.split(",")]
-    args.ooc_cache, args.cache = parse_memory(args.ooc_cache), parse_memory(args.cache)
+    args.budgets = [parse_bytes(b) for b in args.budgets.split(",")]
+    args.ooc_cache, args.cache = parse_bytes(args.ooc_cache), parse_bytes(args.cache)
     size_image = tuple(int(v) for v in args.image.split("x"))
     studies = args.studies.split(",")
     info = machine_info()

@@ -61,12 +61,12 @@ from vastray.build import (
     BuildOptions,
     BuildProgress,
     build_model,
-    parse_memory,
 )
 from vastray.camera import frame_bounds
 from vastray.mesh import MeshError
 from vastray.modelfile import _HEADER_FIELDS, FLAG_COLOURS, HEADER_SIZE, VERSION, ModelError, ModelFile
-from vastray.streaming import open_triangles
+from vastray.triangle_readers import open_triangles
+from vastray.units import parse_bytes
 
 if TYPE_CHECKING:
     from conftest import Agreement, ModelMesh
@@ -239,7 +239,7 @@ def concat_generated(name: str, triangles: int, seed: int) -> tuple[np.ndarray, 
 
 def read_stream(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     chunks = list(open_triangles(path).chunks())
-    colours = None if chunks[0].colors is None else np.concatenate([c.colors for c in chunks])
+    colours = None if chunks[0].colours is None else np.concatenate([c.colours for c in chunks])
     return np.concatenate([c.corners for c in chunks]), colours
 
 
@@ -612,7 +612,9 @@ def test_flipped_bit_in_a_block_names_the_block(damaged: Path) -> None:
         e = blocks[first]
         flip_bit(damaged, e.offset + e.stored_size // 2)
         with ModelFile(damaged) as model:  # header and index are intact: it opens
-            with pytest.raises(ModelError, match=rf"\bblock {first} \(level {level}\) checksum mismatch"):
+            # named as inspect numbers them
+            name = "triangle level" if level == len(levels) - 1 else f"LOD level {level}"
+            with pytest.raises(ModelError, match=rf"\bblock {first} \({name}\) checksum mismatch"):
                 model.read_block(first)
             with pytest.raises(ModelError, match=rf"\bblock {first}\b"):
                 model.verify()
@@ -738,7 +740,7 @@ print(json.dumps({"peak": hwm, "ru_maxrss": resource.getrusage(resource.RUSAGE_S
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_build_stays_within_its_memory_budget(tmp_path: Path) -> None:
-    budget = parse_memory("32M")
+    budget = parse_bytes("32M")
     soup = tmp_path / "grid.f32"
     triangles = write_grid_soup(soup, 1200)  # 2.88M triangles, 99 MiB
     assert soup.stat().st_size >= 3 * budget
@@ -1022,14 +1024,14 @@ def test_cli_build_inspect_render(built: Callable[[str], Case], tmp_path: Path) 
 # ---- inputs the format must hold -----------------------------------------------------------------
 
 
-def test_parse_memory(tmp_path: Path) -> None:
-    assert parse_memory("2G") == 2 << 30
-    assert parse_memory("512M") == parse_memory("512MiB") == parse_memory("512mb") == 512 << 20
-    assert parse_memory("1.5GiB") == 3 << 29
-    assert parse_memory("4096") == 4096
-    for bad in ("", "lots", "-1G", "0"):
+def test_parse_bytes(tmp_path: Path) -> None:
+    assert parse_bytes("2G") == 2 << 30
+    assert parse_bytes("512M") == parse_bytes("512MiB") == parse_bytes("512mb") == 512 << 20
+    assert parse_bytes("1.5GiB") == 3 << 29
+    assert parse_bytes("4096") == 4096
+    for bad in ("", "lots", "-1G", "0", "nan", "inf"):
         with pytest.raises(ValueError, match="memory budget"):
-            parse_memory(bad)
+            parse_bytes(bad, "memory budget")
     with pytest.raises(ValueError, match="memory budget too small"):
         build_model("scene:plant:1000:1", tmp_path / "m.vast", BuildOptions(memory=1 << 20))
     assert os.listdir(tmp_path) == []

@@ -31,7 +31,7 @@ def spheres_ply(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_scene_command_writes_a_loadable_model(spheres_ply: Path) -> None:
     mesh = load_mesh(spheres_ply)
     assert abs(mesh.triangle_count - 5000) <= 250
-    assert mesh.face_colors is not None
+    assert mesh.face_colours is not None
 
 
 def test_render_auto_framed_model_fills_the_image(spheres_ply: Path, tmp_path: Path) -> None:

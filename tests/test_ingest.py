@@ -58,7 +58,7 @@ def test_real_models_load_with_readme_counts(name: str) -> None:
     # Vertices are neither merged, split at texture seams, nor pruned.
     assert mesh.vertices.shape == (verts, 3)
     assert mesh.vertices.dtype == np.float64 and mesh.faces.dtype == np.uint32
-    assert mesh.face_colors is None
+    assert mesh.face_colours is None
     lo, hi = mesh.bounds()
     assert np.all(lo < hi)
 
@@ -150,9 +150,9 @@ def test_missing_unknown_and_garbage_files(tmp_path: Path) -> None:
     assert str(garbage) in str(err.value)
 
 
-def _ply_with_face_colors(path: Path, vertices, faces, colors) -> Path:
+def _ply_with_face_colours(path: Path, vertices, faces, colours) -> Path:
     mesh = trimesh.Trimesh(vertices, faces, process=False)
-    rgba = np.concatenate([colors, np.full((len(colors), 1), 255)], axis=1).astype(np.uint8)
+    rgba = np.concatenate([colours, np.full((len(colours), 1), 255)], axis=1).astype(np.uint8)
     mesh.visual.face_colors = rgba
     path.write_bytes(mesh.export(file_type="ply"))
     return path
@@ -169,14 +169,14 @@ def test_degenerate_triangles_dropped_and_colours_stay_aligned(tmp_path: Path) -
             [4, 4, 4],  # a point
         ]
     )
-    colors = np.array([[10, 0, 0], [20, 0, 0], [30, 0, 0], [40, 0, 0], [50, 0, 0]])
-    path = _ply_with_face_colors(tmp_path / "degenerate.ply", vertices, faces, colors)
+    colours = np.array([[10, 0, 0], [20, 0, 0], [30, 0, 0], [40, 0, 0], [50, 0, 0]])
+    path = _ply_with_face_colours(tmp_path / "degenerate.ply", vertices, faces, colours)
     with pytest.warns(DegenerateTrianglesWarning) as record:
         mesh = load_mesh(path)
     assert len(record) == 1
     assert str(record[0].message) == f"{path}: dropped 3 degenerate triangles"
     assert mesh.faces.tolist() == [[0, 1, 2], [0, 2, 4]]
-    assert mesh.face_colors.tolist() == [[10, 0, 0], [40, 0, 0]]
+    assert mesh.face_colours.tolist() == [[10, 0, 0], [40, 0, 0]]
 
 
 def test_tiny_but_valid_triangles_are_kept() -> None:
@@ -195,26 +195,26 @@ def test_validate_rejects_bad_indices_and_all_degenerate() -> None:
         validate(Mesh(v, np.array([[0, 1, 2], [0, 1, 3]]), None, "m"), "src")
     with pytest.raises(MeshError, match="src: all 1 triangles are degenerate"):
         validate(Mesh(v, np.array([[0, 0, 1]]), None, "m"), "src")
-    with pytest.raises(MeshError, match="face_colors"):
+    with pytest.raises(MeshError, match="face_colours"):
         validate(Mesh(v, np.array([[0, 1, 2]]), np.zeros((2, 3), np.uint8), "m"), "src")
 
 
 def test_face_colours_round_trip_and_absent_colours(tmp_path: Path) -> None:
     box = trimesh.creation.box()
     rng = np.random.default_rng(3)
-    colors = rng.integers(0, 256, (len(box.faces), 3))
-    colored = _ply_with_face_colors(tmp_path / "colored.ply", box.vertices, box.faces, colors)
-    mesh = load_mesh(colored)
-    assert mesh.face_colors is not None and mesh.face_colors.dtype == np.uint8
-    assert np.array_equal(mesh.face_colors, colors)
+    colours = rng.integers(0, 256, (len(box.faces), 3))
+    coloured = _ply_with_face_colours(tmp_path / "coloured.ply", box.vertices, box.faces, colours)
+    mesh = load_mesh(coloured)
+    assert mesh.face_colours is not None and mesh.face_colours.dtype == np.uint8
+    assert np.array_equal(mesh.face_colours, colours)
 
     plain = tmp_path / "plain.ply"
     plain.write_bytes(trimesh.creation.box().export(file_type="ply"))
-    assert load_mesh(plain).face_colors is None
+    assert load_mesh(plain).face_colours is None
     # Even a file whose colours equal trimesh's grey default keeps them: they are real.
     grey = np.tile([102, 102, 102], (len(box.faces), 1))
-    path = _ply_with_face_colors(tmp_path / "grey.ply", box.vertices, box.faces, grey)
-    assert np.array_equal(load_mesh(path).face_colors, grey)
+    path = _ply_with_face_colours(tmp_path / "grey.ply", box.vertices, box.faces, grey)
+    assert np.array_equal(load_mesh(path).face_colours, grey)
 
 
 def test_vertex_colours_are_averaged_per_face(tmp_path: Path) -> None:
@@ -222,7 +222,7 @@ def test_vertex_colours_are_averaged_per_face(tmp_path: Path) -> None:
     mesh.visual.vertex_colors = [[255, 0, 0, 255], [0, 255, 0, 255], [0, 0, 30, 255]]
     path = tmp_path / "vc.ply"
     path.write_bytes(mesh.export(file_type="ply"))
-    assert load_mesh(path).face_colors.tolist() == [[85, 85, 10]]
+    assert load_mesh(path).face_colours.tolist() == [[85, 85, 10]]
 
 
 @pytest.mark.parametrize("file_type", ["stl", "off", "glb", "obj"])
@@ -255,14 +255,14 @@ def test_scene_parts_are_placed_and_coloured(tmp_path: Path) -> None:
     lo, hi = mesh.bounds()
     assert np.allclose(lo, [-0.5, -0.5, -0.5]) and np.allclose(hi, [10.5, 0.5, 0.5])
     # The part without material gets glTF's default white.
-    assert sorted({tuple(c) for c in mesh.face_colors.tolist()}) == [(255, 0, 0), (255, 255, 255)]
+    assert sorted({tuple(c) for c in mesh.face_colours.tolist()}) == [(255, 0, 0), (255, 255, 255)]
 
 
 def test_obj_material_colours(tmp_path: Path) -> None:
     (tmp_path / "m.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl blue\nKd 0 0 1\n")
     text = "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nusemtl red\nf 1 2 3\nusemtl blue\nf 1 2 4\n"
     mesh = load_mesh(_write(tmp_path / "m.obj", text))
-    assert sorted(mesh.face_colors.tolist()) == [[0, 0, 255], [255, 0, 0]]
+    assert sorted(mesh.face_colours.tolist()) == [[0, 0, 255], [255, 0, 0]]
 
 
 def test_bounds_ignore_unused_vertices() -> None:

@@ -60,14 +60,14 @@ def build_scene() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mesh = trimesh.util.concatenate(parts)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.uint32)
-    colors = np.random.default_rng(42).integers(60, 256, size=(len(faces), 3)).astype(np.uint8)
-    return vertices, faces, colors
+    colours = np.random.default_rng(42).integers(60, 256, size=(len(faces), 3)).astype(np.uint8)
+    return vertices, faces, colours
 
 
 @pytest.fixture(scope="module")
 def scene_data() -> tuple[native.Scene, np.ndarray, np.ndarray, np.ndarray]:
-    vertices, faces, colors = build_scene()
-    return native.Scene(vertices, faces, colors), vertices, faces, colors
+    vertices, faces, colours = build_scene()
+    return native.Scene(vertices, faces, colours), vertices, faces, colours
 
 
 def render(scene: native.Scene, **kwargs: object) -> dict:
@@ -103,22 +103,22 @@ def test_visibility_matches_intersect(
     assert len(np.unique(prim[prim >= 0])) > 100
 
 
-def shading_factor(image: np.ndarray, colors: np.ndarray) -> np.ndarray:
+def shading_factor(image: np.ndarray, colours: np.ndarray) -> np.ndarray:
     """Per pixel: the one factor s with image ≈ colour * s (least squares over RGB)."""
-    c = colors.astype(np.float64)
+    c = colours.astype(np.float64)
     return (image.astype(np.float64) * c).sum(axis=1) / (c * c).sum(axis=1)
 
 
 def test_headlight_shows_face_colours(
     scene_data: tuple, camera_directions: Callable[..., np.ndarray]
 ) -> None:
-    scene, vertices, faces, colors = scene_data
-    assert scene.has_colors
+    scene, vertices, faces, colours = scene_data
+    assert scene.has_colours
     frame = render(scene, shading="headlight")
     prim = frame["prim"].ravel()
     hit = prim >= 0
     image = frame["image"].reshape(-1, 3)[hit]
-    face_colour = colors[prim[hit]]
+    face_colour = colours[prim[hit]]
     s = shading_factor(image, face_colour)
     # Proportional to the face colour: the same factor for all three channels.
     predicted = face_colour.astype(np.float64) * s[:, None]
@@ -134,7 +134,7 @@ def test_headlight_shows_face_colours(
     assert np.abs(s - (intercept + slope * cos)).max() <= 0.02
     # Without colours every face gets one neutral colour: a single hue in the picture.
     plain = native.Scene(vertices, faces)
-    assert not plain.has_colors
+    assert not plain.has_colours
     grey = render(plain, shading="headlight")
     g = grey["image"].reshape(-1, 3)[grey["prim"].ravel() >= 0].astype(np.float64)
     ratio = g / g.sum(axis=1, keepdims=True)
@@ -157,7 +157,7 @@ def test_normal_shading_maps_normals(scene_data: tuple) -> None:
 def test_ao_is_deterministic_and_darker_in_corners(
     scene_data: tuple, camera_directions: Callable[..., np.ndarray]
 ) -> None:
-    scene, _, _, colors = scene_data
+    scene, _, _, colours = scene_data
     first = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
     again = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
     single = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE, threads=1, tile_size=8)
@@ -169,7 +169,7 @@ def test_ao_is_deterministic_and_darker_in_corners(
     rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)
     points = EYE + rays * np.where(hit, first["depth"].ravel(), 0.0)[:, None].astype(np.float64)
     s = np.zeros(len(prim))
-    s[hit] = shading_factor(first["image"].reshape(-1, 3)[hit], colors[prim[hit]])
+    s[hit] = shading_factor(first["image"].reshape(-1, 3)[hit], colours[prim[hit]])
     x, y, z = points.T
     # Concave: the floor and the walls within 0.1 of where they meet (a 90° inner edge).
     concave = hit & (z < 0.1) & ((x - WALL_X < 0.1) | (WALL_Y - y < 0.1))
@@ -239,7 +239,7 @@ def test_ray_packets_change_speed_not_answers() -> None:
     # At this size and view, a single-ray early exit that trusted hits inside the split
     # slack picked a farther surface than the packets on 3 pixels: keep it that big.
     mesh = scenes.to_mesh("plant", 1_000_000, 1)
-    scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colors)
+    scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colours)
     cam = frame_bounds(*scene.bounds, width=1024, height=768)
     args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
     frames = {p: scene.render(*args, packets=p) for p in (1, 4, 16)}

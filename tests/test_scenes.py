@@ -40,13 +40,13 @@ def _collect(name: str, triangles: int, seed: int) -> list[tuple]:
 @pytest.mark.parametrize("name", NAMES)
 def test_triangle_count_close_to_request(name: str, triangles: int) -> None:
     total = 0
-    for vertices, faces, colors in generate(name, triangles, seed=1):
+    for vertices, faces, colours in generate(name, triangles, seed=1):
         assert vertices.dtype == np.float64 and vertices.ndim == 2 and vertices.shape[1] == 3
         assert faces.dtype == np.uint32 and faces.ndim == 2 and faces.shape[1] == 3
         assert faces.max() < vertices.shape[0]
         assert np.isfinite(vertices).all()
-        assert colors is not None and colors.dtype == np.uint8
-        assert colors.shape == faces.shape
+        assert colours is not None and colours.dtype == np.uint8
+        assert colours.shape == faces.shape
         total += faces.shape[0]
     assert abs(total / triangles - 1) <= 0.05, total
 
@@ -122,7 +122,7 @@ def test_write_ply_round_trips_through_trimesh(name: str, tmp_path: Path) -> Non
     assert np.array_equal(loaded.faces, expected.faces)
     assert np.allclose(loaded.vertices, expected.vertices, atol=1e-5)
     assert loaded.visual.kind == "face"
-    assert np.array_equal(loaded.visual.face_colors[:, :3], expected.face_colors)
+    assert np.array_equal(loaded.visual.face_colors[:, :3], expected.face_colours)
     assert not [p for p in tmp_path.iterdir() if p != path]  # no temp files left over
 
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from vastray import modelfile, native
 from vastray.mesh import MeshError
+from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 
 # Peak memory of an in-core part per triangle, measured with bench/build.py (peak RSS
 # growth while add_subtree() runs, plus the loaded records): kd-tree references,
@@ -96,20 +97,6 @@ class BuildOptions:
         return int(min(MAX_CHUNK, max(4096, self.memory // (4 * CHUNK_BYTES_PER_TRIANGLE))))
 
 
-def parse_memory(text: str) -> int:
-    """'2G', '512M', '1.5GiB' or a byte count."""
-    s = text.strip().upper().removesuffix("B").removesuffix("I")
-    scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}.get(s[-1:], 1)
-    number = s[:-1] if scale != 1 else s
-    try:
-        value = float(number)
-    except ValueError:
-        raise ValueError(f"memory budget {text!r} is not a size like 2G or 512M") from None
-    if not value > 0:
-        raise ValueError(f"memory budget must be positive, got {text!r}")
-    return int(value * scale)
-
-
 # ---- inputs ---------------------------------------------------------------------------------
 
 
@@ -127,33 +114,23 @@ class _Input:
 
 def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
     from vastray import scenes
-    from vastray.render import DEMO_SCENE, DEMO_SEED, DEMO_TRIANGLES
-    from vastray.streaming import open_triangles
+    from vastray.triangle_readers import open_triangles
 
     text = str(source)
-    if text == "demo" or text.startswith("scene:"):
-        if text == "demo":
-            name, tris, seed = DEMO_SCENE, DEMO_TRIANGLES, DEMO_SEED
-        else:
-            parts = text.split(":")[1:]
-            name = parts[0]
-            tris = int(float(parts[1])) if len(parts) > 1 else 100_000
-            seed = int(parts[2]) if len(parts) > 2 else 1
-        if name not in scenes.SCENES:
-            raise ValueError(f"unknown scene {name!r}; choose one of {', '.join(scenes.SCENES)}")
+    scene = parse_scene(text)
+    if scene is not None:
 
         def generated() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-            for vertices, faces, colours in scenes.generate(name, tris, seed):
+            for vertices, faces, colours in scenes.generate(scene.name, scene.triangles, scene.seed):
                 yield vertices[faces], colours
 
-        return _Input(f"{name}-{tris}-s{seed}", scenes.SCENES[name].colored, tris, generated, False)
+        return _Input(scene.label, scenes.SCENES[scene.name].coloured, scene.triangles, generated, False)
 
     path = Path(text)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file (or use 'demo' / 'scene:NAME:TRIANGLES:SEED')")
-    with open(path, "rb") as f:
-        if f.read(len(modelfile.MAGIC)) == modelfile.MAGIC:
-            raise ValueError(f"{path} is already a built model; build takes a mesh")
+        raise FileNotFoundError(f"{path}: no such file (or use {SOURCE_HELP})")
+    if is_model_file(path):
+        raise ValueError(f"{path} is already a built model; build takes a mesh")
     try:
         stream = open_triangles(path)
     except MeshError:
@@ -162,10 +139,10 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
 
         def streamed() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
             for part in stream.chunks(chunk):
-                yield part.corners, part.colors
+                yield part.corners, part.colours
 
         return _Input(
-            path.stem, stream.has_colors, stream.triangle_count, streamed, True, stream.vertex_bounds
+            path.stem, stream.has_colours, stream.triangle_count, streamed, True, stream.vertex_bounds
         )
 
     from vastray.ingest import load_mesh
@@ -175,12 +152,12 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
     def loaded() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
         for first in range(0, mesh.triangle_count, chunk):
             faces = mesh.faces[first : first + chunk]
-            colours = None if mesh.face_colors is None else mesh.face_colors[first : first + chunk]
+            colours = None if mesh.face_colours is None else mesh.face_colours[first : first + chunk]
             yield mesh.vertices[faces], colours
 
     return _Input(
         path.stem,
-        mesh.face_colors is not None,
+        mesh.face_colours is not None,
         mesh.triangle_count,
         loaded,
         True,

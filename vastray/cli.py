@@ -41,9 +41,9 @@ def _print_render(camera: Any, shading: str, s: dict[str, Any]) -> None:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from vastray.render import is_built_model
+    from vastray.sources import is_model_file
 
-    if is_built_model(args.model):
+    if is_model_file(args.model):
         return _render_built(args)
     return _render_in_core(args)
 
@@ -52,10 +52,10 @@ def _render_built(args: argparse.Namespace) -> int:
     """A built model through the block cache: rendered until complete at --poe."""
     from PIL import Image
 
-    from vastray.build import parse_memory
     from vastray.outofcore import OutOfCoreModel, make_cache
+    from vastray.units import parse_bytes
 
-    cache = make_cache(parse_memory(args.cache), args.fetchers)
+    cache = make_cache(parse_bytes(args.cache, "cache budget"), args.fetchers)
     with OutOfCoreModel(args.model, cache) as model:
         print(
             f"model      {model.name}: {model.triangle_count:,} triangles, {model.block_count:,} blocks "
@@ -176,11 +176,11 @@ def _cmd_build(args: argparse.Namespace) -> int:
         BuildCancelledError,
         BuildOptions,
         build_model,
-        parse_memory,
     )
+    from vastray.units import parse_bytes
 
     options = BuildOptions(
-        memory=parse_memory(args.memory),
+        memory=parse_bytes(args.memory, "memory budget"),
         threads=args.threads,
         overwrite=args.force,
         scratch_dir=args.scratch_dir,

@@ -4,7 +4,7 @@ Triangle ids follow the file: nothing is merged, reordered or repaired on the wa
 (``process=False``; OBJ additionally keeps its ``v`` numbering, so vertex ``i`` in an
 error message is line ``i`` of the file's vertex list, counting from 0).
 
-Colours: a mesh gets ``face_colors`` only when the file states colours.
+Colours: a mesh gets ``face_colours`` only when the file states colours.
 - explicit per-face colours are kept as they are (RGB; alpha is dropped);
 - per-vertex colours are averaged over each triangle's three corners, because the
   renderer shades per triangle and a mean is the least surprising single value;
@@ -45,7 +45,7 @@ SUPPORTED_EXTENSIONS: dict[str, str] = {
 _WHITE = np.array([255, 255, 255], dtype=np.uint8)
 
 
-def _material_color(material: object) -> np.ndarray | None:
+def _material_colour(material: object) -> np.ndarray | None:
     if isinstance(material, trimesh.visual.material.PBRMaterial):
         if material.baseColorTexture is not None or material.baseColorFactor is None:
             return None
@@ -60,7 +60,7 @@ def _material_color(material: object) -> np.ndarray | None:
     return None
 
 
-def _part_colors(geometry: trimesh.Trimesh) -> np.ndarray | None:
+def _part_colours(geometry: trimesh.Trimesh) -> np.ndarray | None:
     """Per-face RGB colours the file really states for one part, else None."""
     visual = geometry.visual
     n_faces = len(geometry.faces)
@@ -75,10 +75,10 @@ def _part_colors(geometry: trimesh.Trimesh) -> np.ndarray | None:
             return np.clip(np.rint(mean), 0, 255).astype(np.uint8)
         return None
     if isinstance(visual, trimesh.visual.TextureVisuals):
-        color = _material_color(visual.material)
-        if color is None:
+        colour = _material_colour(visual.material)
+        if colour is None:
             return None
-        return np.tile(color, (n_faces, 1))
+        return np.tile(colour, (n_faces, 1))
     return None
 
 
@@ -107,7 +107,7 @@ def _to_mesh(loaded: object, name: str) -> Mesh:
         # Point clouds and line drawings have no triangles: report them as empty.
         parts = []
 
-    vertices, faces, colors = [], [], []
+    vertices, faces, colours = [], [], []
     offset = 0
     for geometry, transform in parts:
         v = np.asarray(geometry.vertices, dtype=np.float64)
@@ -116,20 +116,23 @@ def _to_mesh(loaded: object, name: str) -> Mesh:
             v = v @ transform[:3, :3].T + transform[:3, 3]
         vertices.append(v)
         faces.append(f + offset)
-        colors.append(_part_colors(geometry))
+        colours.append(_part_colours(geometry))
         offset += v.shape[0]
 
     if not parts:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.uint32), None, name)
-    face_colors = None
-    if any(c is not None for c in colors):
-        face_colors = np.concatenate(
-            [c if c is not None else np.tile(_WHITE, (len(f), 1)) for c, f in zip(colors, faces, strict=True)]
+    face_colours = None
+    if any(c is not None for c in colours):
+        face_colours = np.concatenate(
+            [
+                c if c is not None else np.tile(_WHITE, (len(f), 1))
+                for c, f in zip(colours, faces, strict=True)
+            ]
         )
     return Mesh(
         vertices=np.concatenate(vertices).reshape(-1, 3),
         faces=np.concatenate(faces).reshape(-1, 3),
-        face_colors=face_colors,
+        face_colours=face_colours,
         name=name,
     )
 

@@ -36,7 +36,7 @@ class Mesh:
 
     vertices: np.ndarray  # (V, 3) float64
     faces: np.ndarray  # (F, 3) uint32
-    face_colors: np.ndarray | None  # (F, 3) uint8, or None when the input has none
+    face_colours: np.ndarray | None  # (F, 3) uint8, or None when the input has none
     name: str
 
     @property
@@ -74,7 +74,7 @@ def validate(mesh: Mesh, source: str) -> Mesh:
     Raises MeshError for non-finite coordinates (naming the first bad vertex), for a mesh
     without triangles, for bad shapes and for face indices out of range. Drops triangles
     whose area is exactly zero in float64 (including repeated indices), keeps
-    ``face_colors`` aligned, and warns with DegenerateTrianglesWarning giving the count.
+    ``face_colours`` aligned, and warns with DegenerateTrianglesWarning giving the count.
     """
     vertices = np.asarray(mesh.vertices)
     faces = np.asarray(mesh.faces)
@@ -106,14 +106,14 @@ def validate(mesh: Mesh, source: str) -> Mesh:
         )
     faces = faces.astype(np.uint32, copy=False)
 
-    colors = mesh.face_colors
-    if colors is not None:
-        colors = np.asarray(colors)
-        if colors.shape != (faces.shape[0], 3):
+    colours = mesh.face_colours
+    if colours is not None:
+        colours = np.asarray(colours)
+        if colours.shape != (faces.shape[0], 3):
             raise MeshError(
-                f"{source}: face_colors must have shape ({faces.shape[0]}, 3), got {colors.shape}"
+                f"{source}: face_colours must have shape ({faces.shape[0]}, 3), got {colours.shape}"
             )
-        colors = colors.astype(np.uint8, copy=False)
+        colours = colours.astype(np.uint8, copy=False)
 
     keep = _nonzero_area(vertices, faces)
     dropped = int(keep.size - np.count_nonzero(keep))
@@ -121,12 +121,12 @@ def validate(mesh: Mesh, source: str) -> Mesh:
         if dropped == keep.size:
             raise MeshError(f"{source}: all {dropped} triangles are degenerate (zero area)")
         faces = faces[keep]
-        if colors is not None:
-            colors = colors[keep]
+        if colours is not None:
+            colours = colours[keep]
         # stacklevel 2 points at whoever asked for validation, which is the useful place.
         warnings.warn(
             f"{source}: dropped {dropped} degenerate triangles",
             DegenerateTrianglesWarning,
             stacklevel=2,
         )
-    return Mesh(vertices=vertices, faces=faces, face_colors=colors, name=mesh.name)
+    return Mesh(vertices=vertices, faces=faces, face_colours=colours, name=mesh.name)

@@ -19,15 +19,18 @@ from typing import Any, BinaryIO
 
 from vastray import native
 
-MAGIC = b"VASTRAY\x1a"  # \x1a stops `type`/`cat` from dumping binary on a terminal
-VERSION = 1
-HEADER_SIZE = 256
-BLOCK_SIZE = 65536
-CODEC_STORED = 0  # raw bytes (compression would not have saved space)
-CODEC_LZ4 = 1  # LZ4 block format, no frame
-FLAG_COLOURS = 1 << 0
-FLAG_TRIANGLE_IDS = 1 << 1
-FLAG_PART_IDS = 1 << 2  # reserved: no input reader keeps part ids yet
+# The format's constants have one home, native/include/vastray/format.h.
+_F = native.FORMAT
+MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
+VERSION: int = _F["version"]
+HEADER_SIZE: int = _F["header_size"]
+BLOCK_SIZE: int = _F["block_size"]
+CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
+CODEC_LZ4: int = _F["codec_lz4"]  # LZ4 block format, no frame
+CODEC_FAMILY_LZ4: int = _F["codec_family_lz4"]
+FLAG_COLOURS: int = _F["flag_colours"]
+FLAG_TRIANGLE_IDS: int = _F["flag_triangle_ids"]
+FLAG_PART_IDS: int = _F["flag_part_ids"]  # reserved: no input reader keeps part ids yet
 
 # Header fields in file order; the struct format is derived from this table so the two
 # cannot drift apart. (name, struct code)
@@ -60,12 +63,13 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
     ("header_crc32", "I"),
 )
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
-assert _HEADER_STRUCT.size <= HEADER_SIZE
 _HEADER_CRC_AT = _HEADER_STRUCT.size - 4
+assert _HEADER_STRUCT.size <= HEADER_SIZE and _HEADER_CRC_AT == _F["header_crc_at"]
 # first block, block count, then what the level holds: node levels count their nodes
 # and LOD voxels, the triangle level its triangle records and vertices.
 _LEVEL = struct.Struct("<IIQQ")
 _ENTRY = struct.Struct("<QIIII")  # offset, stored size, raw size, crc32 of stored bytes, codec
+assert _LEVEL.size == _F["level_record"] and _ENTRY.size == _F["entry_record"]
 
 
 class ModelError(ValueError):
@@ -128,7 +132,7 @@ def write_model_file(
         version=VERSION,
         header_size=HEADER_SIZE,
         block_size=BLOCK_SIZE,
-        codec=CODEC_LZ4,
+        codec=CODEC_FAMILY_LZ4,
         level_count=len(levels),
         block_count=len(entries),
         index_offset=HEADER_SIZE,
@@ -186,7 +190,7 @@ class ModelFile:
             )
         if h["block_size"] != BLOCK_SIZE or h["header_size"] != HEADER_SIZE:
             raise self._fail("unsupported block or header size")
-        if h["codec"] != CODEC_LZ4:
+        if h["codec"] != CODEC_FAMILY_LZ4:
             raise self._fail(f"unsupported block codec family {h['codec']}")
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~(FLAG_COLOURS | FLAG_TRIANGLE_IDS):
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
@@ -240,6 +244,11 @@ class ModelFile:
                 return level
         raise IndexError(f"block {block} out of range (model has {len(self.blocks)})")
 
+    def level_name(self, block: int) -> str:
+        """The numbering `vastray inspect` prints: LOD levels 0.., then the triangle level."""
+        level = self.level_of(block)
+        return "triangle level" if level == len(self.levels) - 1 else f"LOD level {level}"
+
     # -- block access --------------------------------------------------------------------
 
     def read_block(self, block: int) -> bytes:
@@ -253,7 +262,7 @@ class ModelFile:
             raise self._fail(f"block {block} is truncated")
         if zlib.crc32(stored) != e.crc32:
             raise self._fail(
-                f"block {block} (level {self.level_of(block)}) checksum mismatch: the file is corrupted"
+                f"block {block} ({self.level_name(block)}) checksum mismatch: the file is corrupted"
             )
         if e.codec == CODEC_STORED:
             if e.raw_size != e.stored_size:

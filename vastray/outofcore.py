@@ -23,6 +23,7 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.modelfile import ModelError
+from vastray.units import parse_bytes
 
 DEFAULT_CACHE_BUDGET = 1 << 30
 DEFAULT_FETCHERS = 2
@@ -66,9 +67,7 @@ def shared_cache() -> native.BlockCache:
     global _shared
     with _shared_lock:
         if _shared is None:
-            from vastray.build import parse_memory
-
-            budget = parse_memory(os.environ.get("VASTRAY_CACHE", "1G"))
+            budget = parse_bytes(os.environ.get("VASTRAY_CACHE", "1G"), "VASTRAY_CACHE")
             fetchers = int(os.environ.get("VASTRAY_FETCHERS", DEFAULT_FETCHERS))
             _shared = make_cache(budget, fetchers)
         return _shared

@@ -14,14 +14,9 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.mesh import Mesh
+from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 
 SHADING_MODES = ("normal", "headlight", "sun", "ao")
-
-# The built-in demo: a CAD-like plant, big enough to show the renderer, small enough to
-# generate in a couple of seconds on a laptop.
-DEMO_SCENE = "plant"
-DEMO_TRIANGLES = 300_000
-DEMO_SEED = 7
 
 
 @dataclass
@@ -45,7 +40,7 @@ class Frame:
 
 
 def scene_from_mesh(mesh: Mesh, **build_options: Any) -> native.Scene:
-    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colors, **build_options)
+    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colours, **build_options)
 
 
 def resolve_mesh(source: str) -> Mesh:
@@ -53,28 +48,12 @@ def resolve_mesh(source: str) -> Mesh:
     from vastray import scenes
     from vastray.ingest import load_mesh
 
-    if source == "demo":
-        return scenes.to_mesh(DEMO_SCENE, DEMO_TRIANGLES, DEMO_SEED)
-    if source.startswith("scene:"):
-        parts = source.split(":")[1:]
-        name = parts[0]
-        triangles = int(float(parts[1])) if len(parts) > 1 else 100_000
-        seed = int(parts[2]) if len(parts) > 2 else 1
-        return scenes.to_mesh(name, triangles, seed)
+    scene = parse_scene(source)
+    if scene is not None:
+        return scenes.to_mesh(scene.name, scene.triangles, scene.seed)
     if not os.path.exists(source):
-        raise FileNotFoundError(f"{source}: no such file (or use 'demo' / 'scene:NAME:TRIANGLES:SEED')")
+        raise FileNotFoundError(f"{source}: no such file (or use {SOURCE_HELP})")
     return load_mesh(source)
-
-
-def is_built_model(source: str) -> bool:
-    """Whether `source` is a file written by `vastray build` (checked by magic bytes)."""
-    from vastray.modelfile import MAGIC
-
-    try:
-        with open(source, "rb") as f:
-            return f.read(len(MAGIC)) == MAGIC
-    except OSError:
-        return False
 
 
 def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any) -> Model:
@@ -82,7 +61,7 @@ def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **
     detail. `on_phase` hears about each phase as it starts, so a CLI or a job can tell
     the user what the wait is for."""
     start = time.perf_counter()
-    if is_built_model(source):
+    if is_model_file(source):
         from vastray.modelfile import ModelFile
 
         if on_phase is not None:

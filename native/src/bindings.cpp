@@ -8,6 +8,7 @@
 #include <stdexcept>
 
 #include "bindings_common.h"
+#include "vastray/format.h"
 #include "vastray/lz4.h"
 #include "vastray/render.h"
 #include "vastray/scene.h"
@@ -42,7 +43,7 @@ std::vector<double> broadcast(const py::object& value, std::size_t n, const char
 using bindings::to_numpy;
 using bindings::to_vec3;
 
-std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::object colors,
+std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::object colours,
                                   int leaf_size, float traversal_cost, float intersection_cost,
                                   float empty_space_ratio, int bins, int max_depth, unsigned threads) {
     require_shape(vertices, 3, "vertices");
@@ -61,11 +62,11 @@ std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::obj
     }
     ByteArray colour_array;
     const std::uint8_t* colour_ptr = nullptr;
-    if (!colors.is_none()) {
-        colour_array = ByteArray::ensure(colors);
-        if (!colour_array) throw std::invalid_argument("colors must be a uint8 array");
-        require_shape(colour_array, 3, "colors");
-        if (colour_array.shape(0) != faces.shape(0)) throw std::invalid_argument("colors must have one row per face");
+    if (!colours.is_none()) {
+        colour_array = ByteArray::ensure(colours);
+        if (!colour_array) throw std::invalid_argument("colours must be a uint8 array");
+        require_shape(colour_array, 3, "colours");
+        if (colour_array.shape(0) != faces.shape(0)) throw std::invalid_argument("colours must have one row per face");
         colour_ptr = colour_array.data();
     }
     py::gil_scoped_release release;
@@ -194,12 +195,12 @@ PYBIND11_MODULE(native, m) {
     m.def("hardware_threads", &hardware_threads, "Lanes the global thread pool uses");
 
     py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene", "An in-core triangle model with its kd-tree")
-        .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colors") = py::none(),
+        .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colours") = py::none(),
              py::arg("leaf_size") = 2, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("max_depth") = 0,
              py::arg("threads") = 0u)
         .def_property_readonly("triangle_count", &Scene::triangle_count)
-        .def_property_readonly("has_colors", &Scene::has_colors)
+        .def_property_readonly("has_colours", &Scene::has_colours)
         .def_property_readonly("centre", [](const Scene& s) {
             const Vec3d c = s.centre();
             return std::vector<double>{c.x, c.y, c.z};
@@ -223,6 +224,23 @@ PYBIND11_MODULE(native, m) {
 
     bind_model(m);
     bind_cache(m);
+
+    // The file format's constants, for the Python writer and reader (one home: format.h).
+    py::dict fmt;
+    fmt["magic"] = py::bytes(reinterpret_cast<const char*>(format::kMagic), sizeof format::kMagic);
+    fmt["version"] = format::kVersion;
+    fmt["header_size"] = format::kHeaderSize;
+    fmt["header_crc_at"] = format::kHeaderCrcAt;
+    fmt["block_size"] = format::kBlockSize;
+    fmt["codec_stored"] = format::kCodecStored;
+    fmt["codec_lz4"] = format::kCodecLz4;
+    fmt["codec_family_lz4"] = format::kCodecFamilyLz4;
+    fmt["flag_colours"] = format::kFlagColours;
+    fmt["flag_triangle_ids"] = format::kFlagTriangleIds;
+    fmt["flag_part_ids"] = format::kFlagPartIds;
+    fmt["level_record"] = format::kLevelRecord;
+    fmt["entry_record"] = format::kEntryRecord;
+    m.attr("FORMAT") = fmt;
 
     m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),
           "Decode one LZ4 block (block format, no frame) of exactly raw_size bytes; ValueError if corrupt");

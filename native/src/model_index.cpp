@@ -17,12 +17,7 @@ namespace vastray {
 
 namespace {
 
-constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 1;
-constexpr std::size_t kHeaderSize = 256;
-constexpr std::uint32_t kFlagColours = 1u, kFlagTriangleIds = 2u;
-constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
-constexpr std::size_t kHeaderCrcAt = 196;
+using namespace format;
 
 template <typename T>
 T load(const std::uint8_t* p) {
@@ -64,7 +59,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         }
         const auto version = load<std::uint32_t>(h + 8);
         if (version != kVersion) {
-            throw fail("format version " + std::to_string(version) + " is not supported (this vastray reads version 1)");
+            throw fail("format version " + std::to_string(version) + " is not supported (this vastray reads version " + std::to_string(kVersion) + ")");
         }
         std::uint8_t zeroed[kHeaderSize];
         std::memcpy(zeroed, h, kHeaderSize);
@@ -74,10 +69,10 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         }
         file_size_ = load<std::uint64_t>(h + 184);
         if (file_size_ != size) throw fail("file size differs from its header (truncated or appended to)");
-        if (load<std::uint32_t>(h + 12) != kHeaderSize || load<std::uint32_t>(h + 20) != format::kBlockSize) {
+        if (load<std::uint32_t>(h + 12) != kHeaderSize || load<std::uint32_t>(h + 20) != kBlockSize) {
             throw fail("unsupported block or header size");
         }
-        if (load<std::uint32_t>(h + 24) != 1) throw fail("unsupported block codec family");
+        if (load<std::uint32_t>(h + 24) != kCodecFamilyLz4) throw fail("unsupported block codec family");
         const auto flags = load<std::uint32_t>(h + 16);
         if (!(flags & kFlagTriangleIds) || (flags & ~(kFlagColours | kFlagTriangleIds))) {
             throw fail("unsupported attribute flags");
@@ -121,8 +116,8 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
             b.raw_size = load<std::uint32_t>(e + 12);
             b.crc32 = load<std::uint32_t>(e + 16);
             b.codec = load<std::uint32_t>(e + 20);
-            if (b.offset < data_offset || b.offset + b.stored_size > size || b.raw_size > format::kBlockSize ||
-                b.stored_size > format::kBlockSize + format::kBlockSize / 255 + 16) {
+            if (b.offset < data_offset || b.offset + b.stored_size > size || b.raw_size > kBlockSize ||
+                b.stored_size > kBlockSize + kBlockSize / 255 + 16) {
                 throw fail("block " + std::to_string(i) + " lies outside the file or is oversized");
             }
         }
@@ -141,17 +136,24 @@ std::size_t ModelIndex::level_of(std::size_t block) const {
     return static_cast<std::size_t>(it - level_first_.begin()) - 1;
 }
 
+std::string ModelIndex::level_name(std::size_t block) const {
+    // The numbering `vastray inspect` prints: LOD levels 0.., then the triangle level.
+    const std::size_t level = level_of(block);
+    if (level + 1 == level_count()) return "triangle level";
+    return "LOD level " + std::to_string(level);
+}
+
 std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const {
     const BlockEntry& e = entries_[block];
     // Only failures pay for naming the block.
     auto fail = [&](const std::string& what) {
-        return "block " + std::to_string(block) + " (level " + std::to_string(level_of(block)) + "): " + what;
+        return "block " + std::to_string(block) + " (" + level_name(block) + "): " + what;
     };
-    if (e.codec != 0 && e.codec != 1) return fail("unknown codec " + std::to_string(e.codec));
-    if (e.codec == 0 && e.stored_size != e.raw_size) return fail("stored block size differs from its raw size");
+    if (e.codec != kCodecStored && e.codec != kCodecLz4) return fail("unknown codec " + std::to_string(e.codec));
+    if (e.codec == kCodecStored && e.stored_size != e.raw_size) return fail("stored block size differs from its raw size");
     // A stored block is read straight into its destination; a compressed one via scratch.
     std::uint8_t* stored = out;
-    if (e.codec == 1) {
+    if (e.codec == kCodecLz4) {
         scratch.resize(e.stored_size);
         stored = scratch.data();
     }
@@ -160,7 +162,7 @@ std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::ve
         return fail(std::string("read failed: ") + std::strerror(error));
     }
     if (crc32(stored, e.stored_size) != e.crc32) return fail("checksum mismatch (the block is corrupted)");
-    if (e.codec == 0) return {};
+    if (e.codec == kCodecStored) return {};
     const Lz4Status status = lz4_decompress_block(stored, e.stored_size, out, e.raw_size);
     if (status != Lz4Status::Ok) return fail(std::string("LZ4 data is corrupted (") + lz4_status_message(status) + ")");
     return {};

@@ -136,8 +136,8 @@ private:
     }
 
     Vec3f base_colour(std::uint32_t prim) const {
-        if (!scene_.has_colors()) return default_colour();
-        const std::uint8_t* c = scene_.color(prim);
+        if (!scene_.has_colours()) return default_colour();
+        const std::uint8_t* c = scene_.colour(prim);
         return Vec3f(c[0], c[1], c[2]) * (1.0f / 255.0f);
     }
 

@@ -8,7 +8,7 @@
 namespace vastray {
 
 Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
-             std::size_t face_count, const std::uint8_t* colors, const KdBuildParams& params) {
+             std::size_t face_count, const std::uint8_t* colours, const KdBuildParams& params) {
     if (face_count == 0) throw std::invalid_argument("scene has no triangles");
     Vec3d lo(std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
              std::numeric_limits<double>::infinity());
@@ -32,12 +32,12 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
             tri_vertices_[3 * f + static_cast<std::size_t>(k)] = Vec3f(p - centre_);
         }
     }
-    if (colors != nullptr) colors_.assign(colors, colors + 3 * face_count);
+    if (colours != nullptr) colours_.assign(colours, colours + 3 * face_count);
     tree_ = build_kdtree(TriangleSoup{tri_vertices_.data(), face_count}, params);
 }
 
 std::size_t Scene::memory_bytes() const {
-    return tri_vertices_.size() * sizeof(Vec3f) + colors_.size() + tree_.memory_bytes();
+    return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + tree_.memory_bytes();
 }
 
 Ray Scene::to_local(const WorldRay& r) const {

@@ -1,6 +1,6 @@
 """Procedural test scenes, deterministic by seed, from 10^3 to 10^8+ triangles.
 
-A scene is generated as an iterator of chunks ``(vertices, faces, face_colors)``:
+A scene is generated as an iterator of chunks ``(vertices, faces, face_colours)``:
 vertices float64 (k, 3), faces uint32 (m, 3) indexing that chunk's vertices, colours
 uint8 (m, 3) or None; no chunk has more than ``CHUNK_TRIANGLES`` triangles, so memory
 stays bounded whatever the size. ``write_scene`` streams chunks to a binary PLY or STL.
@@ -45,7 +45,7 @@ MAX_TRIANGLES = 2_000_000_000  # a PLY/STL triangle count must fit in 32 bits
 class SceneSpec:
     name: str
     description: str
-    colored: bool
+    coloured: bool
     generator: Callable[[int, int], Iterator[Chunk]]
 
 
@@ -94,27 +94,27 @@ def generate(name: str, triangles: int, seed: int) -> Iterator[Chunk]:
 
 def _checked(spec: SceneSpec, triangles: int, seed: int) -> Iterator[Chunk]:
     # Guards the chunk contract that the writers and the native build rely on.
-    for vertices, faces, colors in spec.generator(triangles, seed):
+    for vertices, faces, colours in spec.generator(triangles, seed):
         if faces.shape[0] > CHUNK_TRIANGLES or faces.dtype != np.uint32:
             raise RuntimeError(f"scene {spec.name} broke the chunk contract")
-        if (colors is not None) != spec.colored:
+        if (colours is not None) != spec.coloured:
             raise RuntimeError(f"scene {spec.name} changed whether it has colours")
-        yield vertices, faces, colors
+        yield vertices, faces, colours
 
 
 def to_mesh(name: str, triangles: int, seed: int) -> Mesh:
     """The whole scene as one validated Mesh; for small scenes and tests."""
-    vertices, faces, colors = [], [], []
+    vertices, faces, colours = [], [], []
     offset = 0
     for v, f, c in generate(name, triangles, seed):
         vertices.append(v)
         faces.append(f.astype(np.int64) + offset)
-        colors.append(c)
+        colours.append(c)
         offset += v.shape[0]
     mesh = Mesh(
         vertices=np.concatenate(vertices),
         faces=np.concatenate(faces).astype(np.uint32),
-        face_colors=None if colors[0] is None else np.concatenate(colors),
+        face_colours=None if colours[0] is None else np.concatenate(colours),
         name=f"{name}-{triangles}-s{seed}",
     )
     return validate(mesh, mesh.name)
@@ -125,7 +125,7 @@ def to_mesh(name: str, triangles: int, seed: int) -> Mesh:
 _PLY_HEADER_BYTES = 512
 
 
-def _ply_header(name: str, seed: int, vertices: int, faces: int, colored: bool) -> bytes:
+def _ply_header(name: str, seed: int, vertices: int, faces: int, coloured: bool) -> bytes:
     lines = [
         "ply",
         "format binary_little_endian 1.0",
@@ -138,7 +138,7 @@ def _ply_header(name: str, seed: int, vertices: int, faces: int, colored: bool) 
         f"element face {faces}",
         "property list uchar uint vertex_indices",
     ]
-    if colored:
+    if coloured:
         lines += ["property uchar red", "property uchar green", "property uchar blue"]
     lines.append("end_header")
     text = "\n".join(lines) + "\n"
@@ -148,12 +148,12 @@ def _ply_header(name: str, seed: int, vertices: int, faces: int, colored: bool) 
     return text.replace("PADDING", "comment" + " " * (pad - len("comment"))).encode("ascii")
 
 
-def _face_dtype(colored: bool) -> np.dtype:
+def _face_dtype(coloured: bool) -> np.dtype:
     fields: list[tuple[str, str] | tuple[str, str, tuple[int, ...]]] = [
         ("n", "u1"),
         ("v", "<u4", (3,)),
     ]
-    if colored:
+    if coloured:
         fields.append(("rgb", "u1", (3,)))
     return np.dtype(fields)
 
@@ -171,16 +171,16 @@ def _write_ply(
 ) -> tuple[int, int]:
     out.write(b"\0" * _PLY_HEADER_BYTES)
     n_vertices = n_faces = 0
-    dtype = _face_dtype(spec.colored)
+    dtype = _face_dtype(spec.coloured)
     # PLY wants every vertex before any face, so faces wait in a side file.
     with tempfile.TemporaryFile(dir=workdir) as face_file:
-        for vertices, faces, colors in chunks:
+        for vertices, faces, colours in chunks:
             out.write(np.ascontiguousarray(vertices, dtype="<f4").tobytes())
             records = np.empty(faces.shape[0], dtype=dtype)
             records["n"] = 3
             records["v"] = faces.astype(np.int64) + n_vertices
-            if colors is not None:
-                records["rgb"] = colors
+            if colours is not None:
+                records["rgb"] = colours
             face_file.write(records.tobytes())
             n_vertices += vertices.shape[0]
             n_faces += faces.shape[0]
@@ -191,7 +191,7 @@ def _write_ply(
         face_file.seek(0)
         shutil.copyfileobj(face_file, out, 1 << 24)
     out.seek(0)
-    out.write(_ply_header(spec.name, seed, n_vertices, n_faces, spec.colored))
+    out.write(_ply_header(spec.name, seed, n_vertices, n_faces, spec.coloured))
     return n_faces, n_vertices
 
 

@@ -38,10 +38,10 @@ CHUNK_TRIANGLES = 1 << 20
 class ChunkBuffer:
     """Collects parts and hands them out as chunks of at most ``limit`` triangles."""
 
-    def __init__(self, limit: int | None = None, colored: bool = True) -> None:
+    def __init__(self, limit: int | None = None, coloured: bool = True) -> None:
         # Read at construction, not import, so tests can shrink the module constant.
         self.limit = CHUNK_TRIANGLES if limit is None else limit
-        self.colored = colored
+        self.coloured = coloured
         self._parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         self._triangles = 0
 
@@ -49,12 +49,12 @@ class ChunkBuffer:
     def triangles(self) -> int:
         return self._triangles
 
-    def add(self, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> None:
+    def add(self, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None) -> None:
         if faces.shape[0] == 0:
             return
-        if self.colored != (colors is not None):
+        if self.coloured != (colours is not None):
             raise ValueError("a scene's parts must all have colours or all have none")
-        self._parts.append((vertices, faces, colors))
+        self._parts.append((vertices, faces, colours))
         self._triangles += faces.shape[0]
 
     def full(self) -> bool:
@@ -71,9 +71,9 @@ class ChunkBuffer:
                 count += part[1].shape[0]
             if not taken:
                 # One part larger than a chunk: split it by faces.
-                vertices, faces, colors = self._parts.pop(0)
-                hc = None if colors is None else colors[: self.limit]
-                tc = None if colors is None else colors[self.limit :]
+                vertices, faces, colours = self._parts.pop(0)
+                hc = None if colours is None else colours[: self.limit]
+                tc = None if colours is None else colours[self.limit :]
                 self._parts.insert(0, (*_compact(vertices, faces[self.limit :]), tc))
                 taken.append((*_compact(vertices, faces[: self.limit]), hc))
                 count = taken[0][1].shape[0]
@@ -96,25 +96,25 @@ def _concat(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]) -> Ch
         offset += v.shape[0]
     if offset >= 2**32:
         raise OverflowError("chunk has too many vertices for uint32 indices")
-    colors = None
+    colours = None
     if parts[0][2] is not None:
-        colors = np.concatenate([c for _, _, c in parts]).astype(np.uint8, copy=False)
+        colours = np.concatenate([c for _, _, c in parts]).astype(np.uint8, copy=False)
     return (
         np.concatenate(vertices).astype(np.float64, copy=False),
         np.concatenate(faces).astype(np.uint32),
-        colors,
+        colours,
     )
 
 
 def drop_degenerate(
-    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None
+    vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Remove zero-area triangles, so generated scenes pass ``validate`` silently."""
     a = vertices[faces[:, 0]]
     keep = np.cross(vertices[faces[:, 1]] - a, vertices[faces[:, 2]] - a).any(axis=1)
     if keep.all():
-        return faces, colors
-    return faces[keep], None if colors is None else colors[keep]
+        return faces, colours
+    return faces[keep], None if colours is None else colours[keep]
 
 
 def _ring_faces(n_rings: int, m: int) -> np.ndarray:

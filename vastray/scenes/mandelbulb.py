@@ -316,9 +316,9 @@ def _march(grid: _Grid, bricks: np.ndarray, palette: np.ndarray) -> tuple[np.nda
     pos_in_palette = shade * (palette.shape[0] - 1)
     lo = np.floor(pos_in_palette).astype(np.int64).clip(0, palette.shape[0] - 2)
     w = (pos_in_palette - lo)[:, None]
-    colors = np.rint(palette[lo] * (1 - w) + palette[lo + 1] * w).astype(np.uint8)
-    faces, colors = drop_degenerate(vertices, faces, colors)
-    return vertices, faces.astype(np.uint32), colors
+    colours = np.rint(palette[lo] * (1 - w) + palette[lo + 1] * w).astype(np.uint8)
+    faces, colours = drop_degenerate(vertices, faces, colours)
+    return vertices, faces.astype(np.uint32), colours
 
 
 _PALETTES = (
@@ -412,9 +412,9 @@ def mandelbulb(triangles: int, seed: int) -> Iterator[Chunk]:
     while start < bricks.shape[0]:
         take = int(np.clip(_BATCH_TRIANGLES / per_brick, 16, 1024))
         batch = bricks[start : start + take]
-        vertices, faces, colors = _march(grid, batch, palette)
+        vertices, faces, colours = _march(grid, batch, palette)
         per_brick = max(faces.shape[0] / batch.shape[0], 1.0)
-        out.add(vertices, faces, colors)
+        out.add(vertices, faces, colours)
         start += batch.shape[0]
         yield from out.drain()
     yield from out.drain(final=True)

@@ -82,22 +82,22 @@ class _Parts:
         self.triangles = 0
 
     def cylinder(
-        self, p0: Vec, p1: Vec, r: float, color: RGB, m: int | None = None, caps: bool = False
+        self, p0: Vec, p1: Vec, r: float, colour: RGB, m: int | None = None, caps: bool = False
     ) -> None:
         m = self.m if m is None else m
-        self.cyl[(m, caps)].append((p0, p1, r, color))
+        self.cyl[(m, caps)].append((p0, p1, r, colour))
         self.triangles += 2 * m + (2 * (m - 2) if caps else 0)
 
     def elbow(
-        self, c: Vec, e1: Vec, e2: Vec, bend: float, r: float, color: RGB, m: int | None = None
+        self, c: Vec, e1: Vec, e2: Vec, bend: float, r: float, colour: RGB, m: int | None = None
     ) -> None:
         m = self.m if m is None else m
         k = max(2, m // 2)  # sections per quarter bend, so bends look as round as pipes
-        self.elb[(m, k)].append((c, e1, e2, bend, r, color))
+        self.elb[(m, k)].append((c, e1, e2, bend, r, colour))
         self.triangles += 2 * m * k
 
-    def cuboid(self, lo: Vec, hi: Vec, color: RGB) -> None:
-        self.box.append((lo, hi, color))
+    def cuboid(self, lo: Vec, hi: Vec, colour: RGB) -> None:
+        self.box.append((lo, hi, colour))
         self.triangles += 12
 
     def merge(self, other: _Parts) -> None:
@@ -109,14 +109,14 @@ class _Parts:
         self.triangles += other.triangles
 
     def build(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        verts, faces, colors = [], [], []
+        verts, faces, colours = [], [], []
         offset = 0
 
         def put(v: np.ndarray, f: np.ndarray, rgb: np.ndarray, per: int) -> None:
             nonlocal offset
             verts.append(v)
             faces.append(f + offset)
-            colors.append(np.repeat(np.asarray(rgb, dtype=np.uint8), per, axis=0))
+            colours.append(np.repeat(np.asarray(rgb, dtype=np.uint8), per, axis=0))
             offset += v.shape[0]
 
         for (m, caps), items in sorted(self.cyl.items()):
@@ -131,7 +131,7 @@ class _Parts:
             lo, hi, rgb = (np.array(x) for x in zip(*self.box, strict=True))
             v, f = boxes(lo, hi)
             put(v, f, rgb, 12)
-        return np.concatenate(verts), np.concatenate(faces), np.concatenate(colors)
+        return np.concatenate(verts), np.concatenate(faces), np.concatenate(colours)
 
 
 class _Module:
@@ -308,17 +308,19 @@ class _Module:
                 break
         return corners
 
-    def _flange(self, parts: _Parts, at: np.ndarray, d: np.ndarray, r: float, color: RGB, pair: bool) -> None:
+    def _flange(
+        self, parts: _Parts, at: np.ndarray, d: np.ndarray, r: float, colour: RGB, pair: bool
+    ) -> None:
         """Flange(s) centred on ``at`` along unit ``d``; a pair is two faces bolted together."""
         rf = min(1.8 * r + 0.02, 0.46)
         tf = max(0.35 * r, 0.02)
         span = 2 * tf if pair else tf
         a, b = at - d * span / 2, at + d * span / 2
         if pair:
-            parts.cylinder(a, at, rf, color, caps=True)
-            parts.cylinder(at, b, rf, color, caps=True)
+            parts.cylinder(a, at, rf, colour, caps=True)
+            parts.cylinder(at, b, rf, colour, caps=True)
         else:
-            parts.cylinder(a, b, rf, color, caps=True)
+            parts.cylinder(a, b, rf, colour, caps=True)
         n_bolts = 4 if r < 0.13 else 8
         axis = int(np.argmax(np.abs(d)))
         u, v = _UNIT[(axis + 1) % 3], _UNIT[(axis + 2) % 3]
@@ -329,12 +331,12 @@ class _Module:
             c = (math.cos(ang) * u + math.sin(ang) * v) * pitch
             parts.cylinder(a + c - d * 0.4 * tf, b + c + d * 0.4 * tf, rb, _BOLT, 6, True)
 
-    def _valve(self, parts: _Parts, at: np.ndarray, d: np.ndarray, r: float, color: RGB) -> None:
+    def _valve(self, parts: _Parts, at: np.ndarray, d: np.ndarray, r: float, colour: RGB) -> None:
         axis = int(np.argmax(np.abs(d)))
         stem = _UNIT[1] if axis != 1 else _UNIT[0]
         body = np.full(3, 1.3 * r + 0.02)
         body[axis] = 1.8 * r + 0.04
-        parts.cuboid(at - body, at + body, color)
+        parts.cuboid(at - body, at + body, colour)
         top = at + stem * (3.0 * r + 0.15)
         parts.cylinder(at + stem * body.min(), top, max(0.12 * r, 0.008), _BOLT, 6, True)
         wheel, rim = 1.6 * r + 0.05, max(0.12 * r, 0.008)
@@ -354,7 +356,7 @@ class _Module:
         r = float(rng.choice(_RADII, p=_RADII_P))
         system = _SYSTEMS[rng.integers(len(_SYSTEMS))]
         red, green, blue = (int(c) for c in np.clip(system * rng.uniform(0.85, 1.1), 0, 255))
-        color: RGB = (red, green, blue)
+        colour: RGB = (red, green, blue)
         dark: RGB = (int(red * 0.62), int(green * 0.62), int(blue * 0.62))
         bend = min(3.0 * r, 0.45 * _STEP)
         pts = [self.world(c) for c in corners]
@@ -373,13 +375,13 @@ class _Module:
                 self._valve(parts, fitting, d, r, dark)
             elif fitting is not None:
                 self._flange(parts, fitting, d, r, dark, pair=True)
-            parts.cylinder(start, end, r, color)
+            parts.cylinder(start, end, r, colour)
             if abs(d[1]) < 0.5:
                 runs.append((start, end, r))
         for s in range(1, len(pts) - 1):
             d_in, d_out = dirs[s - 1], dirs[s]
             centre = pts[s] - d_in * bend + d_out * bend
-            parts.elbow(centre, -d_out, d_in, bend, r, color)
+            parts.elbow(centre, -d_out, d_in, bend, r, colour)
         tf = max(0.35 * r, 0.02)
         self._flange(parts, pts[0] + dirs[0] * tf / 2, dirs[0], r, dark, pair=False)
         self._flange(parts, pts[-1] - dirs[-1] * tf / 2, dirs[-1], r, dark, pair=False)

@@ -18,7 +18,7 @@ __all__ = ["spheres"]
 
 _SPACING = 4.0  # grid pitch; radii stay below half of it so spheres never touch
 _R_MIN, _R_MAX = 0.4, 1.6
-_GROUND_COLORS = np.array([[205, 205, 200], [150, 150, 145]], dtype=np.uint8)
+_GROUND_COLOURS = np.array([[205, 205, 200], [150, 150, 145]], dtype=np.uint8)
 
 
 def _tessellation(target: int) -> tuple[int, int]:
@@ -46,7 +46,7 @@ def spheres(triangles: int, seed: int) -> Iterator[Chunk]:
         ],
         axis=1,
     )
-    colors = hsv_to_rgb(rng.random(n), rng.uniform(0.55, 0.95, n), rng.uniform(0.7, 1.0, n))
+    colours = hsv_to_rgb(rng.random(n), rng.uniform(0.55, 0.95, n), rng.uniform(0.7, 1.0, n))
 
     out = ChunkBuffer()
     # Ground: one square tile (two triangles) per grid cell, alternating shades.
@@ -65,7 +65,7 @@ def spheres(triangles: int, seed: int) -> Iterator[Chunk]:
     base = (np.arange(grid * grid) * 4)[:, None]
     tiles = np.concatenate([base + np.array([0, 1, 2]), base + np.array([0, 2, 3])], axis=1)
     tiles = tiles.reshape(-1, 3)
-    shade = _GROUND_COLORS[(gi.ravel() + gj.ravel()) % 2]
+    shade = _GROUND_COLOURS[(gi.ravel() + gj.ravel()) % 2]
     out.add(quad, tiles, np.repeat(shade, 2, axis=0))
 
     # Each sphere aims at the ideal cumulative count so rounding errors do not add up.
@@ -75,7 +75,7 @@ def spheres(triangles: int, seed: int) -> Iterator[Chunk]:
         # Nearly every sphere has its own tessellation, so templates are not cached
         # (a cache would grow with the sphere count).
         unit, faces = uv_sphere(*_tessellation(round(budget * weights[i]) - made))
-        out.add(unit * radii[i] + centers[i], faces, np.tile(colors[i], (faces.shape[0], 1)))
+        out.add(unit * radii[i] + centers[i], faces, np.tile(colours[i], (faces.shape[0], 1)))
         made += faces.shape[0]
         yield from out.drain()
     yield from out.drain(final=True)

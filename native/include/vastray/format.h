@@ -21,6 +21,20 @@ namespace vastray::format {
 constexpr std::size_t kBlockSize = 64 * 1024;
 constexpr int kTreeletHeight = 3;
 
+// ---- the file: header and block index (docs/FORMAT.md §2-3) ---------------------------
+// The Python writer (vastray/modelfile.py) takes these values from the native module,
+// so the reader and the writer cannot disagree.
+constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
+constexpr std::uint32_t kVersion = 1;
+constexpr std::size_t kHeaderSize = 256;
+constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
+constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
+constexpr std::uint32_t kCodecFamilyLz4 = 1;  // the header's codec field
+constexpr std::uint32_t kFlagColours = 1u << 0;
+constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
+constexpr std::uint32_t kFlagPartIds = 1u << 2;  // reserved: no reader keeps part ids yet
+constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
+
 // ---- node word 0 ---------------------------------------------------------------------
 // inner nodes (bit 31 set):  bits 0-1 split axis, bit 2 left child empty, bit 3 right
 //                            child empty, bit 30 LOD node; word 1 split position (f32).

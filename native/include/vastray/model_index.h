@@ -38,6 +38,7 @@ public:
     const std::vector<std::uint32_t>& level_first() const { return level_first_; }
     const BlockEntry& entry(std::size_t block) const { return entries_[block]; }
     std::size_t level_of(std::size_t block) const;
+    std::string level_name(std::size_t block) const;  // "LOD level 3" or "triangle level"
 
     // Reads, checks and decodes block `block` into `out` (at least raw_size bytes), using
     // `scratch` for the stored bytes. Safe to call from several threads at once (pread).

@@ -17,22 +17,22 @@ struct WorldRay {
 
 class Scene {
 public:
-    // vertices: (V,3) double world coordinates; faces: (F,3) indices; colors: (F,3) RGB8 or null.
+    // vertices: (V,3) double world coordinates; faces: (F,3) indices; colours: (F,3) RGB8 or null.
     Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
-          std::size_t face_count, const std::uint8_t* colors, const KdBuildParams& params);
+          std::size_t face_count, const std::uint8_t* colours, const KdBuildParams& params);
 
     // A scene whose tree was built elsewhere (decoded from a built model).
-    Scene(const Vec3d& centre, std::vector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colors, KdTree&& tree)
-        : centre_(centre), tri_vertices_(std::move(tri_vertices)), colors_(std::move(colors)), tree_(std::move(tree)) {}
+    Scene(const Vec3d& centre, std::vector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colours, KdTree&& tree)
+        : centre_(centre), tri_vertices_(std::move(tri_vertices)), colours_(std::move(colours)), tree_(std::move(tree)) {}
 
     std::size_t triangle_count() const { return tri_vertices_.size() / 3; }
-    bool has_colors() const { return !colors_.empty(); }
+    bool has_colours() const { return !colours_.empty(); }
     const Vec3d& centre() const { return centre_; }
     Vec3d world_lo() const { return centre_ + Vec3d(tree_.bounds.lo); }
     Vec3d world_hi() const { return centre_ + Vec3d(tree_.bounds.hi); }
     const KdTree& tree() const { return tree_; }
     const Vec3f* tri_vertices() const { return tri_vertices_.data(); }
-    const std::uint8_t* color(std::uint32_t prim) const { return colors_.data() + 3 * static_cast<std::size_t>(prim); }
+    const std::uint8_t* colour(std::uint32_t prim) const { return colours_.data() + 3 * static_cast<std::size_t>(prim); }
     std::size_t memory_bytes() const;
 
     // Converts a world ray to model-local float. The subtraction of the centre happens
@@ -50,7 +50,7 @@ public:
 private:
     Vec3d centre_;
     std::vector<Vec3f> tri_vertices_;  // 3 per triangle, model-local
-    std::vector<std::uint8_t> colors_;
+    std::vector<std::uint8_t> colours_;
     KdTree tree_;
 };
 

@@ -30,7 +30,7 @@ _PLY_TYPES = {
 @dataclass
 class TriangleChunk:
     corners: np.ndarray  # (k, 3, 3) float64: three corners per triangle
-    colors: np.ndarray | None  # (k, 3) uint8 per-face colour, when the file has it
+    colours: np.ndarray | None  # (k, 3) uint8 per-face colour, when the file has it
 
 
 class TriangleSource:
@@ -39,7 +39,7 @@ class TriangleSource:
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
         self.triangle_count = 0
-        self.has_colors = False
+        self.has_colours = False
 
     def chunks(self, size: int = DEFAULT_CHUNK) -> Iterator[TriangleChunk]:
         raise NotImplementedError
@@ -169,7 +169,7 @@ class PlySource(TriangleSource):
         if not {"x", "y", "z"} <= set(names):
             raise MeshError(f"{self.path}: vertex element lacks x, y, z")
         self.triangle_count = self._face[1]
-        self.has_colors = {"red", "green", "blue"} <= set(self._face[2].names or ())
+        self.has_colours = {"red", "green", "blue"} <= set(self._face[2].names or ())
 
     def _element_dtype(self, element: str, props: list[list[str]]) -> np.dtype:
         fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = []
@@ -216,12 +216,12 @@ class PlySource(TriangleSource):
                 )
                 del vertices
                 self._check(corners, first)
-                colors = (
+                colours = (
                     np.stack([np.asarray(block[c], dtype=np.uint8) for c in ("red", "green", "blue")], axis=1)
-                    if self.has_colors
+                    if self.has_colours
                     else None
                 )
-                yield TriangleChunk(corners, colors)
+                yield TriangleChunk(corners, colours)
 
     def vertex_bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         assert self._vertex is not None

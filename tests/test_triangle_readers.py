@@ -11,32 +11,32 @@ import trimesh
 
 from vastray.mesh import MeshError
 from vastray.scenes import write_scene
-from vastray.streaming import open_triangles
+from vastray.triangle_readers import open_triangles
 
 
 def collect(path: Path, size: int) -> tuple[np.ndarray, np.ndarray | None, int]:
     source = open_triangles(path)
     chunks = list(source.chunks(size))
     corners = np.concatenate([c.corners for c in chunks])
-    colors = None if chunks[0].colors is None else np.concatenate([c.colors for c in chunks])
+    colours = None if chunks[0].colours is None else np.concatenate([c.colours for c in chunks])
     assert max(len(c.corners) for c in chunks) <= size
     assert len(corners) == source.triangle_count
-    return corners, colors, len(chunks)
+    return corners, colours, len(chunks)
 
 
 @pytest.mark.parametrize("ext", [".ply", ".stl"])
 def test_scene_files_stream_like_trimesh_loads_them(tmp_path: Path, ext: str) -> None:
     path = tmp_path / f"plant{ext}"
     write_scene("plant", 20_000, 3, path)
-    corners, colors, n_chunks = collect(path, 4096)
+    corners, colours, n_chunks = collect(path, 4096)
     assert n_chunks > 1
     mesh = trimesh.load(path, process=False, force="mesh")
     np.testing.assert_array_equal(corners, np.asarray(mesh.vertices)[np.asarray(mesh.faces)])
     if ext == ".ply":
-        assert colors is not None
-        np.testing.assert_array_equal(colors, np.asarray(mesh.visual.face_colors)[:, :3])
+        assert colours is not None
+        np.testing.assert_array_equal(colours, np.asarray(mesh.visual.face_colors)[:, :3])
     else:
-        assert colors is None
+        assert colours is None
 
 
 def test_big_endian_ply_with_extra_properties(tmp_path: Path) -> None:
@@ -54,9 +54,9 @@ def test_big_endian_ply_with_extra_properties(tmp_path: Path) -> None:
     frec["n"], frec["v"] = 3, faces
     path = tmp_path / "be.ply"
     path.write_bytes(header + vrec.tobytes() + frec.tobytes())
-    corners, colors, _ = collect(path, 16)
+    corners, colours, _ = collect(path, 16)
     np.testing.assert_array_equal(corners, verts[faces])
-    assert colors is None
+    assert colours is None
 
 
 def test_raw_soup_round_trip(tmp_path: Path) -> None:
