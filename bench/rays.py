@@ -65,6 +65,7 @@ from vastray import native  # noqa: E402
 from vastray.camera import frame_bounds  # noqa: E402
 from vastray.ingest import load_mesh  # noqa: E402
 from vastray.mesh import Mesh  # noqa: E402
+from vastray.renderer import trace  # noqa: E402
 
 PROCEDURAL = ("plant", "mandelbulb")
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -297,10 +298,8 @@ def bench_model(
     thread_settings = [("1t", 1), ("nt", all_threads)]
 
     def render(threads: int) -> tuple[float, Any]:
-        frame = scene.render(
-            cam.eye, cam.target, cam.up, cam.fov, cam.width, cam.height, shading="normal", threads=threads
-        )
-        return frame["stats"]["milliseconds"] / 1e3, frame
+        frame = trace(scene, cam, shading="normal", threads=threads)
+        return frame.stats.milliseconds / 1e3, frame
 
     steps: list[tuple[str, Callable[[], tuple[float, Any]]]] = []
     for tag, threads in thread_settings:
@@ -312,11 +311,11 @@ def bench_model(
     last = interleave(args.reps, steps, prim_t, args.min_time)
 
     batch = last["batch_1t"]
-    last_primary_stats = last["render_1t"]["stats"]
+    last_primary_stats = last["render_1t"].stats.as_dict()
     row["primary_runs"] = len(prim_t.runs["batch_1t"].values)
     vprim = np.asarray(batch["prim"], dtype=np.int64)
     hit = vprim >= 0
-    frame_prim = np.asarray(last["render_1t"]["prim"]).reshape(-1).astype(np.int64)
+    frame_prim = np.asarray(last["render_1t"].prim).reshape(-1).astype(np.int64)
     row.update(
         primary_rays=n_primary,
         hit_pct=100.0 * hit.mean(),
@@ -385,17 +384,7 @@ def bench_model(
     )
     # Traversal cost of AO rays as the renderer shoots them (its own sampling, skipping the
     # start triangle): kd-tree node visits and triangle tests per AO ray. Not timed.
-    ao_frame = scene.render(
-        cam.eye,
-        cam.target,
-        cam.up,
-        cam.fov,
-        cam.width,
-        cam.height,
-        shading="ao",
-        ao_samples=args.ao_samples,
-        threads=0,
-    )["stats"]
+    ao_frame = trace(scene, cam, shading="ao", ao_samples=args.ao_samples, threads=0).stats.as_dict()
     primary_stats = last_primary_stats
     secondary = max(1, int(ao_frame["secondary_rays"]))
     row["ao_nodes_per_ray"] = (ao_frame["node_visits"] - primary_stats["node_visits"]) / secondary

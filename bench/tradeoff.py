@@ -122,7 +122,7 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
 def frame_ms(model: OutOfCoreModel, camera: Camera, repeats: int, **kw: Any) -> tuple[float, Any]:
     """Median frame time of `repeats` frames of an already complete view."""
     frames = [model.render(camera, **kw) for _ in range(repeats)]
-    return statistics.median(f.stats["milliseconds"] for f in frames), frames[-1]
+    return statistics.median(f.stats.milliseconds for f in frames), frames[-1]
 
 
 def study_poe(args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -183,7 +183,7 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
             "file_mib": model.file_size / 2**20,
             "open_ms": 1000 * (opened - start),
             "first_frame_ms": first_ms,
-            "first_frame_voxel_pct": 100 * first.stats["voxel_hits"] / first.stats["rays"],
+            "first_frame_voxel_pct": 100 * first.stats.voxel_hits / first.stats.rays,
         }
         for poe, tag in ((2.0, "lod"), (0.0, "full")):
             try:
@@ -191,8 +191,8 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
             except CacheTooSmallError:
                 row[f"{tag}_ms"] = math.nan
                 continue
-            row[f"{tag}_complete_s"] = done.stats["seconds"]
-            row[f"{tag}_working_set_mib"] = done.stats["working_set_bytes"] / 2**20
+            row[f"{tag}_complete_s"] = done.seconds
+            row[f"{tag}_working_set_mib"] = done.stats.working_set_bytes / 2**20
             for packets in (1, 4, 16):
                 ms, _ = frame_ms(model, camera, args.repeats, pixels_of_error=poe, packets=packets)
                 key = f"{tag}_ms" if packets == 1 else f"{tag}_packets{packets}_ms"
@@ -215,7 +215,7 @@ def study_loading(args: argparse.Namespace) -> list[dict[str, Any]]:
                     camera = frame_bounds(*model.bounds, width=args.image[0], height=args.image[1])
                     try:
                         done = model.render_complete(camera, pixels_of_error=2.0)
-                        seconds, frames = done.stats["seconds"], done.stats["frames"]
+                        seconds, frames = done.seconds, done.frames
                     except CacheTooSmallError:
                         seconds, frames = math.nan, 0
                 rows.append(
@@ -259,7 +259,7 @@ for i in range(frames):
     eye = centre + np.array([math.cos(angle) * 0.75, 0.45, math.sin(angle) * 0.75]) * dist
     camera = Camera(eye=tuple(eye), target=tuple(centre), width=width, height=height)
     f = model.render(camera, pixels_of_error=poe)
-    st, s = status(), f.stats
+    st, s = status(), f.stats.as_dict()
     rows.append({"frame": i, "t_s": time.perf_counter() - start, "frame_ms": s["milliseconds"],
                  "complete": f.complete, "voxel_hits": s["voxel_hits"], "loaded": s["blocks_loaded"],
                  "evicted": s["blocks_evicted"], "pending": s["pending"],

@@ -65,6 +65,7 @@ from vastray.build import (
 from vastray.camera import frame_bounds
 from vastray.mesh import MeshError
 from vastray.modelfile import _HEADER_FIELDS, FLAG_COLOURS, HEADER_SIZE, VERSION, ModelError, ModelFile
+from vastray.render import SceneRenderer
 from vastray.triangle_readers import open_triangles
 from vastray.units import parse_bytes
 
@@ -541,7 +542,7 @@ def test_full_detail_render_matches_in_core(built: Callable[[str], Case], name: 
     np.testing.assert_allclose(decoded.scene.bounds, incore.bounds, rtol=0, atol=1e-6 * np.ptp([lo, hi]))
     for direction in ((1.0, 0.7, 1.3), (-0.6, -0.5, -1.0)):
         camera = frame_bounds(lo, hi, width=160, height=120, direction=direction)
-        ours, ref = vrender.render(decoded, camera), vrender.render(incore, camera)
+        ours, ref = decoded.render(camera), SceneRenderer(incore, "in core").render(camera)
         assert ((ours.prim >= 0) == (ref.prim >= 0)).all(), "hit/miss differs"
         assert (ref.prim >= 0).mean() > 0.1
         differ = ours.prim != ref.prim

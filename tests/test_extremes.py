@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pytest
 import trimesh
+from views import render_view
 
 from vastray import native
 
@@ -314,8 +315,8 @@ def test_scene_of_only_degenerate_triangles() -> None:
     hits = scene.intersect(origins, directions)
     assert (hits["prim"] == -1).all() and np.isinf(hits["t"]).all()
     assert not scene.occluded(origins, directions).any()
-    frame = scene.render([2.0, 1.5, 3.0], [0.0, 0.0, 0.5], [0.0, 0.0, 1.0], 60.0, 64, 48)
-    assert (frame["prim"] == -1).all() and np.isinf(frame["depth"]).all()
+    frame = render_view(scene, [2.0, 1.5, 3.0], [0.0, 0.0, 0.5], [0.0, 0.0, 1.0], 60.0, 64, 48)
+    assert (frame.prim == -1).all() and np.isinf(frame.depth).all()
 
 
 # ---------------------------------------------------------------------------------------
@@ -356,8 +357,8 @@ def test_camera_inside_closed_models(
     width, height = 32, 24
     for forward, up in view_directions():
         target = eye + np.array(forward, dtype=np.float64)
-        frame = scene.render(eye.tolist(), target.tolist(), up, 100.0, width, height)
-        prim, depth = frame["prim"], frame["depth"]
+        frame = render_view(scene, eye.tolist(), target.tolist(), up, 100.0, width, height)
+        prim, depth = frame.prim, frame.depth
         assert (prim >= 0).all(), f"{mesh.name}: {(prim < 0).sum()} pixels see out of a closed mesh"
         assert np.isfinite(depth).all() and (depth > 0).all()
         rays = camera_directions(eye, target, up, 100.0, width, height).reshape(-1, 3)
@@ -375,10 +376,10 @@ def test_camera_inside_sphere() -> None:
         np.asarray(sphere.vertices, dtype=np.float64), np.asarray(sphere.faces, dtype=np.uint32)
     )
     for forward, up in view_directions():
-        frame = scene.render([0.0, 0.0, 0.0], forward, up, 100.0, 40, 40)
-        assert (frame["prim"] >= 0).all()
+        frame = render_view(scene, [0.0, 0.0, 0.0], forward, up, 100.0, 40, 40)
+        assert (frame.prim >= 0).all()
         # Inscribed radius of the icosphere <= depth <= 2.
-        assert (frame["depth"] > 1.9).all() and (frame["depth"] <= 2.0 * (1 + 1e-6)).all()
+        assert (frame.depth > 1.9).all() and (frame.depth <= 2.0 * (1 + 1e-6)).all()
 
 
 # ---------------------------------------------------------------------------------------
@@ -401,10 +402,10 @@ def test_sphere_does_not_shadow_itself(
     eye = np.array(centre) + radius * 3.0 * np.array([0.9, -0.5, 0.2])  # sees the terminator
     target = np.array(centre)
     size = 160
-    frame = scene.render(
-        eye.tolist(), target.tolist(), [0, 0, 1], 45.0, size, size, shading="sun", sun=sun.tolist()
+    frame = render_view(
+        scene, eye.tolist(), target.tolist(), [0, 0, 1], 45.0, size, size, shading="sun", sun=sun.tolist()
     )
-    prim = frame["prim"]
+    prim = frame.prim
     hit = prim >= 0
     assert hit.mean() > 0.3
 
@@ -415,12 +416,12 @@ def test_sphere_does_not_shadow_itself(
     view = camera_directions(eye, target, [0, 0, 1], 45.0, size, size)[hit]
     n = np.where((np.einsum("ij,ij->i", n, view) > 0)[:, None], -n, n)  # facing the viewer
     lam = n @ sun_unit
-    grey = frame["image"][hit].astype(np.float64).mean(axis=1)
+    grey = frame.image[hit].astype(np.float64).mean(axis=1)
     lit, unlit = lam > 0, lam <= 0
     assert lit.sum() > 1000 and unlit.sum() > 1000
     # One shadow ray per lit pixel (up to pixels whose cosine is zero within rounding).
     borderline = int((np.abs(lam) < 1e-6).sum())
-    assert abs(frame["stats"]["secondary_rays"] - int(lit.sum())) <= borderline
+    assert abs(frame.stats.secondary_rays - int(lit.sum())) <= borderline
 
     # Unlit pixels all sit at one ambient floor; lit ones rise linearly with the cosine.
     floor = float(np.median(grey[unlit]))
@@ -437,7 +438,7 @@ def test_sphere_does_not_shadow_itself(
     assert residual.max() <= 2.0
 
     # occluded() towards the sun from just above every lit hit point finds nothing.
-    t = frame["depth"][hit][lit].astype(np.float64)
+    t = frame.depth[hit][lit].astype(np.float64)
     points = eye + view[lit] * t[:, None] + n[lit] * (1e-5 * radius)
     blocked = scene.occluded(points, np.tile(sun_unit, (len(points), 1)))
     assert not blocked.any(), f"{int(blocked.sum())} shadow rays blocked on a convex sphere"
@@ -632,10 +633,10 @@ def test_bad_camera_raises_with_clear_message(change: dict[str, object], message
     scene = stacked_quads()
     kwargs = {**CAMERA, **change}
     with pytest.raises(ValueError, match=message):
-        scene.render(**kwargs)
+        render_view(scene, **kwargs)
     # Nothing changed: the same scene still renders.
-    frame = scene.render(**CAMERA)
-    assert (frame["prim"] >= 0).any()
+    frame = render_view(scene, **CAMERA)
+    assert (frame.prim >= 0).any()
 
 
 def test_axis_parallel_rays_do_not_degrade_to_brute_force(small_closed_model: ModelMesh) -> None:

@@ -51,13 +51,15 @@ import trimesh
 from PIL import Image
 from test_build import SMALL_MEMORY, flip_bit, rewrite_version, run_cli
 from test_extremes import CAMERA, TRANSFORMS, degenerate_scene, view_directions
+from views import render_camera, render_view
 
 import vastray.render as vrender
 from vastray import native
 from vastray.build import BuildOptions, build_model
 from vastray.camera import Camera, frame_bounds
 from vastray.modelfile import HEADER_SIZE, VERSION, ModelError, ModelFile
-from vastray.outofcore import VOXEL_PRIM, CacheTooSmallError, LodFrame, OutOfCoreModel, make_cache
+from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
+from vastray.renderer import PRIM_VOXEL, Frame
 
 if TYPE_CHECKING:
     from conftest import ModelMesh
@@ -185,32 +187,20 @@ def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
 # ---- helpers ---------------------------------------------------------------------------------------
 
 
-def view(camera: Camera) -> dict[str, Any]:
-    """Keyword arguments of the native renderers for a camera."""
-    return {
-        "eye": list(camera.eye),
-        "target": list(camera.target),
-        "up": list(camera.up),
-        "fov": camera.fov,
-        "width": camera.width,
-        "height": camera.height,
-    }
-
-
-def reference(built: Built, camera: Camera, shading: str = "headlight") -> vrender.Frame:
-    return vrender.render(built.decoded, camera, shading=shading)
+def reference(built: Built, camera: Camera, shading: str = "headlight") -> Frame:
+    return render_camera(built.decoded, camera, shading=shading)
 
 
 def render_until_complete(
     model: native.CachedModel, cache: native.BlockCache, camera: Camera, poe: float = 0.0, frames: int = 200
-) -> dict[str, Any]:
+) -> Frame:
     """Native frames until one is complete, draining the fetchers between frames."""
     for _ in range(frames):
-        out = model.render(**view(camera), pixels_of_error=poe)
-        if out["complete"]:
+        out = render_camera(model, camera, pixels_of_error=poe)
+        if out.complete:
             return out
         cache.drain()
-    raise AssertionError(f"not complete after {frames} frames: {out['stats']}")
+    raise AssertionError(f"not complete after {frames} frames: {out.stats}")
 
 
 def stamps(model: native.CachedModel) -> dict[int, int]:
@@ -287,15 +277,15 @@ def test_budget_and_invariants_over_a_moving_camera(built: Callable[[str], Built
         )
         for _ in range(2):
             before = stamps(model)
-            out = model.render(**view(camera), pixels_of_error=poe)
+            out = render_camera(model, camera, pixels_of_error=poe)
             after = stamps(model)
-            s = out["stats"]
+            s = out.stats.as_dict()
             check_frame_bookkeeping(before, after, s)
             t = check_totals(cache, [model])
             assert t["active_frames"] == 0
             evicted += s["blocks_evicted"]
             full += sum(1 for x in after.values() if x == s["tick"]) == cache.slot_count
-            complete += out["complete"]
+            complete += out.complete
             cache.drain()
             check_totals(cache, [model])
     print(f"{evicted} blocks evicted, {full} frames used every slot, {complete} complete")
@@ -319,7 +309,7 @@ def test_eviction_is_least_recently_used(built: Callable[[str], Built]) -> None:
     working: list[set[int]] = []
     for k in range(3):
         out = render_until_complete(probe, cache, tile_camera(k))
-        working.append({b for b, s in probe.resident() if s == out["stats"]["tick"]})
+        working.append({b for b, s in probe.resident() if s == out.stats.tick})
     probe.close()
     a, b, c = working
     assert len(a - b - c) >= 6 and len(b - a - c) >= 6 and len(c - a - b) >= 6, (a, b, c)
@@ -328,27 +318,27 @@ def test_eviction_is_least_recently_used(built: Callable[[str], Built]) -> None:
     need = len(b - a - c) // 2
     cache = native.BlockCache((len(a | b) + len(c - a - b) - need) * SLOT, fetchers=2)
     model = cache.open(str(tiles.path))
-    ticks = [render_until_complete(model, cache, tile_camera(k))["stats"]["tick"] for k in (0, 1)]
-    again = model.render(**view(tile_camera(0)), pixels_of_error=0.0)
-    assert again["complete"] and again["stats"]["blocks_loaded"] == 0
+    ticks = [render_until_complete(model, cache, tile_camera(k)).stats.tick for k in (0, 1)]
+    again = render_camera(model, tile_camera(0), pixels_of_error=0.0)
+    assert again.complete and again.stats.blocks_loaded == 0
     resident = stamps(model)
     assert resident.keys() == a | b and cache.totals()["evicted"] == 0
     # B's own blocks were last used while B was rendered, A's blocks just now.
     assert all(ticks[0] < resident[x] <= ticks[1] for x in b - a)
-    assert all(resident[x] == again["stats"]["tick"] for x in a)
+    assert all(resident[x] == again.stats.tick for x in a)
 
     evicted: set[int] = set()
     for _ in range(200):
         before = stamps(model)
-        out = model.render(**view(tile_camera(2)), pixels_of_error=0.0)
+        out = render_camera(model, tile_camera(2), pixels_of_error=0.0)
         after = stamps(model)
-        check_frame_bookkeeping(before, after, out["stats"])  # least recently used, frame by frame
+        check_frame_bookkeeping(before, after, out.stats.as_dict())  # least recently used, frame by frame
         check_totals(cache, [model])
         evicted |= before.keys() - after.keys()
-        if out["complete"]:
+        if out.complete:
             break
         cache.drain()
-    assert out["complete"]
+    assert out.complete
     assert evicted <= b - a - c, f"evicted {sorted(evicted)}; only B used {sorted(b - a - c)}"
     assert len(evicted) == need
     oldest_first = sorted(b - a - c, key=lambda x: (resident[x], x))
@@ -365,13 +355,13 @@ def test_working_set_counts_blocks_published_at_frame_start(built: Callable[[str
     model = cache.open(str(plant.path))
     camera = plant.camera(64, 48)
     last = render_until_complete(model, cache, camera)
-    again = model.render(**view(camera), pixels_of_error=0.0)
-    assert last["stats"]["blocks_loaded"] > 0 and again["stats"]["blocks_loaded"] == 0
-    assert np.array_equal(last["prim"], again["prim"])
-    used = sum(1 for _, s in model.resident() if s == again["stats"]["tick"])
-    assert again["stats"]["working_set_blocks"] == used
-    assert last["stats"]["working_set_blocks"] == again["stats"]["working_set_blocks"]
-    assert last["stats"]["working_set_bytes"] == again["stats"]["working_set_bytes"]
+    again = render_camera(model, camera, pixels_of_error=0.0)
+    assert last.stats.blocks_loaded > 0 and again.stats.blocks_loaded == 0
+    assert np.array_equal(last.prim, again.prim)
+    used = sum(1 for _, s in model.resident() if s == again.stats.tick)
+    assert again.stats.working_set_blocks == used
+    assert last.stats.working_set_blocks == again.stats.working_set_blocks
+    assert last.stats.working_set_bytes == again.stats.working_set_bytes
 
 
 def test_cache_parameters_and_closing(built: Callable[[str], Built]) -> None:
@@ -409,7 +399,7 @@ def test_preloading_more_than_fits_keeps_the_root(built: Callable[[str], Built])
         first = model.render(camera, pixels_of_error=0.0)
         resident = cache.totals()["resident_blocks"]
         assert not (first.prim[full.prim >= 0] == -1).any(), "the first frame lost the model"
-        assert first.stats["voxel_hits"] > 0 and resident == 4
+        assert first.stats.voxel_hits > 0 and resident == 4
 
 
 def test_close_with_fetches_in_flight(built: Callable[[str], Built]) -> None:
@@ -418,7 +408,7 @@ def test_close_with_fetches_in_flight(built: Callable[[str], Built]) -> None:
     camera = plant.camera(64, 48)
     model = OutOfCoreModel(plant.path, cache)
     frame = model.render(camera, pixels_of_error=0.0)
-    assert frame.stats["pending"] > 0
+    assert frame.stats.pending > 0
     model.close()
     model.close()  # twice is fine
     check_totals(cache)
@@ -426,7 +416,9 @@ def test_close_with_fetches_in_flight(built: Callable[[str], Built]) -> None:
     t = check_totals(cache)
     assert t["models"] == 0 and t["resident_blocks"] == 0 and t["free_slots"] == t["slot_count"]
     with OutOfCoreModel(plant.path, cache) as again:
-        np.testing.assert_array_equal(again.render_complete(camera).prim, reference(plant, camera).prim)
+        np.testing.assert_array_equal(
+            again.render_complete(camera, pixels_of_error=0.0).prim, reference(plant, camera).prim
+        )
 
 
 def test_request_queue_is_bounded(built: Callable[[str], Built]) -> None:
@@ -440,17 +432,17 @@ def test_request_queue_is_bounded(built: Callable[[str], Built]) -> None:
     camera = plant.camera(64, 48)
     frames = 0
     while True:
-        out = model.render(**view(camera), pixels_of_error=0.0)
+        out = render_camera(model, camera, pixels_of_error=0.0)
         frames += 1
         t = check_totals(cache, [model])
         # The queue was empty before the frame (drained): all of it is this frame's.
-        assert t["pending"] + t["loading"] + t["ready"] <= 4 and out["stats"]["pending"] <= 4
-        if out["complete"]:
+        assert t["pending"] + t["loading"] + t["ready"] <= 4 and out.stats.pending <= 4
+        if out.complete:
             break
         assert frames < 500
         cache.drain()
     assert frames > 100 // 4  # more than 100 blocks, at most 4 a frame
-    np.testing.assert_array_equal(out["prim"], reference(plant, camera).prim)
+    np.testing.assert_array_equal(out.prim, reference(plant, camera).prim)
 
     # A cache filled exactly with the top six levels, every block of which each full view
     # uses: nothing can load, and the frames' requests pile up to max_pending, no further.
@@ -461,8 +453,8 @@ def test_request_queue_is_bounded(built: Callable[[str], Built]) -> None:
     most = 0
     for i in range(12):
         camera = plant.camera(32, 24, direction=(math.cos(i), 0.5, math.sin(i)))
-        out = model.render(**view(camera), pixels_of_error=0.0)
-        assert out["stats"]["blocks_requested"] > 8
+        out = render_camera(model, camera, pixels_of_error=0.0)
+        assert out.stats.blocks_requested > 8
         t = check_totals(cache, [model])
         assert t["pending"] <= 8
         most = max(most, t["pending"])
@@ -483,8 +475,8 @@ def test_threads_render_two_models_in_one_cache(built: Callable[[str], Built]) -
     sizes = []
     for source in (plant, bunny):
         with OutOfCoreModel(source.path, make_cache(BIG)) as probe:
-            probe.render_complete(source.camera(64, 48))
-            sizes.append(probe.render(source.camera(64, 48), pixels_of_error=0.0).stats["working_set_blocks"])
+            probe.render_complete(source.camera(64, 48), pixels_of_error=0.0)
+            sizes.append(probe.render(source.camera(64, 48), pixels_of_error=0.0).stats.working_set_blocks)
     assert max(sizes) < budget_slots < sum(sizes), sizes
 
     errors: list[BaseException] = []
@@ -534,7 +526,7 @@ def test_threads_render_two_models_in_one_cache(built: Callable[[str], Built]) -
 
     for model, source in zip(models, (plant, bunny), strict=True):
         camera = source.camera(64, 48)
-        frame = model.render_complete(camera)
+        frame = model.render_complete(camera, pixels_of_error=0.0)
         ref = reference(source, camera)
         assert frame.complete
         np.testing.assert_array_equal(frame.prim, ref.prim)
@@ -563,7 +555,7 @@ def test_corrupted_block_is_drawn_as_voxels_and_reported(
         # A triangle block this view reads (any ray that reads it changes when it is bad).
         probe_cache = native.BlockCache(BIG)
         probe = probe_cache.open(str(plant.path))
-        tick = render_until_complete(probe, probe_cache, camera)["stats"]["tick"]
+        tick = render_until_complete(probe, probe_cache, camera).stats.tick
         tri_first = plant.levels[-1][0]
         block = min(b for b, s in probe.resident() if s == tick and b >= tri_first)
         probe.close()
@@ -579,9 +571,9 @@ def test_corrupted_block_is_drawn_as_voxels_and_reported(
     cache = make_cache(BIG)
     other = OutOfCoreModel(plant.path, cache)  # an intact model in the same cache
     with OutOfCoreModel(damaged, cache) as model:
-        frame = model.render_complete(camera, timeout=60)
+        frame = model.render_complete(camera, timeout=60, pixels_of_error=0.0)
         assert not frame.complete
-        assert frame.stats["bad_blocks"] > 0 and frame.stats["pending"] == 0
+        assert frame.stats.bad_blocks > 0 and frame.stats.pending == 0
         assert len(model.errors) == 1
         assert re.fullmatch(rf".*\bblock {block} \({level_name}\): checksum mismatch.*", model.errors[0])
         failed = cache.totals()["failed"]
@@ -589,7 +581,7 @@ def test_corrupted_block_is_drawn_as_voxels_and_reported(
         # Never asked for again.
         for _ in range(3):
             again = model.render(camera, pixels_of_error=0.0)
-            assert again.stats["bad_blocks"] > 0 and not again.complete
+            assert again.stats.bad_blocks > 0 and not again.complete
             cache.drain()
         assert cache.totals()["failed"] == failed and len(model.errors) == 1
         np.testing.assert_array_equal(again.prim, frame.prim)
@@ -603,13 +595,13 @@ def test_corrupted_block_is_drawn_as_voxels_and_reported(
             assert differ.any()
             # Every pixel that changed shows a voxel above the damaged block; every pixel
             # that hit something still does.
-            assert (frame.prim[differ] == VOXEL_PRIM).all()
+            assert (frame.prim[differ] == PRIM_VOXEL).all()
             assert (frame.prim[good.prim >= 0] != -1).all()
             np.testing.assert_array_equal(frame.image[~differ], good.image[~differ])
             if where == "triangles":
                 assert differ.mean() < 0.5  # a local change
 
-        intact = other.render_complete(camera)
+        intact = other.render_complete(camera, pixels_of_error=0.0)
         np.testing.assert_array_equal(intact.prim, good.prim)
         np.testing.assert_array_equal(intact.image, good.image)
         assert other.errors == []
@@ -626,14 +618,14 @@ def test_file_truncated_while_open(built: Callable[[str], Built], tmp_path: Path
     good = reference(plant, camera)
     with OutOfCoreModel(path, make_cache(BIG)) as model:
         _truncate(path, path.stat().st_size // 2)
-        frame = model.render_complete(camera, timeout=60)
-        assert not frame.complete and frame.stats["bad_blocks"] > 0
+        frame = model.render_complete(camera, timeout=60, pixels_of_error=0.0)
+        assert not frame.complete and frame.stats.bad_blocks > 0
         assert model.errors and all(
             re.match(r"block \d+ \((LOD level \d+|triangle level)\): read failed", e) for e in model.errors
         )
         check_totals(model.cache)
     differ = frame.prim != good.prim
-    assert differ.any() and (frame.prim[differ] == VOXEL_PRIM).all()
+    assert differ.any() and (frame.prim[differ] == PRIM_VOXEL).all()
 
 
 def _truncate(path: Path, size: int) -> None:
@@ -694,10 +686,10 @@ def test_bad_view_raises_and_leaves_the_cache_intact(
     cache = native.BlockCache(BIG)
     model = cache.open(str(built("plant").path))
     with pytest.raises(ValueError, match=message):
-        model.render(**{**CAMERA, "pixels_of_error": 0.0, **change})
+        render_view(model, **{**CAMERA, "pixels_of_error": 0.0, **change})
     t = check_totals(cache, [model])
     assert t["active_frames"] == 0 and t["pending"] == 0
-    assert (model.render(**CAMERA)["prim"] != -1).any()
+    assert (render_view(model, **CAMERA).prim != -1).any()
 
 
 # ---- full detail against the in-core renderers -----------------------------------------------------
@@ -717,9 +709,9 @@ def test_full_detail_equals_in_core(built: Callable[[str], Built], name: str, sh
     for direction in ((1.0, 0.7, 1.3), (-0.6, -0.5, -1.0)):
         camera = model_built.camera(direction=direction)
         with OutOfCoreModel(model_built.path, make_cache(BIG)) as model:
-            frame = model.render_complete(camera, shading=shading, ao_samples=4)
-        ref = vrender.render(model_built.decoded, camera, shading=shading, ao_samples=4)
-        assert frame.complete and frame.stats["voxel_hits"] == 0 and frame.stats["bad_blocks"] == 0
+            frame = model.render_complete(camera, shading=shading, ao_samples=4, pixels_of_error=0.0)
+        ref = render_camera(model_built.decoded, camera, shading=shading, ao_samples=4)
+        assert frame.complete and frame.stats.voxel_hits == 0 and frame.stats.bad_blocks == 0
         assert (ref.prim >= 0).mean() > 0.1
         np.testing.assert_array_equal(frame.prim, ref.prim)
         np.testing.assert_array_equal(frame.depth, ref.depth)
@@ -729,7 +721,7 @@ def test_full_detail_equals_in_core(built: Callable[[str], Built], name: str, sh
             # Shadow and AO rays take another traversal: allow rounding at a few pixels.
             diff = np.abs(frame.image.astype(int) - ref.image.astype(int)).max(axis=2)
             assert (diff > 1).mean() <= 0.002, f"{(diff > 1).sum()} pixels differ, by up to {diff.max()}"
-        assert frame.stats["secondary_rays"] == ref.stats["secondary_rays"]
+        assert frame.stats.secondary_rays == ref.stats.secondary_rays
 
 
 @pytest.mark.parametrize("name", ["plant", "bunny"])
@@ -746,8 +738,8 @@ def test_full_detail_agrees_with_the_mesh_kd_tree(
     )
     camera = model_built.camera(128, 96)
     with OutOfCoreModel(model_built.path, make_cache(BIG)) as model:
-        frame = model.render_complete(camera)
-    ref = vrender.render(mesh_scene, camera)
+        frame = model.render_complete(camera, pixels_of_error=0.0)
+    ref = render_camera(mesh_scene, camera)
     assert (ref.prim >= 0).mean() > 0.1
     assert ((frame.prim >= 0) == (ref.prim >= 0)).mean() >= 0.999
     assert (frame.prim == ref.prim).mean() >= 0.999
@@ -759,7 +751,7 @@ def test_priority_by_projected_size_gives_the_same_image(built: Callable[[str], 
     plant = built("plant")
     camera = plant.camera(64, 48)
     with OutOfCoreModel(plant.path, make_cache(BIG, priority="size")) as model:
-        frame = model.render_complete(camera)
+        frame = model.render_complete(camera, pixels_of_error=0.0)
     np.testing.assert_array_equal(frame.prim, reference(plant, camera).prim)
 
 
@@ -768,10 +760,10 @@ def test_cache_too_small_for_the_view(built: Callable[[str], Built]) -> None:
     cache = make_cache(8 * SLOT)
     with OutOfCoreModel(plant.path, cache) as model:
         with pytest.raises(CacheTooSmallError, match="raise the cache budget"):
-            model.render_complete(plant.camera(64, 48))
+            model.render_complete(plant.camera(64, 48), pixels_of_error=0.0)
         # A coarser accuracy fits.
         frame = model.render_complete(plant.camera(64, 48), pixels_of_error=16.0)
-        assert frame.complete and frame.stats["voxel_hits"] > 0
+        assert frame.complete and frame.stats.voxel_hits > 0
     check_totals(cache)
 
 
@@ -789,7 +781,7 @@ def test_image_error_falls_with_the_pixels_of_error(built: Callable[[str], Built
             assert frame.complete
             wrong = float((frame.prim != full.prim).mean())
             error = float(np.abs(frame.image.astype(float) - full.image).mean()) / 255.0
-            rows.append((poe, wrong, error, frame.stats["voxel_hits"], frame.stats["working_set_blocks"]))
+            rows.append((poe, wrong, error, frame.stats.voxel_hits, frame.stats.working_set_blocks))
     print(
         "\n".join(f"PoE {r[0]:g}: {r[1]:.4f} other prim, error {r[2]:.4f}, {r[3]} voxel hits" for r in rows)
     )
@@ -814,30 +806,30 @@ def test_first_frame_is_instant_and_refines_in_place(built: Callable[[str], Buil
     camera = plant.camera()
     cache = make_cache(BIG)
     with OutOfCoreModel(plant.path, cache) as model:
-        frames: list[LodFrame] = [model.render(camera, pixels_of_error=0.0)]
+        frames: list[Frame] = [model.render(camera, pixels_of_error=0.0)]
         first = frames[0]
         assert not first.complete
-        assert first.stats["blocks_loaded"] == 0  # nothing arrived: it did not wait
-        assert first.stats["blocks_requested"] > 0 and first.stats["pending"] > 0
-        assert first.stats["voxel_hits"] > 0 and (first.prim == VOXEL_PRIM).sum() == first.stats["voxel_hits"]
+        assert first.stats.blocks_loaded == 0  # nothing arrived: it did not wait
+        assert first.stats.blocks_requested > 0 and first.stats.pending > 0
+        assert first.stats.voxel_hits > 0 and (first.prim == PRIM_VOXEL).sum() == first.stats.voxel_hits
         assert cache.wait_for_fetches(60_000.0)  # something was asked for, and arrives
         while not frames[-1].complete:
             assert len(frames) < 100
             cache.wait_for_fetches(1000.0)
             frames.append(model.render(camera, pixels_of_error=0.0))
     final = frames[-1]
-    assert len(frames) > 2 and final.stats["voxel_hits"] == 0
+    assert len(frames) > 2 and final.stats.voxel_hits == 0
     np.testing.assert_array_equal(final.prim, reference(plant, camera).prim)
     shown, full = first.prim != -1, final.prim != -1
     assert not (full & ~shown).any(), "the first frame misses part of the model"
     iou = (shown & full).sum() / (shown | full).sum()
     assert iou > 0.6, iou  # measured 0.75: voxels three levels down are close to the shape
     for k, frame in enumerate(frames):
-        settled = frame.prim != VOXEL_PRIM
+        settled = frame.prim != PRIM_VOXEL
         np.testing.assert_array_equal(frame.prim[settled], final.prim[settled], err_msg=f"frame {k}")
         np.testing.assert_array_equal(frame.depth[settled], final.depth[settled], err_msg=f"frame {k}")
         if k:
-            assert frame.stats["voxel_hits"] <= frames[k - 1].stats["voxel_hits"]
+            assert frame.stats.voxel_hits <= frames[k - 1].stats.voxel_hits
 
 
 # ---- numerical extremes through the out-of-core path ---------------------------------------------
@@ -849,16 +841,16 @@ def build_mesh(tmp_path: Path, name: str, vertices: np.ndarray, faces: np.ndarra
     return out
 
 
-def render_full(path: Path, camera: Camera, shading: str = "headlight") -> LodFrame:
+def render_full(path: Path, camera: Camera, shading: str = "headlight") -> Frame:
     with OutOfCoreModel(path, make_cache(BIG)) as model:
-        frame = model.render_complete(camera, shading=shading)
+        frame = model.render_complete(camera, shading=shading, pixels_of_error=0.0)
     assert frame.complete and not np.isnan(frame.depth).any()
     return frame
 
 
-def decoded_render(path: Path, camera: Camera, shading: str = "headlight") -> vrender.Frame:
+def decoded_render(path: Path, camera: Camera, shading: str = "headlight") -> Frame:
     with ModelFile(path) as f:
-        return vrender.render(f.to_scene(), camera, shading=shading)
+        return render_camera(f.to_scene(), camera, shading=shading)
 
 
 @pytest.mark.parametrize("transform", TRANSFORMS.keys())
@@ -890,7 +882,7 @@ def test_translated_and_scaled_models(
     np.testing.assert_array_equal(frame.prim, dec.prim)
     np.testing.assert_array_equal(frame.image, dec.image)
 
-    ref = vrender.render(native.Scene(vertices, bunny_mesh.faces), camera)
+    ref = render_camera(native.Scene(vertices, bunny_mesh.faces), camera)
     assert ((ref.prim >= 0) == hit).mean() >= 0.999
     assert (ref.prim == frame.prim).mean() >= 0.999
     both = hit & (ref.prim >= 0)
@@ -922,7 +914,7 @@ def test_degenerate_triangles_are_never_hit(tmp_path: Path) -> None:
         camera = Camera(tuple(map(float, eye)), tuple(map(float, target)), up, 50.0, 33, 33)
         frame = render_full(path, camera)
         assert set(np.unique(frame.prim)) <= {-1, 0, 1}
-        ref = vrender.render(scene, camera)
+        ref = render_camera(scene, camera)
         np.testing.assert_array_equal(frame.prim, ref.prim)
         np.testing.assert_allclose(frame.depth, ref.depth, rtol=1e-6)
 
@@ -1001,12 +993,12 @@ def test_camera_inside_a_closed_model(
     with OutOfCoreModel(path, make_cache(BIG)) as model:
         for forward, up in view_directions():
             camera = Camera(tuple(eye), tuple(eye + np.array(forward, dtype=float)), tuple(up), 100.0, 32, 24)
-            frame = model.render_complete(camera)
+            frame = model.render_complete(camera, pixels_of_error=0.0)
             assert frame.complete
             assert (frame.prim >= 0).all(), f"{(frame.prim < 0).sum()} pixels see out of a closed mesh"
             assert np.isfinite(frame.depth).all() and (frame.depth > 0).all()
             np.testing.assert_array_equal(frame.prim, decoded_render(path, camera).prim)
-            assert (frame.prim == vrender.render(mesh_scene, camera).prim).mean() >= 0.999
+            assert (frame.prim == render_camera(mesh_scene, camera).prim).mean() >= 0.999
 
 
 @pytest.mark.parametrize(
@@ -1047,7 +1039,7 @@ def test_sun_does_not_shadow_a_convex_sphere(
     # Lit at a cosine above 0.02 is at least 3 grey levels above the floor (slope ~160).
     shadowed = lit & (grey <= floor + 1.0) & (lam > 0.02)
     assert not shadowed.any(), f"{int(shadowed.sum())} lit pixels are in shadow"
-    assert abs(frame.stats["secondary_rays"] - int((lam > 0).sum())) <= int((np.abs(lam) < 1e-6).sum())
+    assert abs(frame.stats.secondary_rays - int((lam > 0).sum())) <= int((np.abs(lam) < 1e-6).sum())
 
 
 # ---- command line ----------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 import trimesh
+from views import render_view
 
 from vastray import native
 
@@ -37,8 +38,9 @@ AO_DISTANCE = 0.5
 
 def box(lo: tuple[float, float, float], hi: tuple[float, float, float]) -> trimesh.Trimesh:
     lo_a, hi_a = np.array(lo), np.array(hi)
-    return trimesh.creation.box(extents=hi_a - lo_a, transform=trimesh.transformations.translation_matrix(
-        (lo_a + hi_a) / 2))
+    return trimesh.creation.box(
+        extents=hi_a - lo_a, transform=trimesh.transformations.translation_matrix((lo_a + hi_a) / 2)
+    )
 
 
 # Inner faces of the walls: x = -1.9 and y = 1.9; the floor's top is z = 0.
@@ -71,9 +73,16 @@ def scene_data() -> tuple[native.Scene, np.ndarray, np.ndarray, np.ndarray]:
 
 
 def render(scene: native.Scene, **kwargs: object) -> dict:
-    args = {"eye": EYE.tolist(), "target": TARGET.tolist(), "up": UP, "fov": FOV, "width": WIDTH,
-            "height": HEIGHT, **kwargs}
-    return scene.render(**args)
+    args = {
+        "eye": EYE.tolist(),
+        "target": TARGET.tolist(),
+        "up": UP,
+        "fov": FOV,
+        "width": WIDTH,
+        "height": HEIGHT,
+        **kwargs,
+    }
+    return render_view(scene, **args)
 
 
 def unit_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -89,8 +98,8 @@ def test_visibility_matches_intersect(
     frame = render(scene)
     rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)
     hits = scene.intersect(np.tile(EYE, (len(rays), 1)), rays)
-    prim, depth = frame["prim"].ravel(), frame["depth"].ravel()
-    assert frame["image"].shape == (HEIGHT, WIDTH, 3) and frame["image"].dtype == np.uint8
+    prim, depth = frame.prim.ravel(), frame.depth.ravel()
+    assert frame.image.shape == (HEIGHT, WIDTH, 3) and frame.image.dtype == np.uint8
     assert prim.dtype == np.int32 and depth.dtype == np.float32
     same = (prim == hits["prim"]).mean()
     assert same >= 0.999, f"only {same:.4%} of the pixels see the triangle intersect() finds"
@@ -115,9 +124,9 @@ def test_headlight_shows_face_colours(
     scene, vertices, faces, colours = scene_data
     assert scene.has_colours
     frame = render(scene, shading="headlight")
-    prim = frame["prim"].ravel()
+    prim = frame.prim.ravel()
     hit = prim >= 0
-    image = frame["image"].reshape(-1, 3)[hit]
+    image = frame.image.reshape(-1, 3)[hit]
     face_colour = colours[prim[hit]]
     s = shading_factor(image, face_colour)
     # Proportional to the face colour: the same factor for all three channels.
@@ -127,16 +136,18 @@ def test_headlight_shows_face_colours(
     rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)[hit]
     cos = np.abs(np.einsum("ij,ij->i", unit_normals(vertices, faces)[prim[hit]], rays))
     (slope, intercept), *_ = np.linalg.lstsq(np.stack([cos, np.ones_like(cos)], axis=1), s, rcond=None)
-    print(f"headlight factor = {intercept:.3f} + {slope:.3f} |cos|, "
-          f"max residual {np.abs(s - (intercept + slope * cos)).max():.4f}, "
-          f"max channel error {np.abs(image - predicted).max():.3f}")
+    print(
+        f"headlight factor = {intercept:.3f} + {slope:.3f} |cos|, "
+        f"max residual {np.abs(s - (intercept + slope * cos)).max():.4f}, "
+        f"max channel error {np.abs(image - predicted).max():.3f}"
+    )
     assert slope > 0.3 and intercept >= 0
     assert np.abs(s - (intercept + slope * cos)).max() <= 0.02
     # Without colours every face gets one neutral colour: a single hue in the picture.
     plain = native.Scene(vertices, faces)
     assert not plain.has_colours
     grey = render(plain, shading="headlight")
-    g = grey["image"].reshape(-1, 3)[grey["prim"].ravel() >= 0].astype(np.float64)
+    g = grey.image.reshape(-1, 3)[grey.prim.ravel() >= 0].astype(np.float64)
     ratio = g / g.sum(axis=1, keepdims=True)
     assert np.ptp(ratio, axis=0).max() < 0.02
 
@@ -144,14 +155,14 @@ def test_headlight_shows_face_colours(
 def test_normal_shading_maps_normals(scene_data: tuple) -> None:
     scene, vertices, faces, _ = scene_data
     frame = render(scene, shading="normal")
-    prim = frame["prim"].ravel()
+    prim = frame.prim.ravel()
     hit = prim >= 0
     expected = (unit_normals(vertices, faces)[prim[hit]] + 1.0) * 0.5 * 255.0
-    image = frame["image"].reshape(-1, 3)[hit].astype(np.float64)
+    image = frame.image.reshape(-1, 3)[hit].astype(np.float64)
     assert np.abs(image - expected).max() <= 1.0
     # Colours play no part in this mode.
     plain = render(native.Scene(vertices, faces), shading="normal")
-    np.testing.assert_array_equal(plain["image"], frame["image"])
+    np.testing.assert_array_equal(plain.image, frame.image)
 
 
 def test_ao_is_deterministic_and_darker_in_corners(
@@ -161,15 +172,15 @@ def test_ao_is_deterministic_and_darker_in_corners(
     first = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
     again = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE)
     single = render(scene, shading="ao", ao_samples=16, ao_distance=AO_DISTANCE, threads=1, tile_size=8)
-    np.testing.assert_array_equal(first["image"], again["image"])
-    np.testing.assert_array_equal(first["image"], single["image"])
+    np.testing.assert_array_equal(first.image, again.image)
+    np.testing.assert_array_equal(first.image, single.image)
 
-    prim = first["prim"].ravel()
+    prim = first.prim.ravel()
     hit = prim >= 0
     rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)
-    points = EYE + rays * np.where(hit, first["depth"].ravel(), 0.0)[:, None].astype(np.float64)
+    points = EYE + rays * np.where(hit, first.depth.ravel(), 0.0)[:, None].astype(np.float64)
     s = np.zeros(len(prim))
-    s[hit] = shading_factor(first["image"].reshape(-1, 3)[hit], colours[prim[hit]])
+    s[hit] = shading_factor(first.image.reshape(-1, 3)[hit], colours[prim[hit]])
     x, y, z = points.T
     # Concave: the floor and the walls within 0.1 of where they meet (a 90° inner edge).
     concave = hit & (z < 0.1) & ((x - WALL_X < 0.1) | (WALL_Y - y < 0.1))
@@ -179,8 +190,10 @@ def test_ao_is_deterministic_and_darker_in_corners(
     near_sphere = np.linalg.norm(points - SPHERE_CENTRE, axis=1) < SPHERE_RADIUS + margin
     open_floor = hit & (np.abs(z) < 1e-6) & (x - WALL_X > margin) & (WALL_Y - y > margin)
     open_floor &= ~near_cube & ~near_sphere
-    print(f"ao factor: concave {s[concave].mean():.3f} over {int(concave.sum())} px, "
-          f"open floor {s[open_floor].mean():.3f} over {int(open_floor.sum())} px")
+    print(
+        f"ao factor: concave {s[concave].mean():.3f} over {int(concave.sum())} px, "
+        f"open floor {s[open_floor].mean():.3f} over {int(open_floor.sum())} px"
+    )
     assert concave.sum() >= 100 and open_floor.sum() >= 500
     s_open, s_concave = s[open_floor], s[concave]
     # Open floor: every sample escapes, so one and the same (brightest) factor everywhere.
@@ -196,10 +209,10 @@ def test_threads_and_tiles_do_not_change_the_frame(scene_data: tuple) -> None:
         default = render(scene, shading=shading)
         for kwargs in ({"threads": 1}, {"tile_size": 5}, {"threads": 2, "tile_size": 64}):
             other = render(scene, shading=shading, **kwargs)
-            np.testing.assert_array_equal(other["prim"], default["prim"])
-            np.testing.assert_array_equal(other["depth"], default["depth"])
-            np.testing.assert_array_equal(other["image"], default["image"])
-    assert render(scene, threads=1)["stats"]["threads"] == 1
+            np.testing.assert_array_equal(other.prim, default.prim)
+            np.testing.assert_array_equal(other.depth, default.depth)
+            np.testing.assert_array_equal(other.image, default.image)
+    assert render(scene, threads=1).stats.threads == 1
 
 
 def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[..., np.ndarray]) -> None:
@@ -207,18 +220,18 @@ def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[...
     hits = None
     for shading in ("headlight", "normal", "sun", "ao"):
         frame = render(scene, shading=shading, ao_samples=4)
-        st = frame["stats"]
-        hits = int((frame["prim"] >= 0).sum())
-        assert st["primary_rays"] == WIDTH * HEIGHT
-        assert st["rays"] == st["primary_rays"] + st["secondary_rays"]
-        assert st["node_visits"] > 0 and st["triangle_tests"] > 0 and st["milliseconds"] > 0
-        assert st["threads"] >= 1
+        st = frame.stats
+        hits = int((frame.prim >= 0).sum())
+        assert st.primary_rays == WIDTH * HEIGHT
+        assert st.rays == st.primary_rays + st.secondary_rays
+        assert st.node_visits > 0 and st.triangle_tests > 0 and st.milliseconds > 0
+        assert st.threads >= 1
         if shading in ("headlight", "normal"):
-            assert st["secondary_rays"] == 0
+            assert st.secondary_rays == 0
         elif shading == "ao":
-            assert st["secondary_rays"] == 4 * hits
+            assert st.secondary_rays == 4 * hits
         else:
-            prim = frame["prim"].ravel()
+            prim = frame.prim.ravel()
             hit = prim >= 0
             rays = camera_directions(EYE, TARGET, UP, FOV, WIDTH, HEIGHT).reshape(-1, 3)[hit]
             n = unit_normals(vertices, faces)[prim[hit]]
@@ -226,7 +239,7 @@ def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[...
             sun = np.array([0.35, 0.8, 0.5]) / np.linalg.norm([0.35, 0.8, 0.5])
             lam = n @ sun
             borderline = int((np.abs(lam) < 1e-6).sum())
-            assert abs(st["secondary_rays"] - int((lam > 0).sum())) <= borderline
+            assert abs(st.secondary_rays - int((lam > 0).sum())) <= borderline
     assert hits is not None and hits > 0
 
 
@@ -242,12 +255,12 @@ def test_ray_packets_change_speed_not_answers() -> None:
     scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colours)
     cam = frame_bounds(*scene.bounds, width=1024, height=768)
     args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
-    frames = {p: scene.render(*args, packets=p) for p in (1, 4, 16)}
+    frames = {p: render_view(scene, *args, packets=p) for p in (1, 4, 16)}
     for p in (4, 16):
-        np.testing.assert_array_equal(frames[p]["prim"], frames[1]["prim"])
-        np.testing.assert_array_equal(frames[p]["depth"], frames[1]["depth"])
-        np.testing.assert_array_equal(frames[p]["image"], frames[1]["image"])
+        np.testing.assert_array_equal(frames[p].prim, frames[1].prim)
+        np.testing.assert_array_equal(frames[p].depth, frames[1].depth)
+        np.testing.assert_array_equal(frames[p].image, frames[1].image)
     # Packets share node visits between rays: that is their whole point.
-    assert frames[16]["stats"]["node_visits"] < frames[1]["stats"]["node_visits"]
+    assert frames[16].stats.node_visits < frames[1].stats.node_visits
     with pytest.raises(ValueError, match="packets"):
-        scene.render(*args, packets=3)
+        render_view(scene, *args, packets=3)

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vastray import native
+
 Vec3 = tuple[float, float, float]
 
 # A three-quarter view from above: shows three faces of a box-like model, the usual
@@ -24,16 +26,38 @@ class Camera:
     width: int = 960
     height: int = 540
 
-    def native_args(self) -> dict[str, object]:
-        """The camera as the native renderers' keyword arguments."""
-        return {
-            "eye": list(self.eye),
-            "target": list(self.target),
-            "up": list(self.up),
-            "fov": self.fov,
-            "width": self.width,
-            "height": self.height,
-        }
+    def to_native(self) -> native.Camera:
+        """The camera the native renderers take (validated there)."""
+        eye, target, up = list(self.eye), list(self.target), list(self.up)
+        return native.Camera(eye, target, up, self.fov, self.width, self.height)
+
+    def validate(self) -> None:
+        """ValueError with the reason for absurd values (NaN, eye == target, up parallel
+        to the view, fov outside (0, 180), an image side outside 1..MAX_IMAGE_SIDE)."""
+        self.to_native().validate()
+
+    def image_rays(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rays (origins, unit directions) through image points (x, y), in pixels
+        from the top-left corner of the image: pixel (i, j)'s centre is (i + 0.5, j + 0.5).
+        The same rays the renderers trace through those points."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        w, right, upv = self._basis()
+        sx = 2.0 * pts[:, 0] / self.width - 1.0
+        sy = 1.0 - 2.0 * pts[:, 1] / self.height
+        dirs = w[None, :] + sx[:, None] * right[None, :] + sy[:, None] * upv[None, :]
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        return np.broadcast_to(np.asarray(self.eye, dtype=np.float64), dirs.shape).copy(), dirs
+
+    def _basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(forward, right scaled to the half-width, up scaled to the half-height)."""
+        e = np.asarray(self.eye, dtype=np.float64)
+        w = np.asarray(self.target, dtype=np.float64) - e
+        w /= np.linalg.norm(w)
+        u = np.cross(w, np.asarray(self.up, dtype=np.float64))
+        u /= np.linalg.norm(u)
+        v = np.cross(u, w)
+        tan_half = math.tan(self.fov * 0.5 * math.pi / 180.0)
+        return w, u * (tan_half * self.width / self.height), v * tan_half
 
     def primary_rays(self) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays in pixel order (row by row, top row first), in float64 exactly as
@@ -44,14 +68,7 @@ class Camera:
         Returns (origins, directions), each (width * height, 3). For tools and tests that
         need the renderer's rays without rendering (batch queries, picking, comparisons)."""
         e = np.asarray(self.eye, dtype=np.float64)
-        w = np.asarray(self.target, dtype=np.float64) - e
-        w /= np.linalg.norm(w)
-        u = np.cross(w, np.asarray(self.up, dtype=np.float64))
-        u /= np.linalg.norm(u)
-        v = np.cross(u, w)
-        tan_half = math.tan(self.fov * 0.5 * math.pi / 180.0)
-        right = u * (tan_half * self.width / self.height)
-        upv = v * tan_half
+        w, right, upv = self._basis()
         sx = 2.0 * (np.arange(self.width, dtype=np.float64) + 0.5) / self.width - 1.0
         sy = 1.0 - 2.0 * (np.arange(self.height, dtype=np.float64) + 0.5) / self.height
         dirs = (
@@ -84,7 +101,10 @@ def frame_bounds(
     d = np.asarray(direction, dtype=np.float64)
     d = d / np.linalg.norm(d)
     w = -d  # viewing direction
-    u = np.cross(w, up)
+    up_a = np.asarray(up, dtype=np.float64)
+    if not np.linalg.norm(up_a) > 0:
+        raise ValueError("camera up vector has zero length")
+    u = np.cross(w, up_a / np.linalg.norm(up_a))
     if np.linalg.norm(u) < 1e-9:
         raise ValueError("view direction is parallel to the up vector")
     u /= np.linalg.norm(u)
@@ -111,6 +131,29 @@ def frame_bounds(
     )
 
 
+def resolve_camera(
+    lo: Sequence[float],
+    hi: Sequence[float],
+    *,
+    eye: Sequence[float] | None = None,
+    target: Sequence[float] | None = None,
+    up: Sequence[float] = (0.0, 1.0, 0.0),
+    fov: float = 45.0,
+    width: int = 960,
+    height: int = 540,
+) -> Camera:
+    """The camera of a partial description, as the CLI and the server read one: without
+    an eye it frames the model's box (lo, hi); a missing target is the box's centre seen
+    from the framed direction, a missing eye the framed eye."""
+    up3 = (float(up[0]), float(up[1]), float(up[2]))
+    if eye is None and target is None:
+        return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
+    framed = frame_bounds(lo, hi, fov=fov, width=width, height=height)
+    e = framed.eye if eye is None else (float(eye[0]), float(eye[1]), float(eye[2]))
+    t = framed.target if target is None else (float(target[0]), float(target[1]), float(target[2]))
+    return Camera(eye=e, target=t, up=up3, fov=fov, width=width, height=height)
+
+
 def parse_vec3(text: str) -> Vec3:
     """Parse 'x,y,z' into three finite floats."""
     parts = text.split(",")
@@ -131,6 +174,7 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(p) for p in text.lower().split("x"))
     except ValueError as exc:
         raise ValueError(f"expected WIDTHxHEIGHT, got {text!r}") from exc
-    if not (0 < w <= 16384 and 0 < h <= 16384):
-        raise ValueError(f"image size out of range: {text!r}")
+    limit = native.MAX_IMAGE_SIDE
+    if not (0 < w <= limit and 0 < h <= limit):
+        raise ValueError(f"image size {text!r} out of range: each side must be 1..{limit}")
     return (w, h)

@@ -3,85 +3,118 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 from vastray import __version__
-from vastray.render import SHADING_MODES
+from vastray.renderer import SHADING_MODES
 
 
 def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequence[float]) -> Any:
-    from vastray.camera import Camera, frame_bounds, parse_size, parse_vec3
+    from vastray.camera import parse_size, parse_vec3, resolve_camera
 
     width, height = parse_size(args.size)
-    if args.eye or args.target:
-        framed = frame_bounds(lo, hi, fov=args.fov, width=width, height=height)
-        return Camera(
-            eye=parse_vec3(args.eye) if args.eye else framed.eye,
-            target=parse_vec3(args.target) if args.target else framed.target,
-            up=parse_vec3(args.up),
-            fov=args.fov,
-            width=width,
-            height=height,
-        )
-    return frame_bounds(lo, hi, fov=args.fov, width=width, height=height, up=parse_vec3(args.up))
-
-
-def _print_render(camera: Any, shading: str, s: dict[str, Any]) -> None:
-    ms = s["milliseconds"]
-    mrays = s["rays"] / (ms / 1000.0) / 1e6 if ms > 0 else float("inf")
-    primary = max(1, s["primary_rays"])
-    print(
-        f"render     {camera.width}x{camera.height} {shading}: {ms:.1f} ms, {s['rays']:,} rays "
-        f"({mrays:.2f} Mrays/s on {s['threads']} threads), "
-        f"{s['node_visits'] / primary:.1f} node visits and "
-        f"{s['triangle_tests'] / primary:.1f} triangle tests per pixel"
+    return resolve_camera(
+        lo,
+        hi,
+        eye=parse_vec3(args.eye) if args.eye else None,
+        target=parse_vec3(args.target) if args.target else None,
+        up=parse_vec3(args.up),
+        fov=args.fov,
+        width=width,
+        height=height,
     )
 
 
+def _print_render(camera: Any, shading: str, s: Any) -> None:
+    ms = s.milliseconds
+    mrays = s.rays / (ms / 1000.0) / 1e6 if ms > 0 else float("inf")
+    primary = max(1, s.primary_rays)
+    print(
+        f"render     {camera.width}x{camera.height} {shading}: {ms:.1f} ms, {s.rays:,} rays "
+        f"({mrays:.2f} Mrays/s on {s.threads} threads), "
+        f"{s.node_visits / primary:.1f} node visits and "
+        f"{s.triangle_tests / primary:.1f} triangle tests per pixel"
+    )
+
+
+def _check_output(path: str) -> None:
+    """Fail before rendering, not after, when the image cannot be written."""
+    from PIL import Image
+
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"{path}: no such directory {folder!r} for the output")
+    if not os.access(folder, os.W_OK):
+        raise PermissionError(f"{path}: cannot write into {folder!r}")
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in Image.registered_extensions():
+        raise ValueError(f"{path}: unknown image extension {ext!r} (use .png or .jpg)")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
-    from vastray.sources import is_model_file
-
-    if is_model_file(args.model):
-        return _render_built(args)
-    return _render_in_core(args)
-
-
-def _render_built(args: argparse.Namespace) -> int:
-    """A built model through the block cache: rendered until complete at --poe."""
     from PIL import Image
 
     from vastray.outofcore import OutOfCoreModel, make_cache
+    from vastray.render import SceneRenderer
+    from vastray.renderer import open_renderer, render_params
     from vastray.units import parse_bytes
 
+    # Everything that can be checked before loading and rendering is checked first.
+    _check_output(args.output)
+    _camera_from_args(args, (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)).validate()
+    params = render_params(
+        shading=args.shading, ao_samples=args.ao_samples, threads=args.threads, pixels_of_error=args.poe
+    )
+    if args.fetchers < 1:
+        raise ValueError(f"--fetchers must be at least 1, got {args.fetchers}")
+    if args.leaf_size < 1:
+        raise ValueError(f"--leaf-size must be at least 1, got {args.leaf_size}")
     cache = make_cache(parse_bytes(args.cache, "cache budget"), args.fetchers)
-    with OutOfCoreModel(args.model, cache) as model:
-        print(
-            f"model      {model.name}: {model.triangle_count:,} triangles, {model.block_count:,} blocks "
-            f"({model.file_size / 2**20:.1f} MiB), opened in {model.open_seconds * 1000:.0f} ms; "
-            f"cache {args.cache}"
-        )
-        lo, hi = model.bounds
+
+    renderer = open_renderer(
+        args.model,
+        cache=cache,
+        on_phase=lambda phase: print(f"{phase} ...", file=sys.stderr, flush=True),
+        leaf_size=args.leaf_size,
+        threads=args.threads,
+    )
+    try:
+        if isinstance(renderer, OutOfCoreModel):
+            print(
+                f"model      {renderer.name}: {renderer.triangle_count:,} triangles, "
+                f"{renderer.block_count:,} blocks ({renderer.file_size / 2**20:.1f} MiB), "
+                f"opened in {renderer.open_seconds * 1000:.0f} ms; cache {args.cache}"
+            )
+        elif isinstance(renderer, SceneRenderer):
+            stats = renderer.scene.build_stats
+            print(
+                f"model      {renderer.name}: {renderer.triangle_count:,} triangles, "
+                f"loaded in {renderer.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
+                f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
+                f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
+            )
+        lo, hi = renderer.bounds
         camera = _camera_from_args(args, lo, hi)
-        frame = model.render_complete(
-            camera,
-            shading=args.shading,
-            pixels_of_error=args.poe,
-            ao_samples=args.ao_samples,
-            threads=args.threads,
-        )
+        frame = renderer.render_complete(camera, params)
         Image.fromarray(frame.image).save(args.output)
         s = frame.stats
         _print_render(camera, args.shading, s)
-        print(
-            f"detail     PoE {args.poe:g}: complete after {s['frames']} frame(s) in {s['seconds']:.2f} s; "
-            f"{s['voxel_hits']:,} voxel hits, working set {s['working_set_bytes'] / 2**20:.1f} MiB "
-            f"in {s['working_set_blocks']:,} blocks"
-        )
-        errors = model.errors
-        for error in errors:
-            print(f"vastray: warning: {error} (drawn as the coarser voxels above it)", file=sys.stderr)
+        errors: list[str] = []
+        if isinstance(renderer, OutOfCoreModel):
+            print(
+                f"detail     PoE {args.poe:g}: complete after {frame.frames} frame(s) "
+                f"in {frame.seconds:.2f} s; "
+                f"{s.voxel_hits:,} voxel hits, working set {s.working_set_bytes / 2**20:.1f} MiB "
+                f"in {s.working_set_blocks:,} blocks"
+            )
+            errors = renderer.errors
+            for error in errors:
+                print(f"vastray: warning: {error} (drawn as the coarser voxels above it)", file=sys.stderr)
+    finally:
+        renderer.close()
     print(
         f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
         f"--fov {camera.fov:g}"
@@ -89,36 +122,6 @@ def _render_built(args: argparse.Namespace) -> int:
     print(f"wrote      {args.output}")
     # Damaged blocks leave an image that is not full detail: say so in the exit status.
     return 3 if errors else 0
-
-
-def _render_in_core(args: argparse.Namespace) -> int:
-    from PIL import Image
-
-    from vastray.render import load_model, render
-
-    build_options = {"leaf_size": args.leaf_size, "threads": args.threads}
-    model = load_model(
-        args.model, on_phase=lambda phase: print(f"{phase} ...", file=sys.stderr, flush=True), **build_options
-    )
-    scene = model.scene
-    stats = scene.build_stats
-    print(
-        f"model      {model.name}: {scene.triangle_count:,} triangles, "
-        f"loaded in {model.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
-        f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
-        f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
-    )
-    lo, hi = scene.bounds
-    camera = _camera_from_args(args, lo, hi)
-    frame = render(model, camera, shading=args.shading, ao_samples=args.ao_samples, threads=args.threads)
-    Image.fromarray(frame.image).save(args.output)
-    _print_render(camera, args.shading, frame.stats)
-    print(
-        f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
-        f"--fov {camera.fov:g}"
-    )
-    print(f"wrote      {args.output}")
-    return 0
 
 
 def _fmt(v: Sequence[float]) -> str:

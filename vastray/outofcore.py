@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,7 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.modelfile import ModelError
+from vastray.renderer import Frame, RayHits, render_params, trace
 from vastray.units import parse_bytes
 
 DEFAULT_CACHE_BUDGET = 1 << 30
@@ -37,16 +38,10 @@ class CacheTooSmallError(RuntimeError):
     """A complete image of this view needs more blocks than the cache can hold at once."""
 
 
-@dataclass
-class LodFrame:
-    image: np.ndarray  # (H, W, 3) uint8
-    depth: np.ndarray  # (H, W) float32, inf where nothing was hit
-    prim: np.ndarray  # (H, W) int32: triangle id, -1 background, -2 voxel
-    complete: bool  # nothing was missing for this view at this accuracy
-    stats: dict[str, Any] = field(default_factory=dict)
+class RenderCancelledError(RuntimeError):
+    """render_complete was told to stop (its `cancelled` callback said so)."""
 
 
-VOXEL_PRIM = -2
 
 _shared_lock = threading.Lock()
 _shared: native.BlockCache | None = None
@@ -121,80 +116,70 @@ class OutOfCoreModel:
         """Blocks that failed to read or verify; they render as their parent voxels."""
         return list(self._model.errors)
 
-    def render(
-        self,
-        camera: Camera,
-        *,
-        shading: str = "headlight",
-        pixels_of_error: float = 2.0,
-        ao_samples: int = 8,
-        solid_angle: float = -1.0,
-        threads: int = 0,
-        packets: int = 1,
-    ) -> LodFrame:
-        """One frame from what is cached now; never waits for data. `packets` (1, 4, 16)
-        traces primary rays singly or in 2x2 / 4x4 packets: same image, other speed."""
-        out = self._model.render(
-            **camera.native_args(),
-            shading=shading,
-            ao_samples=ao_samples,
-            threads=threads,
-            pixels_of_error=pixels_of_error,
-            solid_angle=solid_angle,
-            packets=packets,
-        )
-        return LodFrame(
-            image=out["image"],
-            depth=out["depth"],
-            prim=out["prim"],
-            complete=bool(out["complete"]),
-            stats=out["stats"],
-        )
+    def render(self, camera: Camera, params: native.RenderParams | None = None, **fields: Any) -> Frame:
+        """One frame from what is cached now; never waits for data (frame.complete says
+        whether anything was missing)."""
+        return trace(self._model, camera, params, **fields)
 
     def render_complete(
         self,
         camera: Camera,
+        params: native.RenderParams | None = None,
         *,
-        shading: str = "headlight",
-        pixels_of_error: float = 0.0,
-        ao_samples: int = 8,
-        solid_angle: float = -1.0,
-        threads: int = 0,
         timeout: float = 600.0,
-    ) -> LodFrame:
-        """Renders until nothing is missing for this view at this accuracy (PoE 0: full
-        detail). Stats gain `frames` and `seconds` (the whole wait)."""
+        cancelled: Callable[[], bool] | None = None,
+        **fields: Any,
+    ) -> Frame:
+        """Renders until nothing is missing for this view at this accuracy
+        (pixels_of_error 0: full detail). `frames` and `seconds` of the result count
+        the whole wait. `cancelled` is polled between frames (a server's time limit or
+        a client that went away)."""
+        params = render_params(params, **fields)
+        native_camera = camera.to_native()
         start = time.perf_counter()
         frames = 0
         stalled = 0
         while True:
-            frame = self.render(
-                camera,
-                shading=shading,
-                pixels_of_error=pixels_of_error,
-                ao_samples=ao_samples,
-                solid_angle=solid_angle,
-                threads=threads,
-            )
+            frame = trace(self._model, native_camera, params)
             frames += 1
-            if frame.complete or (frame.stats["bad_blocks"] and frame.stats["pending"] == 0):
+            stats = frame.stats
+            if stats.complete or (stats.bad_blocks and stats.pending == 0):
                 break
+            if cancelled is not None and cancelled():
+                raise RenderCancelledError(f"{self.name}: render cancelled")
             if time.perf_counter() - start > timeout:
                 raise TimeoutError(f"{self.name}: view not complete after {timeout:g} s")
             # Between frames, wait for at least one block; a cache that cannot make room
             # (the view's working set is larger than the budget) makes no progress.
-            progressed = self.cache.wait_for_fetches(1000.0)
-            stalled = 0 if progressed or frame.stats["blocks_loaded"] else stalled + 1
+            progressed = self.cache.wait_for_fetches(min(1000.0, 1000.0 * timeout))
+            stalled = 0 if progressed or stats.blocks_loaded else stalled + 1
             if stalled >= 3:
                 totals = self.cache.totals()
                 raise CacheTooSmallError(
                     f"{self.name}: this view needs more blocks than the cache holds "
-                    f"({totals['slot_count']} slots of 64 KiB, {frame.stats['working_set_blocks']} in use); "
+                    f"({totals['slot_count']} slots of 64 KiB, {stats.working_set_blocks} in use); "
                     "raise the cache budget or the pixels of error"
                 )
-        frame.stats["frames"] = frames
-        frame.stats["seconds"] = time.perf_counter() - start
+        frame.frames = frames
+        frame.seconds = time.perf_counter() - start
         return frame
+
+    def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
+        """Full-detail closest hits of world rays. Rays whose blocks are not cached are
+        asked again as the fetchers bring them, until all are answered or `timeout`
+        seconds pass (those left have complete False)."""
+        o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+        deadline = time.perf_counter() + timeout
+        out = self._model.intersect(o, d)
+        hits = RayHits(out["t"], out["position"], out["normal"], out["prim"], out["complete"])
+        while not hits.complete.all() and time.perf_counter() < deadline:
+            self.cache.wait_for_fetches(max(1.0, 1000.0 * min(0.25, deadline - time.perf_counter())))
+            todo = np.flatnonzero(~hits.complete)
+            again = self._model.intersect(o[todo], d[todo])
+            for name in ("t", "position", "normal", "prim", "complete"):
+                getattr(hits, name)[todo] = again[name]
+        return hits
 
     def close(self) -> None:
         self._model.close()

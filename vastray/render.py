@@ -1,12 +1,13 @@
-"""In-core rendering: turn a mesh file (or a built-in scene) into a native scene and
-render frames of it."""
+"""In-core rendering: a mesh file, a procedural scene or a built model decoded whole,
+as a native scene with its kd-tree, behind the `Renderer` interface
+(vastray/renderer.py). Always complete, always full detail: the reference the
+out-of-core renderer is tested against, and the quick way to look at a mesh."""
 
 from __future__ import annotations
 
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -14,33 +15,61 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.mesh import Mesh
-from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
+from vastray.renderer import Frame, RayHits, trace
+from vastray.sources import MODEL_SUFFIX, SOURCE_HELP, is_model_file, parse_scene
 
-SHADING_MODES = ("normal", "headlight", "sun", "ao")
 
+class SceneRenderer:
+    """An in-core scene. `load_seconds` and `build_seconds` say what opening it cost."""
 
-@dataclass
-class Model:
-    scene: native.Scene
-    name: str
-    load_seconds: float
-    build_seconds: float
+    def __init__(self, scene: native.Scene, name: str, load_seconds: float = 0.0, build_seconds: float = 0.0):
+        self.scene = scene
+        self.name = name
+        self.load_seconds = load_seconds
+        self.build_seconds = build_seconds
 
     @property
     def bounds(self) -> tuple[list[float], list[float]]:
         return self.scene.bounds
 
+    @property
+    def triangle_count(self) -> int:
+        return int(self.scene.triangle_count)
 
-@dataclass
-class Frame:
-    image: np.ndarray  # (H, W, 3) uint8
-    depth: np.ndarray  # (H, W) float32, inf where nothing was hit
-    prim: np.ndarray  # (H, W) int32, -1 where nothing was hit
-    stats: dict[str, Any] = field(default_factory=dict)
+    def render(self, camera: Camera, params: native.RenderParams | None = None, **fields: Any) -> Frame:
+        return trace(self.scene, camera, params, **fields)
+
+    def render_complete(
+        self,
+        camera: Camera,
+        params: native.RenderParams | None = None,
+        *,
+        timeout: float = 600.0,
+        cancelled: Callable[[], bool] | None = None,
+        **fields: Any,
+    ) -> Frame:
+        # In core every frame is complete.
+        return self.render(camera, params, **fields)
+
+    def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
+        o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+        length = np.linalg.norm(d, axis=1)
+        out = self.scene.intersect(o, d)
+        hit = out["prim"] >= 0
+        # t counts lengths of the float direction; report world distances as the
+        # out-of-core renderer does.
+        t = np.where(hit, out["t"] * length, np.inf)
+        position = np.where(hit[:, None], o + d * out["t"][:, None], np.nan)
+        return RayHits(t, position, out["normal"], out["prim"], np.ones(len(o), dtype=bool))
+
+    def close(self) -> None:
+        pass
 
 
 def scene_from_mesh(mesh: Mesh, **build_options: Any) -> native.Scene:
-    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colours, **build_options)
+    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colours, getattr(mesh, "triangle_ids", None),
+                        **build_options)  # fmt: skip
 
 
 def resolve_mesh(source: str) -> Mesh:
@@ -53,10 +82,17 @@ def resolve_mesh(source: str) -> Mesh:
         return scenes.to_mesh(scene.name, scene.triangles, scene.seed)
     if not os.path.exists(source):
         raise FileNotFoundError(f"{source}: no such file (or use {SOURCE_HELP})")
+    if source.lower().endswith(MODEL_SUFFIX):
+        # Named as a model but not one: the model reader says what is wrong with it.
+        from vastray.modelfile import ModelFile
+
+        ModelFile(source).close()
     return load_mesh(source)
 
 
-def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any) -> Model:
+def load_model(
+    source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any
+) -> SceneRenderer:
     """Load (or generate) a model and build its kd-tree, or decode a built model at full
     detail. `on_phase` hears about each phase as it starts, so a CLI or a job can tell
     the user what the wait is for."""
@@ -68,8 +104,7 @@ def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **
             on_phase(f"decoding built model {source} at full detail")
         with ModelFile(source) as model_file:
             scene = model_file.to_scene()
-        decoded = time.perf_counter() - start
-        return Model(scene=scene, name=os.path.basename(source), load_seconds=decoded, build_seconds=0.0)
+        return SceneRenderer(scene, os.path.basename(source), time.perf_counter() - start)
     if on_phase is not None:
         on_phase(f"loading {source}")
     mesh = resolve_mesh(source)
@@ -77,24 +112,4 @@ def load_model(source: str, *, on_phase: Callable[[str], None] | None = None, **
     if on_phase is not None:
         on_phase(f"building kd-tree over {mesh.triangle_count:,} triangles")
     scene = scene_from_mesh(mesh, **build_options)
-    built = time.perf_counter()
-    return Model(scene=scene, name=mesh.name, load_seconds=loaded - start, build_seconds=built - loaded)
-
-
-def render(
-    model: Model | native.Scene,
-    camera: Camera,
-    *,
-    shading: str = "headlight",
-    ao_samples: int = 8,
-    threads: int = 0,
-) -> Frame:
-    # The native renderer validates the camera and shading name (ValueError with the reason).
-    scene = model.scene if isinstance(model, Model) else model
-    out = scene.render(
-        **camera.native_args(),
-        shading=shading,
-        ao_samples=ao_samples,
-        threads=threads,
-    )
-    return Frame(image=out["image"], depth=out["depth"], prim=out["prim"], stats=out["stats"])
+    return SceneRenderer(scene, mesh.name, loaded - start, time.perf_counter() - loaded)

@@ -16,6 +16,7 @@ DEMO_TRIANGLES = 300_000
 DEMO_SEED = 7
 DEFAULT_SCENE_TRIANGLES = 100_000
 SOURCE_HELP = "'demo' / 'scene:NAME:TRIANGLES:SEED'"
+MODEL_SUFFIX = ".vast"  # what `vastray build` and the server name model files
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ using namespace vastray;
 
 namespace {
 
-using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using bindings::DoubleArray;
 using UIntArray = py::array_t<std::uint32_t, py::array::c_style | py::array::forcecast>;
 using ByteArray = py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast>;
 
@@ -29,22 +29,12 @@ void require_shape(const py::array& a, py::ssize_t cols, const char* name) {
     }
 }
 
-// tmin/tmax may be scalars or per-ray arrays.
-std::vector<double> broadcast(const py::object& value, std::size_t n, const char* name) {
-    auto arr = DoubleArray::ensure(value);
-    if (!arr) throw std::invalid_argument(std::string(name) + " must be a number or an array");
-    if (arr.ndim() == 0 || arr.size() == 1) return std::vector<double>(n, *arr.data());
-    if (static_cast<std::size_t>(arr.size()) != n) {
-        throw std::invalid_argument(std::string(name) + " must be a scalar or have one value per ray");
-    }
-    return std::vector<double>(arr.data(), arr.data() + n);
-}
-
+using bindings::broadcast;
 using bindings::to_numpy;
 using bindings::to_vec3;
 
 std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::object colours,
-                                  int leaf_size, float traversal_cost, float intersection_cost,
+                                  py::object triangle_ids, int leaf_size, float traversal_cost, float intersection_cost,
                                   float empty_space_ratio, int bins, int max_depth, unsigned threads) {
     require_shape(vertices, 3, "vertices");
     require_shape(faces, 3, "faces");
@@ -69,9 +59,18 @@ std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::obj
         if (colour_array.shape(0) != faces.shape(0)) throw std::invalid_argument("colours must have one row per face");
         colour_ptr = colour_array.data();
     }
+    UIntArray id_array;
+    const std::uint32_t* id_ptr = nullptr;
+    if (!triangle_ids.is_none()) {
+        id_array = UIntArray::ensure(triangle_ids);
+        if (!id_array || id_array.ndim() != 1 || id_array.shape(0) != faces.shape(0)) {
+            throw std::invalid_argument("triangle_ids must be one unsigned id per face");
+        }
+        id_ptr = id_array.data();
+    }
     py::gil_scoped_release release;
-    return std::make_shared<Scene>(vertices.data(), static_cast<std::size_t>(vertices.shape(0)),
-                                   faces.data(), static_cast<std::size_t>(faces.shape(0)), colour_ptr, params);
+    return std::make_shared<Scene>(vertices.data(), static_cast<std::size_t>(vertices.shape(0)), faces.data(),
+                                   static_cast<std::size_t>(faces.shape(0)), colour_ptr, id_ptr, params);
 }
 
 py::dict build_stats(const Scene& s) {
@@ -117,6 +116,7 @@ py::dict intersect(const Scene& s, DoubleArray origins, DoubleArray directions, 
     d["prim"] = to_numpy(std::move(res.prim), {n});
     d["u"] = to_numpy(std::move(res.u), {n});
     d["v"] = to_numpy(std::move(res.v), {n});
+    d["normal"] = to_numpy(std::move(res.normal), {n, 3});
     d["node_visits"] = res.counters.node_visits;
     d["triangle_tests"] = res.counters.triangle_tests;
     return d;
@@ -136,18 +136,13 @@ py::array_t<bool> occluded(const Scene& s, DoubleArray origins, DoubleArray dire
     return out;
 }
 
-py::dict render_frame(const Scene& s, const std::vector<double>& eye, const std::vector<double>& target,
-                      const std::vector<double>& up, double fov, int width, int height,
-                      const std::string& shading, int ao_samples, double ao_distance,
-                      const std::vector<double>& sun, unsigned threads, int tile_size, int packets) {
-    const bindings::RenderArgs a = bindings::render_args(eye, target, up, fov, width, height, shading, ao_samples,
-                                                         ao_distance, sun, threads, tile_size, packets);
+py::tuple render_frame(const Scene& s, const Camera& camera, const RenderParams& params) {
     Frame f;
     {
         py::gil_scoped_release release;
-        f = render(s, a.camera, a.params);
+        f = render(s, camera, params);
     }
-    return bindings::frame_dict(std::move(f));
+    return bindings::frame_tuple(std::move(f));
 }
 
 py::dict reference(DoubleArray vertices, UIntArray faces, DoubleArray origins, DoubleArray directions,
@@ -193,10 +188,11 @@ void bind_cache(py::module_& m);  // bindings_cache.cpp
 PYBIND11_MODULE(native, m) {
     m.doc() = "vastray native core: kd-tree build, watertight ray tracing, tiled rendering";
     m.def("hardware_threads", &hardware_threads, "Lanes the global thread pool uses");
+    bind_render_types(m);
 
     py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene", "An in-core triangle model with its kd-tree")
         .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colours") = py::none(),
-             py::arg("leaf_size") = 2, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
+             py::arg("triangle_ids") = py::none(), py::arg("leaf_size") = 2, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("max_depth") = 0,
              py::arg("threads") = 0u)
         .def_property_readonly("triangle_count", &Scene::triangle_count)
@@ -212,15 +208,13 @@ PYBIND11_MODULE(native, m) {
         .def_property_readonly("build_stats", &build_stats)
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
-             "Closest hits: dict of t (inf on a miss), prim (-1 on a miss), u, v barycentrics")
+             "Closest hits: dict of t (inf on a miss), prim (input triangle id, -1 on a miss), u, v "
+             "barycentrics, normal (unit geometric normal)")
         .def("occluded", &occluded, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
              "Any hit in [tmin, tmax]: bool per ray")
-        .def("render", &render_frame, py::arg("eye"), py::arg("target"), py::arg("up"), py::arg("fov"),
-             py::arg("width"), py::arg("height"), py::arg("shading") = "headlight", py::arg("ao_samples") = 8,
-             py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
-             py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("packets") = 16,
-             "Render one frame: dict of image (H,W,3 uint8), depth, prim and stats");
+        .def("render", &render_frame, py::arg("camera"), py::arg("params") = RenderParams{},
+             "Render one frame: (image (H,W,3) uint8, depth (H,W) float32, prim (H,W) int32, FrameStats)");
 
     bind_model(m);
     bind_cache(m);

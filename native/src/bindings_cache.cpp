@@ -12,6 +12,9 @@ using namespace vastray;
 
 namespace {
 
+using bindings::broadcast;
+using bindings::DoubleArray;
+
 // A model opened in a cache. Holding the cache keeps it (and its fetchers) alive for as
 // long as any of its models is.
 class PyCachedModel {
@@ -50,37 +53,40 @@ public:
         return cache_->preload(model(), blocks);
     }
 
-    py::dict render(const std::vector<double>& eye, const std::vector<double>& target, const std::vector<double>& up,
-                    double fov, int width, int height, const std::string& shading, int ao_samples,
-                    double ao_distance, const std::vector<double>& sun, unsigned threads, int tile_size,
-                    double pixels_of_error, double solid_angle, int packets) {
-        if (packets != 1 && packets != 4 && packets != 16) throw std::invalid_argument("packets must be 1, 4 or 16");
-        const bindings::RenderArgs a = bindings::render_args(eye, target, up, fov, width, height, shading, ao_samples,
-                                                             ao_distance, sun, threads, tile_size, packets);
-        LodParams lod;
-        lod.pixels_of_error = pixels_of_error;
-        lod.solid_angle = solid_angle;
+    py::tuple render(const Camera& camera, const RenderParams& params) {
         CachedModel& m = model();
-        LodFrame f;
+        Frame f;
         {
             py::gil_scoped_release release;
-            f = render_lod(*cache_, m, a.camera, a.params, lod);
+            f = render_lod(*cache_, m, camera, params);
         }
-        py::dict d = bindings::frame_dict(std::move(f.frame));
-        py::dict st = d["stats"];
-        st["voxel_hits"] = f.voxel_hits;
-        st["blocks_requested"] = f.cache.requested;
-        st["blocks_loaded"] = f.cache.loaded;
-        st["blocks_evicted"] = f.cache.evicted;
-        st["pending"] = f.cache.pending;
-        st["lookups"] = f.cache.lookups;
-        st["cache_hit_rate"] = f.cache.lookups ? static_cast<double>(f.cache.lookup_hits) / static_cast<double>(f.cache.lookups) : 1.0;
-        st["working_set_blocks"] = f.cache.working_set_blocks;
-        st["working_set_bytes"] = f.cache.working_set_bytes;
-        st["bad_blocks"] = f.cache.bad_blocks;
-        st["complete"] = f.complete;
-        st["tick"] = f.cache.tick;
-        d["complete"] = f.complete;
+        return bindings::frame_tuple(std::move(f));
+    }
+
+    py::dict intersect(DoubleArray origins, DoubleArray directions, const py::object& tmin, const py::object& tmax,
+                       unsigned threads) {
+        if (origins.ndim() != 2 || origins.shape(1) != 3 || directions.ndim() != 2 || directions.shape(1) != 3 ||
+            origins.shape(0) != directions.shape(0)) {
+            throw std::invalid_argument("origins and directions must both have shape (n, 3)");
+        }
+        const auto n = static_cast<std::size_t>(origins.shape(0));
+        const std::vector<double> lo = broadcast(tmin, n, "tmin"), hi = broadcast(tmax, n, "tmax");
+        CachedModel& m = model();
+        LodRayHits r;
+        {
+            py::gil_scoped_release release;
+            r = intersect_lod(*cache_, m, origins.data(), directions.data(), lo.data(), hi.data(), n, threads);
+        }
+        const auto rows = static_cast<py::ssize_t>(n);
+        py::dict d;
+        d["t"] = bindings::to_numpy(std::move(r.t), {rows});
+        d["position"] = bindings::to_numpy(std::move(r.position), {rows, 3});
+        d["normal"] = bindings::to_numpy(std::move(r.normal), {rows, 3});
+        d["prim"] = bindings::to_numpy(std::move(r.prim), {rows});
+        d["u"] = bindings::to_numpy(std::move(r.u), {rows});
+        d["v"] = bindings::to_numpy(std::move(r.v), {rows});
+        d["complete"] = bindings::to_numpy(std::move(r.complete), {rows}).attr("astype")("bool");
+        d["stats"] = r.stats;
         return d;
     }
 
@@ -166,11 +172,13 @@ void bind_cache(py::module_& m) {
              "Resident blocks as (global block id, tick of the last frame that used it)")
         .def("preload_levels", &PyCachedModel::preload_levels, py::arg("levels"),
              "Load the first `levels` node levels now (as far as free slots allow)")
-        .def("render", &PyCachedModel::render, py::arg("eye"), py::arg("target"), py::arg("up"), py::arg("fov"),
-             py::arg("width"), py::arg("height"), py::arg("shading") = "headlight", py::arg("ao_samples") = 8,
-             py::arg("ao_distance") = 0.0, py::arg("sun") = std::vector<double>{0.35, 0.8, 0.5},
-             py::arg("threads") = 0u, py::arg("tile_size") = 16, py::arg("pixels_of_error") = 2.0,
-             py::arg("solid_angle") = -1.0, py::arg("packets") = 1,
-             "Render one frame from the cache; never waits for data (stats say what was missing)")
+        .def("render", &PyCachedModel::render, py::arg("camera"), py::arg("params") = RenderParams{},
+             "Render one frame from the cache; never waits for data (stats say what was missing): "
+             "(image, depth, prim, FrameStats)")
+        .def("intersect", &PyCachedModel::intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
+             py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
+             "Full-detail closest hits of world rays from what is cached; never waits. dict of t (world "
+             "distance), position, normal, prim (input triangle id, -1 on a miss), u, v, complete (False: "
+             "a block it needs was requested; ask again), stats")
         .def("close", &PyCachedModel::close);
 }

@@ -1,5 +1,5 @@
 // Helpers shared by the binding files of vastray.native: numpy hand-over, vector
-// arguments, and the camera and frame conversions every render call uses.
+// arguments, and the frame conversion every render call uses.
 #pragma once
 
 #include <pybind11/numpy.h>
@@ -21,6 +21,19 @@ inline Vec3d to_vec3(const std::vector<double>& v, const char* name) {
     return {v[0], v[1], v[2]};
 }
 
+using DoubleArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+
+// tmin/tmax of ray queries: a scalar or one value per ray.
+inline std::vector<double> broadcast(const py::object& value, std::size_t n, const char* name) {
+    auto arr = DoubleArray::ensure(value);
+    if (!arr) throw std::invalid_argument(std::string(name) + " must be a number or an array");
+    if (arr.ndim() == 0 || arr.size() == 1) return std::vector<double>(n, *arr.data());
+    if (static_cast<std::size_t>(arr.size()) != n) {
+        throw std::invalid_argument(std::string(name) + " must be a scalar or have one value per ray");
+    }
+    return std::vector<double>(arr.data(), arr.data() + n);
+}
+
 // Hands a vector to numpy without a copy; the capsule frees it with the array.
 template <typename T>
 py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
@@ -29,50 +42,15 @@ py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
     return py::array_t<T>(shape, heap->data(), owner);
 }
 
-struct RenderArgs {
-    Camera camera;
-    RenderParams params;
-};
-
-inline RenderArgs render_args(const std::vector<double>& eye, const std::vector<double>& target,
-                              const std::vector<double>& up, double fov, int width, int height,
-                              const std::string& shading, int ao_samples, double ao_distance,
-                              const std::vector<double>& sun, unsigned threads, int tile_size, int packets) {
-    RenderArgs a;
-    a.camera.eye = to_vec3(eye, "eye");
-    a.camera.target = to_vec3(target, "target");
-    a.camera.up = to_vec3(up, "up");
-    a.camera.fov_deg = fov;
-    a.camera.width = width;
-    a.camera.height = height;
-    a.params.shading = parse_shading(shading);
-    a.params.ao_samples = ao_samples;
-    a.params.ao_distance = ao_distance;
-    a.params.sun_direction = to_vec3(sun, "sun");
-    a.params.threads = threads;
-    a.params.tile_size = tile_size;
-    if (packets != 1 && packets != 4 && packets != 16) throw std::invalid_argument("packets must be 1, 4 or 16");
-    a.params.packets = packets;
-    return a;
-}
-
-// image, depth, prim and the ray statistics of a frame, as a dict.
-inline py::dict frame_dict(Frame&& f) {
+// A frame as (image (H,W,3) uint8, depth (H,W) float32, prim (H,W) int32, FrameStats).
+inline py::tuple frame_tuple(Frame&& f) {
     const py::ssize_t h = f.height, w = f.width;
-    py::dict d;
-    d["image"] = to_numpy(std::move(f.rgb), {h, w, 3});
-    d["depth"] = to_numpy(std::move(f.depth), {h, w});
-    d["prim"] = to_numpy(std::move(f.prim), {h, w});
-    py::dict st;
-    st["primary_rays"] = f.stats.primary_rays;
-    st["secondary_rays"] = f.stats.secondary_rays;
-    st["rays"] = f.stats.primary_rays + f.stats.secondary_rays;
-    st["node_visits"] = f.stats.node_visits;
-    st["triangle_tests"] = f.stats.triangle_tests;
-    st["milliseconds"] = f.stats.milliseconds;
-    st["threads"] = f.stats.threads;
-    d["stats"] = st;
-    return d;
+    return py::make_tuple(to_numpy(std::move(f.rgb), {h, w, 3}), to_numpy(std::move(f.depth), {h, w}),
+                          to_numpy(std::move(f.prim), {h, w}), f.stats);
 }
 
 }  // namespace vastray::bindings
+
+namespace vastray {
+void bind_render_types(pybind11::module_& m);  // bindings_render.cpp
+}

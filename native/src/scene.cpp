@@ -8,7 +8,8 @@
 namespace vastray {
 
 Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
-             std::size_t face_count, const std::uint8_t* colours, const KdBuildParams& params) {
+             std::size_t face_count, const std::uint8_t* colours, const std::uint32_t* input_ids,
+             const KdBuildParams& params) {
     if (face_count == 0) throw std::invalid_argument("scene has no triangles");
     Vec3d lo(std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
              std::numeric_limits<double>::infinity());
@@ -33,11 +34,12 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
         }
     }
     if (colours != nullptr) colours_.assign(colours, colours + 3 * face_count);
+    if (input_ids != nullptr) input_ids_.assign(input_ids, input_ids + face_count);
     tree_ = build_kdtree(TriangleSoup{tri_vertices_.data(), face_count}, params);
 }
 
 std::size_t Scene::memory_bytes() const {
-    return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + tree_.memory_bytes();
+    return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + 4 * input_ids_.size() + tree_.memory_bytes();
 }
 
 Ray Scene::to_local(const WorldRay& r) const {
@@ -82,6 +84,7 @@ BatchResult intersect_batch(const Scene& scene, const double* origins, const dou
     out.prim.assign(n, -1);
     out.u.assign(n, 0.0f);
     out.v.assign(n, 0.0f);
+    out.normal.assign(3 * n, 0.0f);
     ThreadPool& pool = ThreadPool::global();
     std::vector<TraversalCounters> lane_counters(pool.lanes());
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned lane) {
@@ -92,9 +95,11 @@ BatchResult intersect_batch(const Scene& scene, const double* origins, const dou
             Hit hit;
             if (scene.trace<false>(scene.to_local(wr), hit, c)) {
                 out.t[i] = hit.t;
-                out.prim[i] = hit.prim;
+                out.prim[i] = scene.input_id(hit.prim);
                 out.u[i] = hit.u;
                 out.v[i] = hit.v;
+                const Vec3f nrm = normalize(scene.normal(hit.prim));
+                for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
             }
         }
     }, threads);

@@ -59,13 +59,12 @@ int main(int argc, char** argv) {
                 RenderParams params;
                 params.shading = f % 3 == 0 ? Shading::Sun : (f % 3 == 1 ? Shading::Headlight : Shading::AmbientOcclusion);
                 params.ao_samples = 2;
-                LodParams lod;
-                lod.pixels_of_error = (f % 4) * 1.5;
+                params.pixels_of_error = (f % 4) * 1.5;
                 try {
-                    const LodFrame frame = render_lod(cache, model, cam, params, lod);
-                    voxel_hits += frame.voxel_hits;
-                    loaded += frame.cache.loaded;
-                    evicted += frame.cache.evicted;
+                    const Frame frame = render_lod(cache, model, cam, params);
+                    voxel_hits += frame.stats.voxel_hits;
+                    loaded += frame.stats.cache.loaded;
+                    evicted += frame.stats.cache.evicted;
                 } catch (const std::exception& e) {
                     std::fprintf(stderr, "render failed: %s\n", e.what());
                     ++failures;

@@ -27,6 +27,7 @@
 #include <vector>
 
 #include "vastray/format.h"
+#include "vastray/frame_stats.h"
 #include "vastray/model_index.h"
 
 namespace vastray {
@@ -86,18 +87,6 @@ struct CacheConfig {
     FetchPriority priority = FetchPriority::RequestCount;
     std::size_t max_requests_per_frame = 256;  // the fetch list a frame may add to
     std::size_t max_pending = 4096;            // requests older than this many are dropped
-};
-
-// Counters for one frame, filled by begin_frame/end_frame and the render threads.
-struct FrameCacheStats {
-    std::uint32_t tick = 0;         // the frame's number (slot stamps use it)
-    std::uint64_t requested = 0;    // distinct blocks this frame asked for
-    std::uint64_t loaded = 0;       // blocks published at the start of this frame
-    std::uint64_t evicted = 0;      // blocks evicted at the end of this frame
-    std::uint64_t pending = 0;      // requests queued or loading after this frame
-    std::uint64_t lookups = 0, lookup_hits = 0;
-    std::uint64_t working_set_blocks = 0, working_set_bytes = 0;
-    std::uint64_t bad_blocks = 0;   // lookups of blocks that failed to load
 };
 
 struct CacheTotals {

@@ -1,4 +1,6 @@
-// Frames of a built model rendered from the block cache with level of detail.
+// Frames and ray queries of a built model rendered from the block cache with level of
+// detail. Neither ever waits for data: what is missing is requested, and the stats say
+// whether the answer was complete.
 #pragma once
 
 #include <memory>
@@ -8,27 +10,24 @@
 
 namespace vastray {
 
-struct LodParams {
-    // Pixels of error: a voxel may stand in for its subtree once its projected diameter
-    // is at most this many pixels. 0 renders full detail (never stops at a voxel).
-    double pixels_of_error = 2;
-    // Solid-angle metric for AO rays: the largest solid angle (steradians) a voxel may
-    // subtend from an AO ray's origin. Negative: derived from pixels_of_error.
-    double solid_angle = -1;
-};
+Frame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, const RenderParams& params);
 
-struct LodFrame {
-    Frame frame;  // frame.prim: input triangle id, -1 for background, -2 for a voxel
-    FrameCacheStats cache;
-    std::uint64_t voxel_hits = 0;
-    bool complete = false;  // nothing was missing for this view at this accuracy
+// Full-detail closest hits of world-space rays (picking, measuring). A ray whose answer
+// needs a block that is not cached yet gets complete[i] = 0 (its block is requested);
+// ask again once fetches finish.
+struct LodRayHits {
+    std::vector<double> t, position;  // position: 3 per ray, world frame (double)
+    std::vector<float> normal;        // 3 per ray, unit geometric normal
+    std::vector<std::int64_t> prim;   // input triangle id; -1 on a miss
+    std::vector<float> u, v;
+    std::vector<std::uint8_t> complete;
+    FrameStats stats;
 };
-
-LodFrame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, const RenderParams& params,
-                    const LodParams& lod);
+LodRayHits intersect_lod(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
+                         const double* tmin, const double* tmax, std::size_t n, unsigned threads);
 
 // The cone slope of the solid-angle metric: a voxel of radius R at distance t subtends
 // about pi R^2 / t^2, so R <= t * sqrt(omega / pi).
-double solid_angle_cone(const LodParams& lod, double pixel_angle);
+double solid_angle_cone(const RenderParams& params, double pixel_angle);
 
 }  // namespace vastray

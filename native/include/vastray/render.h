@@ -1,10 +1,14 @@
-// Pinhole camera, shading modes and the tiled frame renderer.
+// The camera, the render parameters and the frame: what both renderers take and give.
+// The in-core renderer (render.cpp, a Scene) and the out-of-core LOD renderer
+// (lod_render.cpp, a model in a block cache) share one parameter struct, one stats
+// struct and one frame loop (frame_renderer.h); only their traversals differ.
 #pragma once
 
 #include <cstdint>
 #include <string>
 #include <vector>
 
+#include "vastray/frame_stats.h"
 #include "vastray/scene.h"
 
 namespace vastray {
@@ -19,8 +23,11 @@ struct Camera {
     void validate() const;
 };
 
+constexpr int kMaxImageSide = 16384;
+
 enum class Shading { Normal, Headlight, Sun, AmbientOcclusion };
 Shading parse_shading(const std::string& name);
+const char* shading_name(Shading shading);
 
 struct RenderParams {
     Shading shading = Shading::Headlight;
@@ -29,24 +36,31 @@ struct RenderParams {
     Vec3d sun_direction{0.35, 0.8, 0.5};  // towards the sun, world frame
     unsigned threads = 0;                  // 0: every lane of the pool
     int tile_size = 16;
-    // Primary rays per packet: 16 (4x4 blocks), 4 (2x2 quads) or 1 (single rays).
-    int packets = 16;
-};
+    // Primary rays per packet: 16 (4x4 blocks), 4 (2x2 quads), 1 (single rays), or 0
+    // for each renderer's fastest: 4x4 SSE packets in core, single rays out of core
+    // (its packets are still scalar and slower; bench/results/tradeoff-size.md).
+    int packets = 0;
+    // Level of detail (out of core; an in-core scene always renders full detail).
+    // Pixels of error: a voxel may stand in for its subtree once its projected
+    // diameter is at most this many pixels. 0 is full detail.
+    double pixels_of_error = 1;
+    // Solid-angle metric for AO rays, in steradians; negative: derived from the PoE.
+    double solid_angle = -1;
 
-struct RenderStats {
-    std::uint64_t primary_rays = 0, secondary_rays = 0;
-    std::uint64_t node_visits = 0, triangle_tests = 0;
-    double milliseconds = 0;
-    unsigned threads = 0;
+    // Throws std::invalid_argument naming the field and its allowed range.
+    void validate() const;
+    int packets_or(int fastest) const { return packets == 0 ? fastest : packets; }
 };
 
 struct Frame {
     int width = 0, height = 0;
     std::vector<std::uint8_t> rgb;     // height * width * 3
     std::vector<float> depth;          // distance along the unit view ray; inf on a miss
-    std::vector<std::int32_t> prim;    // triangle id; -1 on a miss
-    RenderStats stats;
+    std::vector<std::int32_t> prim;    // input triangle id; -1 on a miss, -2 on a LOD voxel
+    FrameStats stats;
 };
+
+constexpr std::int32_t kPrimBackground = -1, kPrimVoxel = -2;
 
 Frame render(const Scene& scene, const Camera& camera, const RenderParams& params);
 

@@ -17,9 +17,12 @@ struct WorldRay {
 
 class Scene {
 public:
-    // vertices: (V,3) double world coordinates; faces: (F,3) indices; colours: (F,3) RGB8 or null.
+    // vertices: (V,3) double world coordinates; faces: (F,3) indices; colours: (F,3) RGB8
+    // or null; input_ids: per face, the id of that triangle in the input it came from
+    // (ingest drops degenerate faces, so face f need not be input triangle f), or null.
     Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
-          std::size_t face_count, const std::uint8_t* colours, const KdBuildParams& params);
+          std::size_t face_count, const std::uint8_t* colours, const std::uint32_t* input_ids,
+          const KdBuildParams& params);
 
     // A scene whose tree was built elsewhere (decoded from a built model).
     Scene(const Vec3d& centre, std::vector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colours, KdTree&& tree)
@@ -33,6 +36,8 @@ public:
     const KdTree& tree() const { return tree_; }
     const Vec3f* tri_vertices() const { return tri_vertices_.data(); }
     const std::uint8_t* colour(std::uint32_t prim) const { return colours_.data() + 3 * static_cast<std::size_t>(prim); }
+    // The input's id of triangle `prim`: what frames and ray queries report.
+    std::uint32_t input_id(std::uint32_t prim) const { return input_ids_.empty() ? prim : input_ids_[prim]; }
     std::size_t memory_bytes() const;
 
     // Converts a world ray to model-local float. The subtraction of the centre happens
@@ -51,14 +56,16 @@ private:
     Vec3d centre_;
     std::vector<Vec3f> tri_vertices_;  // 3 per triangle, model-local
     std::vector<std::uint8_t> colours_;
+    std::vector<std::uint32_t> input_ids_;  // empty: the identity
     KdTree tree_;
 };
 
 // Batch queries in world coordinates (tools and tests). Outputs are arrays of n.
 struct BatchResult {
     std::vector<double> t;
-    std::vector<std::int64_t> prim;
+    std::vector<std::int64_t> prim;  // input triangle id
     std::vector<float> u, v;
+    std::vector<float> normal;  // 3 per ray: unit geometric normal (0 on a miss)
     TraversalCounters counters;
 };
 BatchResult intersect_batch(const Scene& scene, const double* origins, const double* directions,

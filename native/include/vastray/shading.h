@@ -1,7 +1,6 @@
-// Pieces shared by the in-core and the out-of-core (LOD) frame renderers: the camera's
-// primary rays, reproducible random numbers for AO, the hemisphere basis, the shading
-// terms of each mode and the background. Both renderers must agree on these, so a full-
-// detail out-of-core image equals the in-core one pixel for pixel.
+// Pieces of the frame loop (frame_renderer.h) that both renderers' backends also use:
+// the camera's primary rays, reproducible random numbers for AO, the hemisphere basis,
+// the shading terms of each mode, the background, and the tile loop over the pool.
 #pragma once
 
 #include <algorithm>
@@ -130,15 +129,6 @@ void for_each_tile(const Camera& camera, const RenderParams& params, TileFn&& fn
 inline unsigned lanes_used(const RenderParams& params) {
     const unsigned lanes = ThreadPool::global().lanes();
     return params.threads == 0 ? lanes : std::min(params.threads, lanes);
-}
-
-// Checks shared by both renderers' entry points.
-inline void validate(const Camera& camera, const RenderParams& params) {
-    camera.validate();
-    if (!all_finite(params.sun_direction) || !(dot(params.sun_direction, params.sun_direction) > 0)) {
-        throw std::invalid_argument("sun direction must be a finite non-zero vector");
-    }
-    if (params.ao_samples < 1 || params.ao_samples > 1024) throw std::invalid_argument("ao_samples must be in [1, 1024]");
 }
 
 }  // namespace vastray::shading
