@@ -3,34 +3,46 @@
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
+DATA   ?= data
 
-.PHONY: run test install dev bench lint clean tsan
+# A regular (non-editable) install, redone only when a source file changed: the tests
+# exercise the package as users get it.
+STAMP   := $(VENV)/.installed
+SOURCES := pyproject.toml CMakeLists.txt README.md \
+           $(shell find native vastray server client -type f -not -name '*.pyc' -not -path '*/__pycache__/*' 2>/dev/null)
+
+.PHONY: run test test-fast install dev bench lint clean tsan
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
-# A regular (non-editable) install: the tests exercise the package as users get it.
-install: $(BIN)/python
+$(STAMP): $(BIN)/python $(SOURCES)
 	$(BIN)/pip install -q '.[test]'
+	@touch $@
 
-# Editable install for working on the code (rebuild the native module with `make dev`).
+install: $(STAMP)
+
+# Editable install for working on the code (rerun after changing C++).
 dev: $(BIN)/python
 	$(BIN)/pip install -q scikit-build-core pybind11
 	$(BIN)/pip install -q --no-build-isolation -e '.[test,bench]'
+	@rm -f $(STAMP)
 
-# Builds the demo into the out-of-core format, then renders the built model.
+# The main job: the render server with the built-in demo model (built on first start
+# into $(DATA)/), printing the URL to open.
 run: install
-	@mkdir -p out
-	$(BIN)/vastray build demo -o out/demo.vast --force
-	$(BIN)/vastray inspect out/demo.vast
-	$(BIN)/vastray render out/demo.vast --shading sun -o out/demo.png
+	$(BIN)/vastray serve --data $(DATA)
 
 lint: install
 	$(BIN)/ruff check .
 
 test: lint
 	$(BIN)/pytest
+
+# The daily loop: everything but the tests marked slow (CI runs them all).
+test-fast: lint
+	$(BIN)/pytest -m "not slow" -x
 
 # The native cache stress test under ThreadSanitizer (also part of `make test`).
 tsan: install
@@ -49,4 +61,4 @@ bench: $(BIN)/python
 	$(BIN)/python bench/tradeoff.py
 
 clean:
-	rm -rf build out .pytest_cache .ruff_cache
+	rm -rf build out .pytest_cache .ruff_cache $(STAMP)

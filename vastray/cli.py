@@ -287,6 +287,54 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from vastray.server import Settings, serve
+
+    # Flags override VASTRAY_* environment variables, which override the defaults.
+    given = {k: v for k, v in vars(args).items() if k in Settings.model_fields and v is not None}
+    if args.api_key:
+        given["api_keys"] = args.api_key
+    if args.cors_origin:
+        given["cors_origins"] = args.cors_origin
+    if args.no_demo:
+        given["demo"] = False
+    try:
+        settings = Settings(**given)
+    except ValidationError as exc:
+        from vastray.schemas import describe_errors
+
+        raise ValueError(describe_errors(exc.errors())) from None  # type: ignore[arg-type]
+    return serve(settings)
+
+
+def _add_serve(sub: Any) -> None:
+    v = sub.add_parser("serve", help="run the render server (REST API, streams, the viewer page)",
+                       description="Run the render server. Every flag has a VASTRAY_* environment variable "
+                       "(e.g. --cache: VASTRAY_CACHE); flags win.")  # fmt: skip
+    v.add_argument(
+        "--data", dest="data_dir", help="data directory: registry, models, uploads (default ./data)"
+    )
+    v.add_argument("--host", help="address to listen on (default 127.0.0.1; 0.0.0.0 for every interface)")
+    v.add_argument("--port", type=int, help="port (default 8000; 0 picks a free one)")
+    v.add_argument("--public-url", help="the URL people open, when behind a proxy")
+    v.add_argument("--cache", help="block cache budget shared by every model and viewer (default 1G)")
+    v.add_argument("--render-threads", type=int, help="threads per frame (default 0: every core)")
+    v.add_argument("--fetchers", type=int, help="block fetcher threads (default 2)")
+    v.add_argument("--render-workers", type=int, help="frames rendered or encoded at once (default 2)")
+    v.add_argument("--api-key", action="append", help="API key for write endpoints (repeatable; default: "
+                   "a random key printed at start)")  # fmt: skip
+    v.add_argument("--cors-origin", action="append", help="an origin allowed to call the API from a browser")
+    v.add_argument("--upload-limit", help="largest upload (default 4G)")
+    v.add_argument("--max-pixels", type=int, help="pixel budget of one image (default 3840x2160)")
+    v.add_argument("--build-jobs", type=int, help="build jobs at once (default 1)")
+    v.add_argument("--build-memory", help="memory budget of a build job (default 2G)")
+    v.add_argument("--build-threads", type=int, help="threads per build job (default 0: every core)")
+    v.add_argument("--no-demo", action="store_true", help="do not build the demo into a new data directory")
+    v.set_defaults(func=_cmd_serve)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vastray", description=__doc__)
     parser.add_argument("--version", action="version", version=f"vastray {__version__}")
@@ -335,6 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--verify", action="store_true", help="read and check every block")
     i.add_argument("--json", action="store_true", help="print the statistics as JSON")
     i.set_defaults(func=_cmd_inspect)
+
+    _add_serve(sub)
 
     s = sub.add_parser("scene", help="generate a procedural test scene")
     s.add_argument("name", help="scene name: spheres, plant, mandelbulb")

@@ -1,0 +1,1 @@
+"""vastray.client: the Python client of the render service (REST and streaming)."""

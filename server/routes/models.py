@@ -1,0 +1,115 @@
+"""Models: register (a file in the data directory or an upload), upload, list,
+inspect, delete (deferred while in use), and viewing tokens."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
+
+from vastray.schemas import ModelCreated, ModelInfo, ModelRequest, TokenInfo, TokenRequest, UploadInfo
+from vastray.server.app import State
+from vastray.server.auth import credential
+from vastray.server.deps import Admin, state_of
+from vastray.server.errors import ApiError
+from vastray.server.files import inside, kind_of
+from vastray.server.routes.jobs import submit_build
+
+router = APIRouter(prefix="/api", tags=["models"])
+
+
+def register(
+    state: State, *, path: str | None, upload: str | None, name: str | None, options: object = None
+) -> ModelCreated:
+    """A built model is served at once; a mesh starts the build that makes it."""
+    file = state.uploads.path(upload) if upload is not None else inside(state.data_dir, path or "")
+    label = name or file.stem
+    if kind_of(file) == "model":
+        row = state.store.register_file(file, label, move=upload is not None)
+        if upload is not None:
+            state.uploads.remove(upload)
+        return ModelCreated(model=state.store.info(row))
+    job = submit_build(state, source=path or "", name=name, options=options, upload=upload)  # type: ignore[arg-type]
+    assert job.model_id is not None
+    return ModelCreated(model=state.store.info(state.store.row(job.model_id)), job=job)
+
+
+@router.post(
+    "/models",
+    status_code=201,
+    summary="Register a built model or a mesh in the data directory, "
+    "or an upload (a mesh starts a build job: 202)",
+)
+def create_model(body: ModelRequest, request: Request, response: Response, _: Admin) -> ModelCreated:
+    created = register(
+        state_of(request), path=body.path, upload=body.upload, name=body.name, options=body.options
+    )
+    if created.job is not None:
+        response.status_code = 202
+    return created
+
+
+@router.post("/uploads", status_code=201, summary="Upload a mesh or a built model (the raw file as the body)")
+async def upload(
+    request: Request,
+    _: Admin,
+    filename: str = Query(
+        ..., min_length=1, max_length=255, description="the file's name (its type is read from it)"
+    ),
+    register_it: bool = Query(
+        False, alias="register", description="register it at once (a mesh starts a build)"
+    ),
+    name: str | None = Query(None, max_length=200),
+) -> UploadInfo:
+    state = state_of(request)
+    length = request.headers.get("content-length")
+    declared = int(length) if length and length.isdigit() else None
+    upload_id, path = await state.uploads.receive(filename, request.stream(), declared)
+    try:
+        kind = kind_of(path)
+    except ApiError:
+        state.uploads.remove(upload_id)
+        raise
+    size = path.stat().st_size
+    created = None
+    if register_it:
+        import asyncio
+
+        created = await asyncio.to_thread(register, state, path=None, upload=upload_id, name=name)
+    return UploadInfo(id=upload_id, filename=path.name, bytes=size, kind=kind, created=created)  # type: ignore[arg-type]
+
+
+@router.get("/models", summary="Models being built and ready (a viewing token sees its own model only)")
+def list_models(request: Request) -> list[ModelInfo]:
+    state = state_of(request)
+    grant = state.auth.grant(credential(request))
+    return [state.store.info(m) for m in state.registry.models() if grant.may_view_model(m.id)]
+
+
+@router.get("/models/{model_id}", summary="Triangles, bounds, LOD levels, bytes, build parameters, part ids")
+def get_model(model_id: str, request: Request) -> ModelInfo:
+    state = state_of(request)
+    state.auth.require_model_view(request, model_id)
+    return state.store.info(state.store.row(model_id))
+
+
+@router.delete(
+    "/models/{model_id}",
+    summary="Delete a model (deferred while a viewer, render or job uses it)",
+    responses={202: {"description": "deferred until its users leave"}, 204: {"description": "deleted"}},
+)
+def delete_model(model_id: str, request: Request, _: Admin) -> Response:
+    state = state_of(request)
+    gone = state.store.delete(model_id)
+    if gone:
+        return Response(status_code=204)
+    return JSONResponse({"status": "deleting", "in_use": state.store.in_use(model_id)}, 202)
+
+
+@router.post("/models/{model_id}/tokens", status_code=201, summary="A viewing token for one model")
+def create_token(model_id: str, body: TokenRequest, request: Request, _: Admin) -> TokenInfo:
+    state = state_of(request)
+    state.store.row(model_id)
+    token, row = state.auth.issue("model", model_id, body.ttl_seconds, label=body.label)
+    return TokenInfo(
+        token=token, scope="model", subject=model_id, expires_at=row.expires_at, label=body.label
+    )

@@ -1,0 +1,204 @@
+"""The server's life: the demo built on first start while the API serves, restarts that
+keep the registry (clean ones and crashes), jobs interrupted by either, deletes deferred
+while a render uses the model, configuration from the environment, a registry from a
+newer release refused."""
+
+from __future__ import annotations
+
+import signal
+import sqlite3
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from serverproc import VASTRAY, ServerProcess, wait_for_job
+from test_jobs import SLOW_SOURCE, wait_for_phase
+
+
+@pytest.mark.slow
+def test_first_start_builds_the_demo_while_serving(tmp_path: Path) -> None:
+    s = ServerProcess(tmp_path / "data", env={"VASTRAY_CACHE": "128M"}).start()
+    try:
+        with s.client() as api:
+            # Usable at once: health, readiness and the API answer while the demo builds.
+            ready = api.get("/readyz").json()
+            assert ready["cache_budget_bytes"] == 128 << 20
+            jobs = api.get("/api/jobs").json()
+            assert [j["name"] for j in jobs] == ["demo"] and jobs[0]["source"] == "demo"
+            models = api.get("/api/models").json()
+            assert [(m["name"], m["state"]) for m in models] in ([("demo", "building")], [("demo", "ready")])
+            done = wait_for_job(api, jobs[0]["id"])
+            assert done["state"] == "succeeded"
+            demo = api.get(f"/api/models/{done['model_id']}").json()
+            assert demo["state"] == "ready" and demo["triangles"] > 100_000
+        assert "building the demo model" in s.log() and "phase build" in s.log()
+    finally:
+        assert s.stop() == 0
+    # A restart keeps it and does not build it again.
+    s.start()
+    try:
+        with s.client() as api:
+            assert [m["name"] for m in api.get("/api/models").json()] == ["demo"]
+            assert len(api.get("/api/jobs").json()) == 1
+    finally:
+        s.stop()
+
+
+def a_model_and_a_running_build(s: ServerProcess) -> tuple[dict[str, Any], dict[str, Any], list[int]]:
+    """(a built model's job, a job caught mid-build, its worker processes)."""
+    with s.client() as api:
+        kept = api.post("/api/jobs", json={"source": "scene:spheres:2000:1", "name": "kept"}).json()
+        wait_for_job(api, kept["id"])
+        job = api.post("/api/jobs", json={"source": SLOW_SOURCE, "name": "caught"}).json()
+        wait_for_phase(api, job["id"], ("read", "build"))
+        workers = s.workers()
+    assert workers
+    return kept, job, workers
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_clean_shutdown_interrupts_running_jobs(tmp_path: Path, sig: int) -> None:
+    s = ServerProcess(tmp_path / "data", "--no-demo").start()
+    kept, job, workers = a_model_and_a_running_build(s)
+    start = time.monotonic()
+    assert s.stop(sig) == 0
+    assert time.monotonic() - start < 15
+    assert all(not Path(f"/proc/{pid}").exists() for pid in workers), "a build worker outlived the server"
+    assert not any((s.data_dir / "jobs").iterdir()), "partial output left behind"
+    s.start()
+    try:
+        with s.client() as api:
+            after = api.get(f"/api/jobs/{job['id']}").json()
+            assert after["state"] == "interrupted" and "shut down" in after["error"]
+            assert api.get(f"/api/models/{job['model_id']}").status_code == 404
+            assert api.get(f"/api/models/{kept['model_id']}").json()["state"] == "ready"
+    finally:
+        s.stop()
+
+
+@pytest.mark.slow
+def test_crash_restart_keeps_the_registry_and_marks_interrupted_jobs(tmp_path: Path) -> None:
+    s = ServerProcess(tmp_path / "data", "--no-demo").start()
+    kept, job, workers = a_model_and_a_running_build(s)
+    s.stop(signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while any(Path(f"/proc/{pid}").exists() for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(Path(f"/proc/{pid}").exists() for pid in workers), "the worker outlived a crashed server"
+    s.start()
+    try:
+        with s.client() as api:
+            after = api.get(f"/api/jobs/{job['id']}").json()
+            assert after["state"] == "interrupted" and "interrupted" in after["error"]
+            assert api.get(f"/api/models/{job['model_id']}").status_code == 404
+            model = api.get(f"/api/models/{kept['model_id']}").json()
+            assert model["state"] == "ready"
+            assert (
+                api.post(
+                    f"/api/models/{model['id']}/render", json={"camera": {"width": 16, "height": 16}}
+                ).status_code
+                == 200
+            )
+        assert not any((s.data_dir / "jobs").iterdir())
+        assert "interrupted" in s.log()
+    finally:
+        s.stop()
+    # A model file removed behind the server's back is forgotten at the next start.
+    (s.data_dir / model["file"]).unlink()
+    s.start()
+    try:
+        with s.client() as api:
+            assert api.get(f"/api/models/{model['id']}").status_code == 404
+        assert "the file is missing" in s.log()
+    finally:
+        s.stop()
+
+
+@pytest.mark.slow
+def test_delete_while_rendering_is_deferred(tmp_path: Path) -> None:
+    s = ServerProcess(tmp_path / "data", "--no-demo").start()
+    try:
+        with s.client() as api:
+            job = api.post("/api/jobs", json={"source": "scene:plant:200000:4"}).json()
+            model_id = wait_for_job(api, job["id"])["model_id"]
+            file = s.data_dir / api.get(f"/api/models/{model_id}").json()["file"]
+            result: dict[str, Any] = {}
+
+            def slow_render() -> None:
+                with s.client() as c:
+                    result["r"] = c.post(
+                        f"/api/models/{model_id}/render",
+                        json={
+                            "camera": {"width": 1920, "height": 1080},
+                            "quality": {"shading": "sun"},
+                        },
+                    )
+
+            t = threading.Thread(target=slow_render)
+            t.start()
+            deadline = time.monotonic() + 30
+            while api.get(f"/api/models/{model_id}").json()["in_use"] == 0:
+                assert time.monotonic() < deadline and t.is_alive(), "the render never started"
+                time.sleep(0.01)
+            r = api.delete(f"/api/models/{model_id}")
+            assert r.status_code == 202 and r.json()["status"] == "deleting"
+            assert api.get(f"/api/models/{model_id}").status_code == 404
+            assert model_id not in {m["id"] for m in api.get("/api/models").json()}
+            assert file.exists(), "deleted under a running render"
+            t.join(120)
+            assert result["r"].status_code == 200 and result["r"].headers["x-vastray-complete"] == "true"
+            deadline = time.monotonic() + 10
+            while file.exists() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert not file.exists(), "the file stayed after its last user left"
+            assert api.post(f"/api/models/{model_id}/render", json={}).status_code == 404
+    finally:
+        s.stop()
+
+
+def test_registry_from_a_newer_release_is_refused(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    s = ServerProcess(data, "--no-demo").start()
+    s.stop()
+    with sqlite3.connect(data / "registry.sqlite3") as db:
+        db.execute("PRAGMA user_version = 99")
+    out = subprocess.run(
+        [str(VASTRAY), "serve", "--data", str(data), "--port", "0", "--no-demo"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode != 0
+    assert "schema version 99 is newer" in out.stderr
+
+
+def test_bad_settings_are_clear_errors(tmp_path: Path) -> None:
+    for args, message in [
+        (["--cache", "lots"], "not a size"),
+        (["--api-key", "short"], "at least 16 characters"),
+        (["--port", "70000"], "port"),
+    ]:
+        out = subprocess.run(
+            [str(VASTRAY), "serve", "--data", str(tmp_path / "d"), *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert out.returncode == 2 and message in out.stderr, (args, out.stderr)
+        assert "Traceback" not in out.stderr
+
+
+def test_port_in_use_is_a_clear_error(server: ServerProcess) -> None:
+    port = httpx.URL(server.url).port
+    out = subprocess.run(
+        [str(VASTRAY), "serve", "--data", str(server.data_dir.parent / "x"), "--port", str(port)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2 and "cannot listen" in out.stderr

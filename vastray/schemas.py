@@ -1,0 +1,290 @@
+"""The wire schemas: what the REST API and the streaming protocol accept and return,
+shared by the server (vastray.server) and the Python client (vastray.client).
+
+Render parameters and frame statistics are the native structs' fields under the same
+names and with the same defaults (`native.RenderParams()`, `native.FrameStats.fields`),
+so a setting is spelled one way in the Python API, the CLI, REST and the protocol.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
+from vastray import native
+from vastray.renderer import RENDER_PARAM_FIELDS, render_params
+
+_DEFAULTS = native.RenderParams()
+MAX_IMAGE_SIDE: int = native.MAX_IMAGE_SIDE
+
+
+def _finite(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError("every component must be a finite number")
+    return v
+
+
+Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite)]
+ShadingName = Literal["normal", "headlight", "sun", "ao"]
+
+
+def describe_errors(errors: list[Any]) -> str:
+    """'camera.fov: Input should be less than 180; quality.shading: …' from pydantic's
+    errors, for people."""
+    parts = []
+    for e in errors:
+        where = ".".join(str(p) for p in e.get("loc", ()) if p not in ("body", "query", "path"))
+        message = str(e.get("msg", "invalid")).removeprefix("Value error, ")
+        parts.append(f"{where}: {message}" if where else message)
+    return "; ".join(parts)
+
+
+class Strict(BaseModel):
+    # Unknown fields are an error, not silently dropped: a misspelt setting should say so.
+    model_config = ConfigDict(extra="forbid")
+
+
+class CameraSpec(Strict):
+    """A pinhole camera in world coordinates (double precision). Without an eye the
+    camera frames the whole model from a three-quarter view; without a target it looks
+    at the model's centre."""
+
+    eye: Vec3 | None = None
+    target: Vec3 | None = None
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: float = Field(45.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
+    width: int = Field(960, ge=1, le=MAX_IMAGE_SIDE)
+    height: int = Field(540, ge=1, le=MAX_IMAGE_SIDE)
+
+    @model_validator(mode="after")
+    def _check(self) -> CameraSpec:
+        if self.eye is not None and self.target is not None:
+            d = [t - e for t, e in zip(self.target, self.eye, strict=True)]
+            if not any(d):
+                raise ValueError("eye and target coincide: the view direction has zero length")
+        if not any(self.up):
+            raise ValueError("up vector has zero length")
+        return self
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+
+class Quality(Strict):
+    """Render parameters (native.RenderParams): the same names and defaults."""
+
+    shading: ShadingName = _DEFAULTS.shading  # type: ignore[assignment]
+    pixels_of_error: float = Field(_DEFAULTS.pixels_of_error, ge=0.0, le=1e6)
+    ao_samples: int = Field(_DEFAULTS.ao_samples, ge=1, le=1024)
+    ao_distance: float = Field(_DEFAULTS.ao_distance, ge=0.0)
+    solid_angle: float = Field(_DEFAULTS.solid_angle, le=2 * math.pi)
+    sun_direction: Vec3 = tuple(_DEFAULTS.sun_direction)  # type: ignore[assignment]
+    packets: Literal[0, 1, 4, 16] = _DEFAULTS.packets  # type: ignore[assignment]
+
+    @model_validator(mode="after")
+    def _check(self) -> Quality:
+        self.to_native()  # the native checks, with their messages (e.g. a zero sun direction)
+        return self
+
+    def to_native(self, threads: int = 0) -> native.RenderParams:
+        fields = self.model_dump()
+        return render_params(threads=threads, **fields)
+
+
+# Every Quality field is a RenderParams field (tile_size and threads are the server's).
+assert set(Quality.model_fields) <= set(RENDER_PARAM_FIELDS)
+
+
+class FullDetailQuality(Quality):
+    """Quality of one-shot renders: full detail unless the request says otherwise."""
+
+    pixels_of_error: float = Field(0.0, ge=0.0, le=1e6)
+
+
+class RenderRequest(Strict):
+    camera: CameraSpec = CameraSpec()
+    quality: FullDetailQuality = FullDetailQuality()
+    format: Literal["png", "jpeg"] = "png"
+    jpeg_quality: int = Field(90, ge=1, le=100)
+    timeout: float = Field(60.0, gt=0.0, le=600.0, description="seconds to wait for the data the view needs")
+
+
+class PickRequest(Strict):
+    """Full-detail ray queries: image points of a camera, or world rays."""
+
+    camera: CameraSpec | None = None
+    points: list[tuple[float, float]] = Field(
+        default_factory=list, max_length=4096, description="(x, y) in pixels from the image's top-left corner"
+    )
+    rays: list[tuple[Vec3, Vec3]] = Field(
+        default_factory=list, max_length=4096, description="(origin, direction) in world coordinates"
+    )
+    timeout: float = Field(10.0, gt=0.0, le=120.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> PickRequest:
+        if not self.points and not self.rays:
+            raise ValueError("give points (with a camera) or rays")
+        if self.points and self.camera is None:
+            raise ValueError("points need the camera they were picked in")
+        for origin, direction in self.rays:
+            if not any(direction):
+                raise ValueError(f"ray from {origin} has a zero-length direction")
+        return self
+
+
+class PickHit(BaseModel):
+    hit: bool
+    complete: bool  # False: the data this ray needs did not arrive within the timeout
+    distance: float | None = None  # from the ray origin (the eye for points), world units
+    position: tuple[float, float, float] | None = None
+    normal: tuple[float, float, float] | None = None
+    triangle: int | None = None  # the input's own triangle id
+
+
+class PickResponse(BaseModel):
+    hits: list[PickHit]
+    milliseconds: float
+
+
+class FrameStatsOut(BaseModel):
+    """native.FrameStats, field for field."""
+
+    model_config = ConfigDict(extra="allow")
+
+    @classmethod
+    def of(cls, stats: native.FrameStats) -> FrameStatsOut:
+        return cls(**stats.as_dict())
+
+
+class LevelInfo(BaseModel):
+    level: int | str
+    blocks: int
+    raw_bytes: int
+    stored_bytes: int
+    nodes: int | None = None
+    voxels: int | None = None
+
+
+ModelState = Literal["building", "ready", "deleting"]
+
+
+class ModelInfo(BaseModel):
+    id: str
+    name: str
+    state: ModelState
+    created_at: float
+    source: str | None = None
+    job_id: str | None = None  # the build job that makes (or made) it
+    file: str | None = None  # relative to the data directory
+    triangles: int | None = None
+    input_triangles: int | None = None
+    degenerate: int | None = None
+    bytes: int | None = None
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    lod_levels: int | None = None
+    colours: bool | None = None
+    part_ids: bool | None = None
+    levels: list[LevelInfo] | None = None
+    build: dict[str, Any] | None = None  # build parameters and report
+    in_use: int = 0  # viewers, renders and jobs using it now
+
+
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
+TERMINAL_JOB_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled", "interrupted"})
+
+
+class JobInfo(BaseModel):
+    id: str
+    kind: Literal["build"] = "build"
+    model_id: str | None
+    name: str
+    source: str
+    state: JobState
+    phase: str | None = None
+    percent: float = 0.0
+    eta_seconds: float | None = None
+    message: str | None = None
+    error: str | None = None
+    options: dict[str, Any] = Field(default_factory=dict)
+    report: dict[str, Any] | None = None
+    created_at: float
+    started_at: float | None = None
+    finished_at: float | None = None
+    log_tail: list[str] = Field(default_factory=list)
+
+
+class BuildOptionsIn(Strict):
+    memory: str | int | None = Field(None, description="memory budget, e.g. '2G' (default: the server's)")
+    threads: int | None = Field(None, ge=0, le=1024, description="build threads (0: all cores)")
+
+
+class JobRequest(Strict):
+    """A build: from 'demo', 'scene:NAME:TRIANGLES:SEED', a mesh already in the data
+    directory (relative path), or an upload."""
+
+    source: str | None = None
+    upload: str | None = None
+    name: str | None = Field(None, max_length=200)
+    options: BuildOptionsIn = BuildOptionsIn()
+
+    @model_validator(mode="after")
+    def _check(self) -> JobRequest:
+        if (self.source is None) == (self.upload is None):
+            raise ValueError("give exactly one of source and upload")
+        return self
+
+
+class ModelRequest(Strict):
+    """Register a model: a built model in the data directory (`path`), an uploaded
+    built model (`upload`), or a mesh (either way), which starts a build job."""
+
+    path: str | None = None
+    upload: str | None = None
+    name: str | None = Field(None, max_length=200)
+    options: BuildOptionsIn = BuildOptionsIn()
+
+    @model_validator(mode="after")
+    def _check(self) -> ModelRequest:
+        if (self.path is None) == (self.upload is None):
+            raise ValueError("give exactly one of path and upload")
+        return self
+
+
+class ModelCreated(BaseModel):
+    model: ModelInfo
+    job: JobInfo | None = None  # set when a mesh was registered: the build that makes it
+
+
+class UploadInfo(BaseModel):
+    id: str
+    filename: str
+    bytes: int
+    kind: Literal["model", "mesh"]
+    created: ModelCreated | None = None  # when registration was asked for with the upload
+
+
+class TokenRequest(Strict):
+    ttl_seconds: float = Field(24 * 3600.0, gt=0.0, le=365 * 24 * 3600.0)
+    label: str | None = Field(None, max_length=200)
+
+
+class TokenInfo(BaseModel):
+    token: str
+    scope: Literal["model", "review"]
+    subject: str
+    expires_at: float
+    label: str | None = None
+
+
+class ErrorBody(BaseModel):
+    code: str
+    message: str
+    detail: Any = None
+
+
+class ErrorResponse(BaseModel):
+    error: ErrorBody
