@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
@@ -48,6 +49,7 @@ class State:
     # long-lived responses (event streams, viewers) end at once.
     stopping: asyncio.Event = field(default_factory=asyncio.Event)
     viewers: int = 0
+    streams: Any = None  # the StreamHub (stream.py), made with the state
 
 
 def build_state(settings: Settings) -> State:
@@ -89,6 +91,9 @@ def build_state(settings: Settings) -> State:
         rate=RateLimiter(settings.request_rate, burst=2 * settings.request_rate),
     )
     metrics.attach(store.cache, registry.job_counts, lambda: state.viewers)
+    from vastray.server.stream import StreamHub
+
+    state.streams = StreamHub(state)
     return state
 
 
@@ -99,6 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         state: State = app.state.vastray
         state.jobs.start(asyncio.get_running_loop())
+        state.streams.scheduler.start()
         if settings.demo and state.registry.get_meta("demo_submitted") is None:
             from vastray.server.routes.jobs import submit_build
 
@@ -108,6 +114,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 log.info("first start: building the demo model (job %s); the API is usable meanwhile", job.id)
         yield
         state.stopping.set()
+        await state.streams.close_all("the server is shutting down")
+        await state.streams.scheduler.stop()
         state.renders.shutdown()
         await asyncio.to_thread(state.jobs.shutdown)
         state.store.close()
@@ -132,8 +140,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
     app.add_middleware(BodyLimit, limit=settings.max_message_bytes, exempt=("/api/uploads",))
 
+    from vastray.server import stream
     from vastray.server.routes import health, jobs, models, render
 
-    for module in (health, models, jobs, render):
+    for module in (health, models, jobs, render, stream):
         app.include_router(module.router)
     return app

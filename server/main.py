@@ -32,6 +32,12 @@ class _Server(uvicorn.Server):
         self.loop = asyncio.get_running_loop()
         await super().serve(sockets)
 
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        # Tell viewers why before uvicorn closes their sockets with a bare close code.
+        self.state.stopping.set()
+        await self.state.streams.close_all("the server is shutting down")
+        await super().shutdown(sockets)
+
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         if self.loop is not None and not self.loop.is_closed():
             self.loop.call_soon_threadsafe(self.state.stopping.set)
@@ -73,8 +79,9 @@ def serve(settings: Settings) -> int:
         app,
         log_level="info",
         timeout_graceful_shutdown=10,
-        ws_ping_interval=20,
-        ws_ping_timeout=20,
+        ws_ping_interval=settings.ws_ping_interval,
+        ws_ping_timeout=settings.ws_ping_interval,
+        ws_max_size=settings.max_message_bytes,
         proxy_headers=True,
         access_log=False,
     )

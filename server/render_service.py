@@ -128,7 +128,6 @@ class RenderService:
         return await self.run(self._pick, model_id, request)
 
     def _pick(self, model_id: str, request: PickRequest) -> PickResponse:
-        start = time.perf_counter()
         with self.store.lease(model_id) as model:
             origins, directions = [], []
             if request.points:
@@ -141,7 +140,14 @@ class RenderService:
                 rays = np.asarray(request.rays, dtype=np.float64)
                 origins.append(rays[:, 0])
                 directions.append(rays[:, 1])
-            hits = model.pick(np.concatenate(origins), np.concatenate(directions), timeout=request.timeout)
+            return self.pick_rays(model, np.concatenate(origins), np.concatenate(directions), request.timeout)
+
+    def pick_rays(
+        self, model: OutOfCoreModel, origins: np.ndarray, directions: np.ndarray, timeout: float
+    ) -> PickResponse:
+        """Full-detail hits of world rays, as the wire has them (on the render executor)."""
+        start = time.perf_counter()
+        hits = model.pick(origins, directions, timeout=timeout)
         out = []
         for i in range(len(hits.t)):
             found = bool(hits.prim[i] >= 0)

@@ -42,6 +42,12 @@ class Settings(BaseSettings):
     max_pixels: int = Field(3840 * 2160, ge=1, description="pixel budget of one image (width x height)")
     request_rate: float = Field(30.0, gt=0, description="render/pick requests per second per client")
     render_timeout: float = Field(120.0, gt=0, description="longest one-shot render a client may ask for")
+    client_timeout: float = Field(
+        60.0, gt=0, description="a viewer silent this long is closed (clients ping)"
+    )
+    ws_ping_interval: float = Field(
+        20.0, gt=0, description="WebSocket pings: a client that stops answering is reaped"
+    )
 
     build_jobs: int = Field(1, ge=1, le=64, description="build jobs run at once")
     build_memory: int = Field(2 << 30, description="memory budget of one build job")

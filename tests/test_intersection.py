@@ -62,7 +62,8 @@ def random_rays(mesh: ModelMesh, rng: np.random.Generator) -> tuple[np.ndarray, 
 
 
 def test_matches_reference(
-    model_path: Path, load_model: Callable[[Path], ModelMesh],
+    model_path: Path,
+    load_model: Callable[[Path], ModelMesh],
     reference_check: Callable[..., Agreement],
 ) -> None:
     mesh = load_model(model_path)
@@ -82,9 +83,7 @@ def test_matches_reference(
     assert a.max_point_error <= 1.0
 
 
-def test_occluded_agrees_with_closest_hit(
-    model_path: Path, load_model: Callable[[Path], ModelMesh]
-) -> None:
+def test_occluded_agrees_with_closest_hit(model_path: Path, load_model: Callable[[Path], ModelMesh]) -> None:
     """Any-hit queries see the same surfaces, and respect tmax on both sides of the hit."""
     mesh = load_model(model_path)
     scene = native.Scene(mesh.vertices, mesh.faces)

@@ -81,7 +81,9 @@ def vertex_stars(faces: np.ndarray, vertex_count: int) -> np.ndarray:
 
 
 def interior_points(
-    vertices: np.ndarray, faces: np.ndarray, rng: np.random.Generator,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    rng: np.random.Generator,
     winding_numbers: Callable[..., np.ndarray],
 ) -> np.ndarray:
     """Points with winding number ±1 (inside, whichever way the mesh is oriented): random
@@ -102,8 +104,15 @@ def interior_points(
 
 
 def shoot(
-    scene: native.Scene, faces: np.ndarray, normal: np.ndarray, stars: np.ndarray, diag: float,
-    origins: np.ndarray, directions: np.ndarray, ends_a: np.ndarray, ends_b: np.ndarray,
+    scene: native.Scene,
+    faces: np.ndarray,
+    normal: np.ndarray,
+    stars: np.ndarray,
+    diag: float,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    ends_a: np.ndarray,
+    ends_b: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Filters out grazing targets, traces the rest; returns (kept mask, indices of the
     leaks among the input rays, max (t - 1) |d| / L over the kept hits)."""
@@ -129,7 +138,8 @@ def shoot(
 
 
 def test_closed_meshes_do_not_leak(
-    closed_model_path: Path, load_model: Callable[[Path], ModelMesh],
+    closed_model_path: Path,
+    load_model: Callable[[Path], ModelMesh],
     winding_numbers: Callable[..., np.ndarray],
 ) -> None:
     mesh = load_model(closed_model_path)
@@ -188,8 +198,15 @@ def test_closed_meshes_do_not_leak(
                 directions[zero] = np.where(rng.random(int(zero.sum())) < 0.5, 0.0, -0.0)
             for chunk in np.array_split(np.arange(n), -(-n // CHUNK)):
                 ok, leak, excess = shoot(
-                    scene, faces, normal, stars, diag, origins[chunk], directions[chunk],
-                    ends_a[chunk], ends_b[chunk],
+                    scene,
+                    faces,
+                    normal,
+                    stars,
+                    diag,
+                    origins[chunk],
+                    directions[chunk],
+                    ends_a[chunk],
+                    ends_b[chunk],
                 )
                 kept[kind] += int(ok.sum())
                 dropped += int((~ok).sum())
@@ -198,8 +215,9 @@ def test_closed_meshes_do_not_leak(
                 max_excess = max(max_excess, excess)
                 leaks += len(leak)
                 for j in chunk[leak[: max(0, 5 - len(examples))]]:
-                    examples.append(f"{kind}: origin {origins[j].tolist()} "
-                                    f"direction {directions[j].tolist()}")
+                    examples.append(
+                        f"{kind}: origin {origins[j].tolist()} direction {directions[j].tolist()}"
+                    )
 
     total = sum(kept.values())
     print(

@@ -41,14 +41,14 @@ class Camera:
         from the top-left corner of the image: pixel (i, j)'s centre is (i + 0.5, j + 0.5).
         The same rays the renderers trace through those points."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        w, right, upv = self._basis()
+        w, right, upv = self.basis()
         sx = 2.0 * pts[:, 0] / self.width - 1.0
         sy = 1.0 - 2.0 * pts[:, 1] / self.height
         dirs = w[None, :] + sx[:, None] * right[None, :] + sy[:, None] * upv[None, :]
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         return np.broadcast_to(np.asarray(self.eye, dtype=np.float64), dirs.shape).copy(), dirs
 
-    def _basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(forward, right scaled to the half-width, up scaled to the half-height)."""
         e = np.asarray(self.eye, dtype=np.float64)
         w = np.asarray(self.target, dtype=np.float64) - e
@@ -68,7 +68,7 @@ class Camera:
         Returns (origins, directions), each (width * height, 3). For tools and tests that
         need the renderer's rays without rendering (batch queries, picking, comparisons)."""
         e = np.asarray(self.eye, dtype=np.float64)
-        w, right, upv = self._basis()
+        w, right, upv = self.basis()
         sx = 2.0 * (np.arange(self.width, dtype=np.float64) + 0.5) / self.width - 1.0
         sy = 1.0 - 2.0 * (np.arange(self.height, dtype=np.float64) + 0.5) / self.height
         dirs = (

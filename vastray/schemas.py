@@ -90,7 +90,8 @@ class Quality(Strict):
         return self
 
     def to_native(self, threads: int = 0) -> native.RenderParams:
-        fields = self.model_dump()
+        # Subclasses add fields of their own (a stream's frame rate): pass on the renderer's.
+        fields = {k: getattr(self, k) for k in type(self).model_fields if k in RENDER_PARAM_FIELDS}
         return render_params(threads=threads, **fields)
 
 

@@ -21,7 +21,14 @@ URL_LINE = re.compile(r"vastray serving (?P<data>\S+) at (?P<url>http://\S+?)/\?
 
 
 class ServerProcess:
-    def __init__(self, data_dir: Path, *args: str, env: dict[str, str] | None = None, key: str | None = KEY):
+    def __init__(
+        self,
+        data_dir: Path,
+        *args: str,
+        env: dict[str, str] | None = None,
+        key: str | None = KEY,
+        port: int = 0,
+    ):
         self.data_dir = data_dir
         self.args = list(args)
         self.env = env or {}
@@ -29,10 +36,11 @@ class ServerProcess:
         self.proc: subprocess.Popen[str] | None = None
         self.log_path = data_dir.parent / f"{data_dir.name}-server.log"
         self.url = ""
+        self.port = port
 
     def start(self, timeout: float = 60.0) -> ServerProcess:
         self.data_dir.mkdir(parents=True, exist_ok=True)
-        cmd = [str(VASTRAY), "serve", "--data", str(self.data_dir), "--port", "0", *self.args]
+        cmd = [str(VASTRAY), "serve", "--data", str(self.data_dir), "--port", str(self.port), *self.args]
         if self.key is not None:
             cmd += ["--api-key", self.key]
         env = {**os.environ, "PYTHONUNBUFFERED": "1", **self.env}

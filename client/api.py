@@ -1,0 +1,283 @@
+"""The REST side of the Python client, asynchronous (httpx). `vastray.client.Client`
+is the same API, blocking, for scripts and notebooks."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit, urlunsplit
+
+import httpx
+
+from vastray.client.frames import Frame, decode_image
+from vastray.schemas import TERMINAL_JOB_STATES, JobInfo, ModelInfo, PickHit, TokenInfo, UploadInfo
+
+UPLOAD_CHUNK = 1 << 20
+
+
+class VastrayError(Exception):
+    """An error the server reported: its HTTP status, code and message."""
+
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(f"{message} ({status} {code})")
+        self.status = status
+        self.code = code
+        self.message = message
+
+
+class BuildFailedError(VastrayError):
+    """A build job ended without a model; `job` says how and why."""
+
+    def __init__(self, job: JobInfo) -> None:
+        super().__init__(0, job.state, f"build {job.id} {job.state}: {job.error}")
+        self.job = job
+
+
+def split_url(url: str) -> tuple[str, str | None]:
+    """(base URL, key) of a URL as `vastray serve` prints it: http://host:port/?key=…"""
+    parts = urlsplit(url)
+    query = parse_qs(parts.query)
+    key = (query.get("key") or query.get("token") or [None])[0]
+    return urlunsplit((parts.scheme, parts.netloc, parts.path.rstrip("/"), "", "")), key
+
+
+def raise_for_error(r: httpx.Response) -> None:
+    if r.is_success:
+        return
+    try:
+        error = r.json()["error"]
+        code, message = error["code"], error["message"]
+    except (ValueError, KeyError, TypeError):
+        code, message = "http_error", r.text[:500] or r.reason_phrase
+    raise VastrayError(r.status_code, code, message)
+
+
+def _model_id(model: str | ModelInfo) -> str:
+    return model.id if isinstance(model, ModelInfo) else model
+
+
+class AsyncClient:
+    """The render service from asyncio code.
+
+    async with AsyncClient("http://127.0.0.1:8000/?key=…") as vr:
+        job = await vr.build("scene:plant:1e6:3")
+        await vr.wait(job)
+        frame = await vr.render(job.model_id, camera={"width": 1280, "height": 720})
+    """
+
+    def __init__(self, url: str | None = None, *, key: str | None = None, timeout: float = 120.0) -> None:
+        url = url or os.environ.get("VASTRAY_URL", "http://127.0.0.1:8000")
+        base, url_key = split_url(url)
+        self.url = base
+        self.key = key or url_key or os.environ.get("VASTRAY_KEY")
+        headers = {"Authorization": f"Bearer {self.key}"} if self.key else {}
+        self._http = httpx.AsyncClient(base_url=base, headers=headers, timeout=timeout)
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    async def _json(self, method: str, path: str, **kw: Any) -> Any:
+        r = await self._http.request(method, path, **kw)
+        raise_for_error(r)
+        return r.json() if r.content else None
+
+    # -- models ----------------------------------------------------------------------------
+
+    async def health(self) -> dict[str, Any]:
+        return dict(await self._json("GET", "/readyz"))
+
+    async def models(self) -> list[ModelInfo]:
+        return [ModelInfo(**m) for m in await self._json("GET", "/api/models")]
+
+    async def model(self, model: str | ModelInfo) -> ModelInfo:
+        return ModelInfo(**await self._json("GET", f"/api/models/{_model_id(model)}"))
+
+    async def upload(self, path: str | Path, *, name: str | None = None, register: bool = True) -> UploadInfo:
+        """Uploads a mesh or a built model, streamed from disk. With `register` a built
+        model is served at once and a mesh starts its build (see `.created`)."""
+        path = Path(path)
+
+        async def chunks() -> AsyncIterator[bytes]:
+            with open(path, "rb") as f:
+                while chunk := f.read(UPLOAD_CHUNK):
+                    yield chunk
+
+        params: dict[str, Any] = {"filename": path.name, "register": str(register).lower()}
+        if name:
+            params["name"] = name
+        r = await self._http.post(
+            "/api/uploads",
+            params=params,
+            content=chunks(),
+            headers={"content-length": str(path.stat().st_size)},
+        )
+        raise_for_error(r)
+        return UploadInfo(**r.json())
+
+    async def register(self, path: str, *, name: str | None = None) -> tuple[ModelInfo, JobInfo | None]:
+        """A file already in the server's data directory (relative path)."""
+        out = await self._json("POST", "/api/models", json={"path": path, "name": name})
+        return ModelInfo(**out["model"]), JobInfo(**out["job"]) if out.get("job") else None
+
+    async def delete(self, model: str | ModelInfo) -> bool:
+        """True if deleted now, False if it goes when its last viewer leaves."""
+        r = await self._http.delete(f"/api/models/{_model_id(model)}")
+        raise_for_error(r)
+        return r.status_code == 204
+
+    async def token(self, model: str | ModelInfo, *, ttl: float = 86400.0, label: str | None = None) -> str:
+        """A viewing token for one model (what a review link carries)."""
+        out = await self._json(
+            "POST", f"/api/models/{_model_id(model)}/tokens", json={"ttl_seconds": ttl, "label": label}
+        )
+        return TokenInfo(**out).token
+
+    # -- jobs ------------------------------------------------------------------------------
+
+    async def build(
+        self,
+        source: str,
+        *,
+        name: str | None = None,
+        memory: str | int | None = None,
+        threads: int | None = None,
+    ) -> JobInfo:
+        """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
+        directory; wait for it with `wait`."""
+        body = {"source": source, "name": name, "options": {"memory": memory, "threads": threads}}
+        return JobInfo(**await self._json("POST", "/api/jobs", json=body))
+
+    async def job(self, job: str | JobInfo) -> JobInfo:
+        return JobInfo(**await self._json("GET", f"/api/jobs/{job.id if isinstance(job, JobInfo) else job}"))
+
+    async def jobs(self) -> list[JobInfo]:
+        return [JobInfo(**j) for j in await self._json("GET", "/api/jobs")]
+
+    async def cancel(self, job: str | JobInfo) -> JobInfo:
+        return JobInfo(
+            **await self._json("POST", f"/api/jobs/{job.id if isinstance(job, JobInfo) else job}/cancel")
+        )
+
+    async def job_events(self, job: str | JobInfo) -> AsyncIterator[JobInfo]:
+        """The job after every change (server-sent events), to its end."""
+        job_id = job.id if isinstance(job, JobInfo) else job
+        async with self._http.stream("GET", f"/api/jobs/{job_id}/events", timeout=None) as r:
+            if not r.is_success:
+                await r.aread()
+                raise_for_error(r)
+            kind = None
+            async for line in r.aiter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: ") and kind in ("progress", "end"):
+                    info = JobInfo(**json.loads(line[6:]))
+                    yield info
+                    if kind == "end":
+                        return
+                elif line.startswith("data: ") and kind == "shutdown":
+                    raise VastrayError(503, "shutting_down", "the server shut down during the build")
+
+    async def wait(
+        self,
+        job: str | JobInfo,
+        *,
+        progress: bool | Callable[[JobInfo], None] = False,
+        timeout: float | None = None,
+    ) -> JobInfo:
+        """Follows a job to its end; `progress=True` draws a progress bar, a callable
+        hears every change. Raises BuildFailedError unless it succeeded."""
+        bar = _ProgressBar() if progress is True else None
+        hear = progress if callable(progress) else (bar.update if bar else None)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        final: JobInfo | None = None
+        try:
+            async for info in self.job_events(job):
+                if hear is not None:
+                    hear(info)
+                final = info
+                if deadline is not None and time.monotonic() > deadline:
+                    raise TimeoutError(f"job {info.id} not finished after {timeout} s")
+        finally:
+            if bar is not None:
+                bar.close()
+        assert final is not None
+        if final.state not in TERMINAL_JOB_STATES:
+            final = await self.job(final.id)
+        if final.state != "succeeded":
+            raise BuildFailedError(final)
+        return final
+
+    # -- rendering -------------------------------------------------------------------------
+
+    async def render(
+        self,
+        model: str | ModelInfo,
+        *,
+        camera: dict[str, Any] | None = None,
+        quality: dict[str, Any] | None = None,
+        format: str = "png",
+        jpeg_quality: int = 90,
+        timeout: float = 60.0,
+    ) -> Frame:
+        """One image, full detail unless `quality` says otherwise."""
+        body: dict[str, Any] = {"format": format, "jpeg_quality": jpeg_quality, "timeout": timeout}
+        if camera is not None:
+            body["camera"] = camera
+        if quality is not None:
+            body["quality"] = quality
+        r = await self._http.post(f"/api/models/{_model_id(model)}/render", json=body, timeout=timeout + 30)
+        raise_for_error(r)
+        stats = json.loads(r.headers.get("x-vastray-stats", "{}"))
+        stats["frames"] = int(r.headers.get("x-vastray-frames", "1"))
+        stats["seconds"] = float(r.headers.get("x-vastray-render-ms", "0")) / 1000
+        return Frame(decode_image(r.content), None, stats, r.content, time.time())
+
+    async def pick(
+        self,
+        model: str | ModelInfo,
+        *,
+        points: list[tuple[float, float]] | None = None,
+        camera: dict[str, Any] | None = None,
+        rays: list[tuple[tuple[float, float, float], tuple[float, float, float]]] | None = None,
+        timeout: float = 10.0,
+    ) -> list[PickHit]:
+        """Full-detail hits of image points of `camera`, or of world rays."""
+        body: dict[str, Any] = {"timeout": timeout}
+        if points is not None:
+            body.update(points=points, camera=camera or {})
+        if rays is not None:
+            body["rays"] = rays
+        out = await self._json("POST", f"/api/models/{_model_id(model)}/pick", json=body)
+        return [PickHit(**h) for h in out["hits"]]
+
+    def view(self, model: str | ModelInfo, **kw: Any) -> Any:
+        """A live view (streamed frames) of a model; `async with client.view(m) as v:`."""
+        from vastray.client.stream import AsyncView
+
+        return AsyncView(self.url, _model_id(model), key=self.key, **kw)
+
+
+class _ProgressBar:
+    """A tqdm bar over a job's percent, its phase as the label."""
+
+    def __init__(self) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=100.0, unit="%", bar_format="{desc} {bar} {n:.0f}% [{elapsed}<{remaining}]")
+
+    def update(self, info: JobInfo) -> None:
+        self.bar.set_description_str(f"{info.name}: {info.phase or info.state}", refresh=False)
+        self.bar.update(info.percent - self.bar.n)
+
+    def close(self) -> None:
+        self.bar.close()

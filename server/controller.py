@@ -1,0 +1,57 @@
+"""The quality controller of a moving view: it holds the frame time to the view's budget
+by lowering the resolution scale and, once the scale is at its floor, by raising the
+pixels of error. It acts on measured frame times (render and encode), not estimates.
+
+Frame time is close to proportional to the pixel count, so the scale moves by the square
+root of the time ratio; steps are damped (a frame time is noisy on a shared machine) and
+bounded, so one slow frame does not throw the picture to its coarsest.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+MAX_STEP = 1.6  # the most the scale (or the PoE boost) changes from one frame to the next
+DAMPING = 0.6  # how much of the measured correction one frame applies (in log space)
+HEADROOM = 0.85  # aim a little under the budget: frames vary
+POE_STEP = 1.5
+SCALE_QUANTUM = 1 / 64  # scales are rounded, so near-equal frames have equal sizes
+
+
+@dataclass
+class QualityController:
+    scale: float = 1.0
+    poe_boost: float = 1.0  # the moving PoE is the chosen PoE (at least 1) times this
+
+    def moving_settings(self, base_poe: float, min_scale: float, max_poe: float) -> tuple[float, float]:
+        """(resolution scale, pixels of error) for the next moving frame."""
+        scale = min(1.0, max(min_scale, self.scale))
+        poe = (
+            base_poe
+            if self.poe_boost <= 1.0
+            else min(max(max_poe, base_poe), max(base_poe, 1.0) * self.poe_boost)
+        )
+        return scale, poe
+
+    def observe(
+        self, frame_seconds: float, budget_seconds: float, min_scale: float, max_poe: float, base_poe: float
+    ) -> None:
+        """Update from one moving frame that took `frame_seconds` against its budget."""
+        if frame_seconds <= 0 or budget_seconds <= 0:
+            return
+        ratio = (HEADROOM * budget_seconds) / frame_seconds
+        step = math.exp(DAMPING * 0.5 * math.log(ratio))  # sqrt: time ~ pixels ~ scale^2
+        step = min(MAX_STEP, max(1 / MAX_STEP, step))
+        if step < 1.0:
+            if self.scale > min_scale + 1e-9:
+                self.scale = max(min_scale, self.scale * step)
+            elif max(max_poe, base_poe) > max(base_poe, 1.0) * self.poe_boost:
+                self.poe_boost *= POE_STEP  # the scale is at its floor: trade accuracy instead
+        else:
+            if self.poe_boost > 1.0:
+                if ratio > 1.3:  # get accuracy back before resolution, and only with room to spare
+                    self.poe_boost = max(1.0, self.poe_boost / POE_STEP)
+            else:
+                self.scale = min(1.0, self.scale * step)
+        self.scale = max(SCALE_QUANTUM, round(self.scale / SCALE_QUANTUM) * SCALE_QUANTUM)

@@ -1,0 +1,597 @@
+"""Frame streaming over WebSockets (docs/PROTOCOL.md): one connection per viewer.
+
+A `Connection` reads the client's messages (validated, rate-limited, each bad one
+answered with an error event while the connection lives on), keeps at most
+`MAX_IN_FLIGHT` frames unacknowledged, sends only the newest frame it has (a slow
+client gets fewer frames, never a queue of stale ones), and sends heartbeats. A client
+that vanished without a close is reaped by the WebSocket pings (uvicorn) or by its own
+silence; its view stops rendering at once. Sessions outlive connections for a while,
+so a client that reconnects resumes its camera and quality.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import secrets
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, WebSocket
+from pydantic import ValidationError
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from vastray.protocol import (
+    FLAG_COMPLETE,
+    FLAG_FINAL,
+    FLAG_SCREENSHOT,
+    FORMAT_JPEG,
+    FORMAT_PNG,
+    PROTOCOL_VERSION,
+    CameraMessage,
+    CameraState,
+    ErrorEvent,
+    FrameHeader,
+    Hello,
+    PickMessage,
+    QualityMessage,
+    StatsEvent,
+    StreamQuality,
+    Viewport,
+    ViewportMessage,
+    Welcome,
+    parse_client_message,
+)
+from vastray.schemas import describe_errors
+from vastray.server.errors import ApiError
+from vastray.server.views import RenderedFrame, View, default_camera
+
+log = logging.getLogger("vastray.stream")
+router = APIRouter(tags=["stream"])
+
+MAX_IN_FLIGHT = 2  # frames sent and not yet acknowledged
+HELLO_TIMEOUT = 10.0
+HEARTBEAT_SECONDS = 15.0  # an event at least this often, so proxies keep the socket
+SESSION_TTL = 600.0  # how long a disconnected session can be resumed
+MESSAGE_RATE = 240.0  # messages a second a client may send, on average
+MESSAGE_BURST = 480.0
+FLOOD_SECONDS = 5.0  # over the rate this long without pause: the connection is closed
+
+# Close codes (4000-4999 are the application's own).
+CLOSE_GOING_AWAY = 1001
+CLOSE_POLICY = 1008
+CLOSE_BAD_HELLO = 4400
+CLOSE_UNAUTHORIZED = 4401
+CLOSE_FORBIDDEN = 4403
+CLOSE_NOT_FOUND = 4404
+CLOSE_TIMEOUT = 4408
+
+
+@dataclass
+class Session:
+    id: str
+    model_id: str
+    camera: CameraState
+    viewport: Viewport
+    quality: StreamQuality
+    expires: float
+
+
+class StreamHub:
+    """The server's streaming state: views, connections, sessions, the scheduler."""
+
+    def __init__(self, state: Any) -> None:
+        from vastray.server.scheduler import Scheduler
+
+        self.state = state
+        self.sessions: dict[str, Session] = {}
+        self.connections: set[Connection] = set()
+        self.scheduler = Scheduler(
+            state.store.cache, state.renders.executor, state.settings.render_workers, self.deliver
+        )
+
+    def deliver(self, view: View, frame: RenderedFrame | None, warning: str | None) -> None:
+        for sub in list(view.subscribers):
+            assert isinstance(sub, Connection)
+            if warning is not None:
+                sub.event(ErrorEvent(code="render_warning", message=warning).model_dump())
+            if frame is not None:
+                sub.offer(frame)
+
+    def remember(self, session_id: str, view: View) -> None:
+        """Keeps a closed connection's view settings for a reconnect to resume."""
+        now = time.time()
+        self.sessions = {k: s for k, s in self.sessions.items() if s.expires > now}
+        self.sessions[session_id] = Session(
+            session_id, view.model_id, view.camera, view.viewport, view.quality, now + SESSION_TTL
+        )
+
+    async def close_all(self, reason: str) -> None:
+        await asyncio.gather(
+            *(c.close(CLOSE_GOING_AWAY, reason) for c in list(self.connections)), return_exceptions=True
+        )
+
+
+class _Bucket:
+    """A token bucket of the messages a client may send, and how long it has been over."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, burst
+        self.tokens = burst
+        self.at = time.monotonic()
+        self.over_since: float | None = None  # the first drop of the current run of drops
+        self.last_drop = 0.0
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.burst, self.tokens + (now - self.at) * self.rate)
+        self.at = now
+        if self.over_since is not None and now - self.last_drop > 1.0:
+            self.over_since = None  # a second without drops: back within the rate
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        self.last_drop = now
+        if self.over_since is None:
+            self.over_since = now
+        return False
+
+    def flooding(self) -> bool:
+        return self.over_since is not None and time.monotonic() - self.over_since > FLOOD_SECONDS
+
+
+class Connection:
+    """One viewer's WebSocket; a subscriber of its view."""
+
+    def __init__(self, hub: StreamHub, ws: WebSocket) -> None:
+        self.hub = hub
+        self.ws = ws
+        self.state = hub.state
+        self.session_id = f"ses-{secrets.token_hex(8)}"
+        self.view: View | None = None
+        self.frame_number = 0
+        self.latest: RenderedFrame | None = None
+        self.unacked: deque[int] = deque()
+        self.events: deque[dict[str, Any]] = deque()
+        self.wake = asyncio.Event()
+        self.closed = False
+        self.bucket = _Bucket(MESSAGE_RATE, MESSAGE_BURST)
+        self.sent_times: deque[float] = deque(maxlen=32)
+        self.last_sent_seq = -1
+        self.pending_screenshots: list[str] = []
+        self.last_received = time.monotonic()
+        self.tasks: set[asyncio.Task[None]] = set()
+
+    def _spawn(self, coro: Any) -> None:
+        # Keep a reference: the loop holds tasks only weakly.
+        task = asyncio.create_task(coro)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+
+    # -- the view's subscriber side --------------------------------------------------------
+
+    def can_take(self) -> bool:
+        return not self.closed and self.latest is None and len(self.unacked) < MAX_IN_FLIGHT
+
+    def offer(self, frame: RenderedFrame) -> None:
+        if self.closed:
+            return
+        self.latest = frame  # latest wins: an unsent older frame is dropped
+        self.wake.set()
+
+    def event(self, message: dict[str, Any]) -> None:
+        if not self.closed:
+            self.events.append(message)
+            self.wake.set()
+
+    # -- the connection's life -------------------------------------------------------------
+
+    async def run(self) -> None:
+        await self.ws.accept()
+        self.hub.connections.add(self)
+        self.state.viewers += 1
+        sender = asyncio.create_task(self._sender(), name=f"{self.session_id}-sender")
+        try:
+            hello = await self._hello()
+            if hello is None:
+                return
+            await self._open_view(hello)
+            if self.view is None:
+                return
+            await self._receive()
+        except WebSocketDisconnect:
+            pass
+        finally:
+            self.closed = True
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await sender
+            self._leave()
+            self.hub.connections.discard(self)
+            self.state.viewers -= 1
+
+    def _leave(self) -> None:
+        view, self.view = self.view, None
+        if view is None:
+            return
+        self.hub.remember(self.session_id, view)
+        view.subscribers.discard(self)
+        if not view.subscribers:
+            self.hub.scheduler.remove(view)
+            self.state.store.release(view.model_id)
+        self.hub.scheduler.notify()
+
+    async def close(self, code: int, reason: str) -> None:
+        if self.ws.client_state == WebSocketState.CONNECTED:
+            with contextlib.suppress(Exception):
+                await self.ws.send_text(json.dumps({"type": "closing", "code": code, "reason": reason}))
+                await self.ws.close(code, reason[:120])
+        self.closed = True
+
+    async def _fail(self, code: int, error: str, message: str) -> None:
+        with contextlib.suppress(Exception):
+            await self.ws.send_text(
+                json.dumps(ErrorEvent(code=error, message=message, fatal=True).model_dump())
+            )
+        await self.close(code, message)
+
+    # -- hello -----------------------------------------------------------------------------
+
+    async def _hello(self) -> Hello | None:
+        try:
+            text = await asyncio.wait_for(self.ws.receive_text(), HELLO_TIMEOUT)
+        except TimeoutError:
+            await self._fail(CLOSE_TIMEOUT, "no_hello", f"send a hello message within {HELLO_TIMEOUT:g} s")
+            return None
+        except KeyError:  # a binary message (receive_text found no text)
+            await self._fail(CLOSE_BAD_HELLO, "bad_hello", "the first message must be a JSON hello")
+            return None
+        try:
+            raw = json.loads(text)
+            hello = Hello.model_validate(raw)
+        except ValueError as exc:
+            detail = describe_errors(exc.errors()) if isinstance(exc, ValidationError) else str(exc)
+            await self._fail(CLOSE_BAD_HELLO, "bad_hello", f"hello: {detail}")
+            return None
+        if hello.protocol != PROTOCOL_VERSION:
+            await self._fail(
+                CLOSE_BAD_HELLO,
+                "protocol_version",
+                f"this server speaks protocol {PROTOCOL_VERSION}, the client {hello.protocol}",
+            )
+            return None
+        credential = hello.token or self.ws.query_params.get("token") or self.ws.query_params.get("key")
+        try:
+            grant = self.state.auth.grant(credential)
+        except ApiError as exc:
+            await self._fail(CLOSE_UNAUTHORIZED, exc.code, exc.message)
+            return None
+        if not grant.may_view_model(hello.model):
+            await self._fail(
+                CLOSE_FORBIDDEN, "forbidden", f"this token does not grant access to model {hello.model}"
+            )
+            return None
+        return hello
+
+    async def _open_view(self, hello: Hello) -> None:
+        store = self.state.store
+        row = self.state.registry.model(hello.model)
+        if row is None or row.state == "deleting":
+            await self._fail(CLOSE_NOT_FOUND, "model_not_found", f"no model {hello.model!r}")
+            return
+        if row.state == "building":
+            if not await self._wait_for_build(row.job_id):
+                return
+        try:
+            model = store.acquire(hello.model)
+        except ApiError as exc:
+            await self._fail(CLOSE_NOT_FOUND, exc.code, exc.message)
+            return
+        session = self.hub.sessions.pop(hello.session, None) if hello.session else None
+        resumed = session is not None and session.model_id == hello.model
+        viewport = hello.viewport or (session.viewport if resumed and session else Viewport())
+        problem = self._viewport_problem(viewport)
+        if problem:
+            store.release(hello.model)
+            await self._fail(CLOSE_BAD_HELLO, "viewport_too_large", problem)
+            return
+        if resumed and session is not None:
+            self.session_id = session.id
+            camera, quality = session.camera, session.quality
+        else:
+            camera = hello.camera or default_camera(model, viewport)
+            quality = hello.quality or StreamQuality()
+        view = View(
+            self.session_id,
+            hello.model,
+            model,
+            camera,
+            viewport,
+            quality,
+            render_threads=self.state.settings.render_threads,
+        )
+        view.subscribers.add(self)
+        self.view = view
+        info = store.info(store.row(hello.model)).model_dump()
+        limits = {
+            "max_pixels": self.state.settings.max_pixels,
+            "max_in_flight": MAX_IN_FLIGHT,
+            "message_rate": MESSAGE_RATE,
+            "max_message_bytes": self.state.settings.max_message_bytes,
+        }
+        welcome = Welcome(
+            session=self.session_id,
+            resumed=resumed,
+            model=info,
+            camera=camera,
+            viewport=viewport,
+            quality=quality,
+            limits=limits,
+        )
+        self.event(welcome.model_dump())
+        self.hub.scheduler.add(view)
+
+    async def _wait_for_build(self, job_id: str | None) -> bool:
+        """Streams the build's progress until the model is ready (True) or the build
+        ended otherwise (False, the client told why)."""
+        jobs = self.state.jobs
+        if job_id is None:
+            return True
+        queue = jobs.listen(job_id)
+        try:
+            info = jobs.info(job_id)
+            while True:
+                self.event({"type": "job", **info.model_dump()})
+                if info.state == "succeeded":
+                    return True
+                if info.state in ("failed", "cancelled", "interrupted"):
+                    await self._fail(
+                        CLOSE_NOT_FOUND, "build_failed", f"the model's build {info.state}: {info.error}"
+                    )
+                    return False
+                from vastray.server.aio import get_or_stop
+
+                got = await get_or_stop(queue, self.state.stopping, HEARTBEAT_SECONDS)
+                info = got if got is not None else jobs.info(job_id)
+        finally:
+            jobs.unlisten(queue, job_id)
+
+    def _viewport_problem(self, viewport: Viewport) -> str | None:
+        pixels = viewport.width * viewport.height
+        if pixels > self.state.settings.max_pixels:
+            return (
+                f"a {viewport.width}x{viewport.height} viewport is {pixels:,} pixels; "
+                f"the server's pixel budget is {self.state.settings.max_pixels:,}"
+            )
+        return None
+
+    # -- receiving -------------------------------------------------------------------------
+
+    async def _receive(self) -> None:
+        timeout = self.state.settings.client_timeout
+        while not self.closed:
+            try:
+                message = await asyncio.wait_for(self.ws.receive(), timeout)
+            except TimeoutError:
+                log.info("session %s: nothing heard for %.0f s: closing", self.session_id, timeout)
+                await self.close(CLOSE_TIMEOUT, f"nothing heard from the client for {timeout:g} s")
+                return
+            if message["type"] == "websocket.disconnect":
+                return
+            self.last_received = time.monotonic()
+            if not self.bucket.take():
+                if self.bucket.flooding():
+                    await self._fail(CLOSE_POLICY, "flooding", "too many messages for too long; closing")
+                    return
+                self._error(
+                    "rate_limited", f"more than {MESSAGE_RATE:g} messages a second; this one was dropped"
+                )
+                continue
+            text = message.get("text")
+            if text is None:
+                self._error("bad_message", "messages are JSON text; binary messages are not understood")
+                continue
+            if len(text) > self.state.settings.max_message_bytes:
+                self._error(
+                    "message_too_large",
+                    f"messages are limited to {self.state.settings.max_message_bytes} bytes",
+                )
+                continue
+            try:
+                msg = parse_client_message(text)
+            except ValueError as exc:
+                self._error("bad_message", str(exc))
+                continue
+            await self._handle(msg)
+
+    def _error(self, code: str, message: str) -> None:
+        self.event(ErrorEvent(code=code, message=message).model_dump())
+
+    async def _handle(self, msg: Any) -> None:
+        view = self.view
+        assert view is not None
+        scheduler = self.hub.scheduler
+        kind = msg.type
+        if kind == "camera":
+            assert isinstance(msg, CameraMessage)
+            problem = _camera_problem(msg)
+            if problem:
+                self._error("bad_camera", problem)
+                return
+            if msg.seq < view.camera.seq:
+                return  # an older camera than one already applied: latest wins
+            view.set_camera(CameraState(**msg.model_dump(exclude={"type"})))
+        elif kind == "viewport":
+            assert isinstance(msg, ViewportMessage)
+            viewport = Viewport(**msg.model_dump(exclude={"type"}))
+            problem = self._viewport_problem(viewport)
+            if problem:
+                self._error("viewport_too_large", problem)
+                return
+            view.set_viewport(viewport)
+        elif kind == "quality":
+            assert isinstance(msg, QualityMessage)
+            changes = {k: v for k, v in msg.model_dump(exclude={"type"}).items() if v is not None}
+            try:
+                quality = StreamQuality(**{**view.quality.model_dump(), **changes})
+            except (ValidationError, ValueError) as exc:
+                detail = describe_errors(exc.errors()) if isinstance(exc, ValidationError) else str(exc)
+                self._error("bad_quality", f"quality: {detail}")
+                return
+            view.set_quality(quality)
+        elif kind == "ack":
+            while self.unacked and self.unacked[0] <= msg.frame:
+                self.unacked.popleft()
+            self.wake.set()
+        elif kind == "ping":
+            self.event({"type": "pong", "t": msg.t, "server_time": time.time()})
+        elif kind == "screenshot":
+            self.pending_screenshots.append(msg.id)
+            if view.phase == "idle" and view.last_final is not None:
+                self._spawn(self._screenshot(view.last_final))
+        elif kind == "pick":
+            self._spawn(self._pick(msg))
+        elif kind == "bye":
+            await self.close(1000, "bye")
+            return
+        scheduler.notify()
+
+    async def _pick(self, msg: PickMessage) -> None:
+        view = self.view
+        if view is None:
+            return
+        from vastray.camera import Camera
+
+        c = msg.camera or view.camera
+        camera = Camera(c.eye, c.target, c.up, c.fov, view.viewport.width, view.viewport.height)
+        renders = self.state.renders
+
+        def run() -> Any:
+            origins, directions = camera.image_rays(np.asarray(msg.points, dtype=np.float64))
+            return renders.pick_rays(view.model, origins, directions, 5.0)
+
+        try:
+            result = await asyncio.get_running_loop().run_in_executor(renders.executor, run)
+        except Exception as exc:
+            self._error("pick_failed", f"pick: {exc}")
+            return
+        self.event({"type": "pick_result", "id": msg.id, **result.model_dump()})
+
+    async def _screenshot(self, frame: RenderedFrame) -> None:
+        if not self.pending_screenshots or frame.image is None:
+            return
+        ids, self.pending_screenshots = self.pending_screenshots, []
+        from vastray.server.encoders import encode
+
+        loop = asyncio.get_running_loop()
+        png = await loop.run_in_executor(self.state.renders.executor, encode, frame.image, "png")
+        for shot_id in ids:
+            await self._send_frame(frame, png, FORMAT_PNG, frame.flags | FLAG_SCREENSHOT)
+            self.event({"type": "screenshot", "id": shot_id, "frame": self.frame_number})
+
+    # -- sending ---------------------------------------------------------------------------
+
+    async def _sender(self) -> None:
+        while True:
+            try:
+                await asyncio.wait_for(self.wake.wait(), HEARTBEAT_SECONDS)
+            except TimeoutError:
+                self.events.append({"type": "heartbeat", "server_time": time.time()})
+            self.wake.clear()
+            if self.state.stopping.is_set():
+                await self.close(CLOSE_GOING_AWAY, "the server is shutting down")
+                return
+            while self.events:
+                await self.ws.send_text(json.dumps(self.events.popleft()))
+            frame = self.latest
+            if frame is not None and len(self.unacked) < MAX_IN_FLIGHT:
+                self.latest = None
+                if frame.job.seq < self.last_sent_seq:
+                    continue  # never a frame older than one already sent
+                await self._send_frame(frame, frame.data, FORMAT_JPEG, frame.flags)
+                if frame.flags & FLAG_FINAL and self.pending_screenshots:
+                    self._spawn(self._screenshot(frame))
+                self.hub.scheduler.notify()  # this connection can take another frame
+
+    async def _send_frame(self, frame: RenderedFrame, data: bytes, fmt: int, flags: int) -> None:
+        self.frame_number += 1
+        n = self.frame_number
+        job = frame.job
+        now = time.time()
+        header = FrameHeader(
+            n,
+            job.seq,
+            frame.width,
+            frame.height,
+            fmt,
+            flags,
+            job.pass_number,
+            frame.render_ms,
+            frame.encode_ms,
+            job.params.pixels_of_error,
+            job.scale,
+            1000 * now,
+        )
+        await self.ws.send_bytes(header.pack() + data)
+        self.unacked.append(n)
+        self.last_sent_seq = max(self.last_sent_seq, job.seq)
+        mono = time.monotonic()
+        self.sent_times.append(mono)
+        latency = mono - job.camera_at
+        metrics = self.state.metrics
+        if not flags & FLAG_SCREENSHOT:
+            metrics.frame_rendered("stream", frame.stats, frame.encode_ms / 1000)
+            if job.moving or job.pass_number == 1:
+                metrics.latency.observe(latency)
+        metrics.bytes_sent.labels("stream").inc(len(data))
+        s = frame.stats
+        fps = (
+            (len(self.sent_times) - 1) / (self.sent_times[-1] - self.sent_times[0])
+            if len(self.sent_times) > 1
+            else 0.0
+        )
+        stats = StatsEvent(
+            frame=n,
+            camera_seq=job.seq,
+            pass_number=job.pass_number,
+            moving=job.moving,
+            complete=bool(flags & FLAG_COMPLETE),
+            final=bool(flags & FLAG_FINAL),
+            width=frame.width,
+            height=frame.height,
+            scale=job.scale,
+            pixels_of_error=job.params.pixels_of_error,
+            render_ms=frame.render_ms,
+            encode_ms=frame.encode_ms,
+            queue_ms=1000 * (frame.started_at - job.camera_at),
+            latency_ms=1000 * latency,
+            bytes=len(data),
+            fps=fps,
+            working_set_bytes=s.working_set_bytes,
+            pending_blocks=s.pending,
+            cache_hit_rate=s.cache_hit_rate,
+            voxel_hits=s.voxel_hits,
+            rays=s.rays,
+        )
+        await self.ws.send_text(stats.model_dump_json())
+
+
+def _camera_problem(msg: CameraMessage) -> str | None:
+    from vastray.camera import Camera
+
+    try:
+        Camera(msg.eye, msg.target, msg.up, msg.fov, 16, 16).validate()
+    except ValueError as exc:
+        return f"camera: {exc}"
+    return None
+
+
+@router.websocket("/api/stream")
+async def stream(ws: WebSocket) -> None:
+    hub: StreamHub = ws.app.state.vastray.streams
+    await Connection(hub, ws).run()

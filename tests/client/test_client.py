@@ -1,0 +1,154 @@
+"""The Python client end to end against a real server, blocking and asyncio: upload a
+mesh and build it with progress, render, pick, stream a view (frames as numpy arrays
+with their headers, a moved camera, the final frame, a lossless screenshot, picks over
+the stream), errors as exceptions, and a view that survives a server restart."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from serverproc import ServerProcess
+
+from vastray import scenes
+from vastray.client import AsyncClient, BuildFailedError, Client, VastrayError
+from vastray.schemas import JobInfo
+
+
+@pytest.fixture(scope="module")
+def mesh(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("mesh") / "pump.ply"
+    scenes.write_scene("plant", 30_000, 21, path)
+    return path
+
+
+def orbit_eye(bounds: tuple, angle: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    lo, hi = (np.asarray(b) for b in bounds)
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    eye = centre + size * np.array([np.cos(angle), 0.6, np.sin(angle)])
+    return tuple(eye.tolist()), tuple(centre.tolist())
+
+
+def test_blocking_client_end_to_end(url: str, mesh: Path, tmp_path: Path) -> None:
+    with Client(url) as vr:
+        assert vr.health()["status"] == "ready"
+        up = vr.upload(mesh, name="pump")
+        assert up.kind == "mesh" and up.bytes == mesh.stat().st_size and up.created is not None
+        seen: list[JobInfo] = []
+        job = vr.wait(up.created.job, progress=seen.append)
+        assert job.state == "succeeded" and seen[-1].percent == 100.0 and len(seen) >= 2
+        model = vr.model(job.model_id)
+        assert model.state == "ready" and model.name == "pump" and model.triangles > 25_000
+        assert model.id in {m.id for m in vr.models()}
+
+        still = vr.render(model, camera={"width": 200, "height": 150}, quality={"shading": "sun"})
+        assert still.image.shape == (150, 200, 3) and still.complete and still.stats["frames"] >= 1
+        assert still._repr_png_()[:4] == b"\x89PNG"  # displays in a notebook
+        png = still.save(tmp_path / "still.png")
+        assert np.array_equal(np.asarray(Image.open(png).convert("RGB")), still.image)
+
+        hits = vr.pick(model, points=[(100, 75), (0.5, 0.5)], camera={"width": 200, "height": 150})
+        assert hits[0].hit and hits[0].triangle is not None and not hits[1].hit
+
+        with vr.view(model, viewport=(240, 160)) as view:
+            assert view.model_info["id"] == model.id
+            first = view.final()
+            assert first.final and first.complete and first.image.shape == (160, 240, 3)
+            assert first.header is not None and first.header.camera_seq == 0
+            assert first.stats["frame"] == first.header.frame and first.stats["working_set_bytes"] > 0
+            eye, target = orbit_eye(model.bounds, 2.2)
+            seq = view.set_camera(eye, target)
+            moved = view.final()
+            assert moved.header.camera_seq == seq
+            assert np.abs(moved.image.astype(int) - first.image.astype(int)).mean() > 3
+            shot = view.screenshot()
+            assert shot.header.format_name == "png" and shot.data[:4] == b"\x89PNG"
+            assert shot.image.shape == moved.image.shape
+            # The same view as the last JPEG frame, without its compression error.
+            mse = ((shot.image.astype(float) - moved.image.astype(float)) ** 2).mean()
+            assert 10 * np.log10(255**2 / max(mse, 1e-9)) > 28
+            picked = view.pick([(120, 80)])
+            assert picked[0].hit and picked[0].distance > 0
+            view.set_quality(shading="normal", aa_passes=1)
+            normal = view.final()
+            assert normal.header.pass_number == 1
+
+        with pytest.raises(VastrayError) as err:
+            vr.render("mdl-nosuch")
+        assert err.value.status == 404 and err.value.code == "model_not_found"
+        bad = vr.upload(_broken(tmp_path), name="broken")
+        with pytest.raises(BuildFailedError) as failed:
+            vr.wait(bad.created.job)
+        assert failed.value.job.state == "failed" and "broken.ply" in failed.value.job.error
+        assert vr.delete(model) in (True, False)
+
+
+def _broken(tmp_path: Path) -> Path:
+    path = tmp_path / "broken.ply"
+    path.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nend_header\n\x00")
+    return path
+
+
+def test_async_client_end_to_end(url: str) -> None:
+    async def go() -> None:
+        async with AsyncClient(url) as vr:
+            job = await vr.build("scene:spheres:8000:4", name="spheres")
+            job = await vr.wait(job)
+            frame = await vr.render(job.model_id, camera={"width": 64, "height": 48}, format="jpeg")
+            assert frame.image.shape == (48, 64, 3) and frame.data[:2] == b"\xff\xd8"
+            async with vr.view(job.model_id, viewport=(128, 96)) as view:
+                final = await view.final()
+                assert final.final and final.image.shape == (96, 128, 3)
+                eye, target = orbit_eye(tuple(view.model_info["bounds"]), 1.0)
+                frames = []
+                for i in range(8):
+                    await view.set_camera(eye, target, fov=45 + i)
+                    frames.append(await view.next_frame(30))
+                assert any(f.header.moving for f in frames)
+                last = await view.final()
+                assert last.header.camera_seq == 8
+                hits = await view.pick([(64, 48)])
+                assert hits[0].hit
+            token = await vr.token(job.model_id, ttl=60)
+            async with AsyncClient(url.split("?")[0], key=token) as viewer:
+                assert [m.id for m in await viewer.models()] == [job.model_id]
+                with pytest.raises(VastrayError) as err:
+                    await viewer.build("demo")
+                assert err.value.status == 403
+
+    asyncio.run(go())
+
+
+def test_a_view_reconnects_after_a_server_restart(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = ServerProcess(tmp_path / "data", "--no-demo", port=port).start()
+    try:
+        with Client(f"{server.url}/?key={server.key}") as vr:
+            job = vr.wait(vr.build("scene:spheres:4000:2"))
+            with vr.view(job.model_id, viewport=(96, 64)) as view:
+                eye, target = orbit_eye(tuple(view.model_info["bounds"]), 0.4)
+                seq = view.set_camera(eye, target)
+                before = view.final()
+                assert before.header.camera_seq == seq
+                server.stop()
+                server.start()
+                # The view reconnects by itself; its camera comes along in the new hello.
+                deadline = time.monotonic() + 60
+                while True:
+                    frame = view.next_frame(60)
+                    if frame.final or time.monotonic() > deadline:
+                        break
+                assert frame.final and frame.image.shape == (64, 96, 3)
+                assert np.abs(frame.image.astype(int) - before.image.astype(int)).mean() < 2
+                assert view._async.connects == 2
+                # Told why the first connection closed (viewers get a close message on shutdown).
+                assert any(e["type"] == "closing" and "shutting down" in e["reason"] for e in view.events)
+    finally:
+        server.stop()
