@@ -146,7 +146,8 @@ def main() -> int:
             "",
             markdown_table(["measure", "server", "CLI", "CLI / server", "note"], rows),
             "",
-            f"Idle server (no models open): {idle_cpu:.2f} % of one core over 5 s, {idle_rss:.0f} MiB resident; "
+            f"Idle server (no models open): {idle_cpu:.2f} % of one core over 5 s, "
+            f"{idle_rss:.0f} MiB resident; "
             f"{busy_rss:.0f} MiB after the runs above (cache budget 1 GiB).",
             "",
             "Raw times (s): " + json.dumps({k: [round(x, 3) for x in v] for k, v in runs.items()}),
