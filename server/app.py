@@ -14,6 +14,7 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.staticfiles import StaticFiles
 
 from vastray import __version__
 from vastray.server import errors
@@ -141,8 +142,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, limit=settings.max_message_bytes, exempt=("/api/uploads",))
 
     from vastray.server import stream
-    from vastray.server.routes import health, jobs, models, render
+    from vastray.server.routes import health, jobs, models, render, reviews
 
-    for module in (health, models, jobs, render, stream):
+    for module in (health, models, jobs, render, reviews, stream):
         app.include_router(module.router)
+    # The viewer page's scripts and styles (the page itself is "/").
+    app.mount("/ui", StaticFiles(directory=health.WEB), name="ui")
     return app

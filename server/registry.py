@@ -84,6 +84,27 @@ MIGRATIONS: tuple[str, ...] = (
         state TEXT NOT NULL DEFAULT '{}'
     );
     """,
+    # 2: what design reviews keep.
+    """
+    CREATE TABLE annotations (
+        id TEXT PRIMARY KEY,
+        review_id TEXT NOT NULL REFERENCES reviews (id) ON DELETE CASCADE,
+        author TEXT,
+        text TEXT NOT NULL,
+        position TEXT NOT NULL,
+        camera TEXT,
+        created_at REAL NOT NULL
+    );
+    CREATE INDEX annotations_by_review ON annotations (review_id, created_at);
+    CREATE TABLE saved_views (
+        id TEXT PRIMARY KEY,
+        review_id TEXT NOT NULL REFERENCES reviews (id) ON DELETE CASCADE,
+        name TEXT NOT NULL,
+        state TEXT NOT NULL,
+        created_at REAL NOT NULL
+    );
+    CREATE INDEX saved_views_by_review ON saved_views (review_id, created_at);
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 JOB_LOG_KEEP = 200  # lines kept per job
@@ -256,6 +277,13 @@ class Registry:
         with self._tx() as db:
             db.execute("DELETE FROM models WHERE id = ?", (model_id,))
             db.execute("DELETE FROM tokens WHERE scope = 'model' AND subject = ?", (model_id,))
+            # Reviews of the model go with it (annotations and saved views cascade).
+            db.execute(
+                "DELETE FROM tokens WHERE scope = 'review' "
+                "AND subject IN (SELECT id FROM reviews WHERE model_id = ?)",
+                (model_id,),
+            )
+            db.execute("DELETE FROM reviews WHERE model_id = ?", (model_id,))
 
     # -- jobs ------------------------------------------------------------------------------
 
@@ -360,6 +388,84 @@ class Registry:
     def delete_expired_tokens(self, now: float) -> int:
         with self._tx() as db:
             return db.execute("DELETE FROM tokens WHERE expires_at < ?", (now,)).rowcount
+
+    # -- reviews ---------------------------------------------------------------------------
+
+    def add_review(self, review_id: str, model_id: str, title: str) -> None:
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO reviews (id, model_id, title, created_at) VALUES (?, ?, ?, ?)",
+                (review_id, model_id, title, time.time()),
+            )
+
+    def review(self, review_id: str) -> dict[str, Any] | None:
+        rows = self._query("SELECT * FROM reviews WHERE id = ?", (review_id,))
+        if not rows:
+            return None
+        d = dict(rows[0])
+        d["state"] = json.loads(d["state"] or "{}")
+        return d
+
+    def reviews(self) -> list[dict[str, Any]]:
+        return [
+            dict(r)
+            for r in self._query("SELECT id, model_id, title, created_at FROM reviews ORDER BY created_at")
+        ]
+
+    def update_review_state(self, review_id: str, state: dict[str, Any]) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE reviews SET state = ? WHERE id = ?", (json.dumps(state), review_id))
+
+    def delete_review(self, review_id: str) -> None:
+        with self._tx() as db:
+            db.execute("DELETE FROM reviews WHERE id = ?", (review_id,))
+            db.execute("DELETE FROM tokens WHERE scope = 'review' AND subject = ?", (review_id,))
+
+    def add_annotation(
+        self,
+        note_id: str,
+        review_id: str,
+        author: str | None,
+        text: str,
+        position: list[float],
+        camera: dict[str, Any] | None,
+    ) -> None:
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO annotations (id, review_id, author, text, position, camera, created_at) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (note_id, review_id, author, text, json.dumps(position), json.dumps(camera), time.time()),
+            )
+
+    def annotations(self, review_id: str) -> list[dict[str, Any]]:
+        rows = self._query("SELECT * FROM annotations WHERE review_id = ? ORDER BY created_at", (review_id,))
+        out = []
+        for r in rows:
+            d = dict(r)
+            d["position"] = json.loads(d["position"])
+            d["camera"] = json.loads(d["camera"]) if d["camera"] else None
+            out.append(d)
+        return out
+
+    def delete_annotation(self, review_id: str, note_id: str) -> bool:
+        with self._tx() as db:
+            return (
+                db.execute(
+                    "DELETE FROM annotations WHERE review_id = ? AND id = ?", (review_id, note_id)
+                ).rowcount
+                > 0
+            )
+
+    def add_saved_view(self, view_id: str, review_id: str, name: str, state: dict[str, Any]) -> None:
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO saved_views (id, review_id, name, state, created_at) VALUES (?, ?, ?, ?, ?)",
+                (view_id, review_id, name, json.dumps(state), time.time()),
+            )
+
+    def saved_views(self, review_id: str) -> list[dict[str, Any]]:
+        rows = self._query("SELECT * FROM saved_views WHERE review_id = ? ORDER BY created_at", (review_id,))
+        return [{**dict(r), "state": json.loads(r["state"])} for r in rows]
 
     # -- start-up checks -------------------------------------------------------------------
 

@@ -40,6 +40,7 @@ from vastray.protocol import (
     Hello,
     PickMessage,
     QualityMessage,
+    SectionPlane,
     StatsEvent,
     StreamQuality,
     Viewport,
@@ -49,12 +50,16 @@ from vastray.protocol import (
 )
 from vastray.schemas import describe_errors
 from vastray.server.errors import ApiError
+from vastray.server.reviews import REVIEW_MESSAGES, Participant, ReviewSession
 from vastray.server.views import RenderedFrame, View, default_camera
 
 log = logging.getLogger("vastray.stream")
 router = APIRouter(tags=["stream"])
 
 MAX_IN_FLIGHT = 2  # frames sent and not yet acknowledged
+AUTO_ACCURACY_AFTER = 1.0  # seconds a view stays still and finished before it is measured
+# Messages that change what a view shows: in a review, only its driver's count.
+DRIVING = ("camera", "viewport", "quality", "sections", "highlight")
 HELLO_TIMEOUT = 10.0
 HEARTBEAT_SECONDS = 15.0  # an event at least this often, so proxies keep the socket
 SESSION_TTL = 600.0  # how long a disconnected session can be resumed
@@ -91,6 +96,7 @@ class StreamHub:
         self.state = state
         self.sessions: dict[str, Session] = {}
         self.connections: set[Connection] = set()
+        self.reviews: dict[str, ReviewSession] = {}
         self.scheduler = Scheduler(
             state.store.cache, state.renders.executor, state.settings.render_workers, self.deliver
         )
@@ -153,7 +159,12 @@ class Connection:
         self.ws = ws
         self.state = hub.state
         self.session_id = f"ses-{secrets.token_hex(8)}"
-        self.view: View | None = None
+        self.view: View | None = None  # the view this connection shows (maybe a review's shared one)
+        self.viewport = Viewport()
+        self.review: ReviewSession | None = None
+        self.participant: Participant | None = None
+        self.grant: Any = None
+        self.model_id: str | None = None
         self.frame_number = 0
         self.latest: RenderedFrame | None = None
         self.unacked: deque[int] = deque()
@@ -216,15 +227,82 @@ class Connection:
             self.state.viewers -= 1
 
     def _leave(self) -> None:
+        view = self.view
+        if view is not None and (self.review is None or view is not self.review.shared):
+            self.hub.remember(self.session_id, view)
+        self._unsubscribe()
+        if self.review is not None and self.participant is not None:
+            review = self.review
+            review.leave(self.participant)
+            if not review.participants and review.shared is not None:
+                shared, review.shared = review.shared, None
+                self._drop(shared)
+        self.hub.scheduler.notify()
+
+    def _subscribe(self, view: View) -> None:
+        self._unsubscribe()
+        view.subscribers.add(self)
+        self.view = view
+        self.latest = None
+        self.last_sent_seq = -1  # another view: its own camera sequence
+        self.hub.scheduler.notify()
+
+    def _unsubscribe(self) -> None:
         view, self.view = self.view, None
         if view is None:
             return
-        self.hub.remember(self.session_id, view)
         view.subscribers.discard(self)
-        if not view.subscribers:
-            self.hub.scheduler.remove(view)
-            self.state.store.release(view.model_id)
-        self.hub.scheduler.notify()
+        shared = self.review is not None and view is self.review.shared
+        if not view.subscribers and not shared:
+            self._drop(view)
+
+    def _drop(self, view: View) -> None:
+        self.hub.scheduler.remove(view)
+        self.state.store.release(view.model_id)
+
+    def _new_view(
+        self,
+        view_id: str,
+        camera: CameraState,
+        viewport: Viewport,
+        quality: StreamQuality,
+        sections: list[Any] | None = None,
+        highlight: list[int] | None = None,
+    ) -> View:
+        """A view of this connection's model, with its own lease on the model."""
+        assert self.model_id is not None
+        model = self.state.store.acquire(self.model_id)
+        view = View(
+            view_id,
+            self.model_id,
+            model,
+            camera,
+            viewport,
+            quality,
+            render_threads=self.state.settings.render_threads,
+        )
+        view.sections = list(sections or [])
+        view.highlight = list(highlight or [])
+        self.hub.scheduler.add(view)
+        return view
+
+    def follow(self, shared: View | None) -> None:
+        """Review participants: show the shared view (follow), or a view of one's own
+        that starts where the shared one is (None)."""
+        if shared is not None:
+            self._subscribe(shared)
+            return
+        current = self.view
+        assert current is not None
+        own = self._new_view(
+            self.session_id,
+            current.camera,
+            self.viewport,
+            current.quality,
+            current.sections,
+            current.highlight,
+        )
+        self._subscribe(own)
 
     async def close(self, code: int, reason: str) -> None:
         if self.ws.client_state == WebSocketState.CONNECTED:
@@ -288,36 +366,58 @@ class Connection:
             if not await self._wait_for_build(row.job_id):
                 return
         try:
-            model = store.acquire(hello.model)
+            model = store.acquire(hello.model)  # held for the connection (views take their own)
         except ApiError as exc:
             await self._fail(CLOSE_NOT_FOUND, exc.code, exc.message)
             return
+        try:
+            await self._welcome(hello, model)
+        finally:
+            store.release(hello.model)
+
+    async def _welcome(self, hello: Hello, model: Any) -> None:
+        self.model_id = hello.model
         session = self.hub.sessions.pop(hello.session, None) if hello.session else None
         resumed = session is not None and session.model_id == hello.model
         viewport = hello.viewport or (session.viewport if resumed and session else Viewport())
         problem = self._viewport_problem(viewport)
         if problem:
-            store.release(hello.model)
             await self._fail(CLOSE_BAD_HELLO, "viewport_too_large", problem)
             return
+        self.viewport = viewport
         if resumed and session is not None:
             self.session_id = session.id
             camera, quality = session.camera, session.quality
         else:
             camera = hello.camera or default_camera(model, viewport)
             quality = hello.quality or StreamQuality()
-        view = View(
-            self.session_id,
-            hello.model,
-            model,
-            camera,
-            viewport,
-            quality,
-            render_threads=self.state.settings.render_threads,
-        )
-        view.subscribers.add(self)
-        self.view = view
-        info = store.info(store.row(hello.model)).model_dump()
+        review_info = None
+        if hello.review is not None:
+            review = self.hub.reviews.get(hello.review)
+            if review is None:
+                review = ReviewSession(self.hub, self.state.registry.review(hello.review))
+                self.hub.reviews[hello.review] = review
+            presenter = bool(self.grant.admin or self.grant.role == "presenter")
+            self.review = review
+            self.participant = review.join(self, hello.name, presenter)
+            if review.shared is None:
+                review.shared = self._new_view(
+                    review.id,
+                    review.initial_camera() or camera,
+                    viewport,
+                    quality,
+                    [SectionPlane(**p) for p in review.saved_state.get("sections", [])],
+                    review.saved_state.get("highlight", []),
+                )
+            elif self.participant.role == "presenter":
+                review.shared.set_viewport(viewport)  # frames fit the presenter's screen
+            self._subscribe(review.shared)
+            review_info = review.welcome(self.participant)
+        else:
+            self._subscribe(self._new_view(self.session_id, camera, viewport, quality))
+        view = self.view
+        assert view is not None
+        info = self.state.store.info(self.state.store.row(hello.model)).model_dump()
         limits = {
             "max_pixels": self.state.settings.max_pixels,
             "max_in_flight": MAX_IN_FLIGHT,
@@ -328,13 +428,17 @@ class Connection:
             session=self.session_id,
             resumed=resumed,
             model=info,
-            camera=camera,
-            viewport=viewport,
-            quality=quality,
+            camera=view.camera,
+            viewport=view.viewport,
+            quality=view.quality,
+            sections=view.sections,
+            highlight=view.highlight,
             limits=limits,
+            review=review_info,
         )
         self.event(welcome.model_dump())
-        self.hub.scheduler.add(view)
+        if self.review is not None and self.participant is not None:
+            self.review.send_state(self.participant)
 
     async def _wait_for_build(self, job_id: str | None) -> bool:
         """Streams the build's progress until the model is ready (True) or the build
@@ -417,6 +521,20 @@ class Connection:
         assert view is not None
         scheduler = self.hub.scheduler
         kind = msg.type
+        if kind in REVIEW_MESSAGES:
+            if self.review is None or self.participant is None:
+                self._error("not_in_review", f"{kind}: this connection is not in a review")
+                return
+            self.review.handle(self.participant, msg)
+            scheduler.notify()
+            return
+        if kind in DRIVING and self.participant is not None and self.review is not None:
+            if kind == "viewport":
+                self.viewport = Viewport(**msg.model_dump(exclude={"type"}))
+            if not self.review.may_drive(self.participant):
+                if kind != "viewport":
+                    self._error("following", f"{kind}: you follow the presenter; stop following to navigate")
+                return
         if kind == "camera":
             assert isinstance(msg, CameraMessage)
             problem = _camera_problem(msg)
@@ -433,6 +551,7 @@ class Connection:
             if problem:
                 self._error("viewport_too_large", problem)
                 return
+            self.viewport = viewport
             view.set_viewport(viewport)
         elif kind == "quality":
             assert isinstance(msg, QualityMessage)
@@ -456,6 +575,14 @@ class Connection:
                 self._spawn(self._screenshot(view.last_final))
         elif kind == "pick":
             self._spawn(self._pick(msg))
+        elif kind == "sections":
+            view.set_sections(msg.planes)
+            if self.review is not None and view is self.review.shared:
+                self.review.broadcast({"type": "sections", "planes": [p.model_dump() for p in msg.planes]})
+        elif kind == "highlight":
+            view.set_highlight(msg.parts)
+        elif kind == "accuracy":
+            self._spawn(self._accuracy(view))
         elif kind == "bye":
             await self.close(1000, "bye")
             return
@@ -468,7 +595,8 @@ class Connection:
         from vastray.camera import Camera
 
         c = msg.camera or view.camera
-        camera = Camera(c.eye, c.target, c.up, c.fov, view.viewport.width, view.viewport.height)
+        width, height = msg.width or view.viewport.width, msg.height or view.viewport.height
+        camera = Camera(c.eye, c.target, c.up, c.fov, width, height)
         renders = self.state.renders
 
         def run() -> Any:
@@ -481,6 +609,20 @@ class Connection:
             self._error("pick_failed", f"pick: {exc}")
             return
         self.event({"type": "pick_result", "id": msg.id, **result.model_dump()})
+
+    async def _auto_accuracy(self, view: View, version: int) -> None:
+        await asyncio.sleep(AUTO_ACCURACY_AFTER)
+        if view.version == version and view.phase == "idle" and self.view is view:
+            await self._accuracy(view)
+
+    async def _accuracy(self, view: View) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            result = await loop.run_in_executor(self.state.renders.executor, view.measure_accuracy)
+        except Exception as exc:
+            self._error("accuracy_failed", f"accuracy: {exc}")
+            return
+        self.event(result)
 
     async def _screenshot(self, frame: RenderedFrame) -> None:
         if not self.pending_screenshots or frame.image is None:
@@ -516,6 +658,9 @@ class Connection:
                 await self._send_frame(frame, frame.data, FORMAT_JPEG, frame.flags)
                 if frame.flags & FLAG_FINAL and self.pending_screenshots:
                     self._spawn(self._screenshot(frame))
+                view = self.view
+                if frame.flags & FLAG_FINAL and view is not None and view.quality.auto_accuracy:
+                    self._spawn(self._auto_accuracy(view, view.version))
                 self.hub.scheduler.notify()  # this connection can take another frame
 
     async def _send_frame(self, frame: RenderedFrame, data: bytes, fmt: int, flags: int) -> None:
@@ -558,6 +703,7 @@ class Connection:
         stats = StatsEvent(
             frame=n,
             camera_seq=job.seq,
+            camera=job.camera_state,
             pass_number=job.pass_number,
             moving=job.moving,
             complete=bool(flags & FLAG_COMPLETE),

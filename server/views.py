@@ -25,7 +25,15 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.outofcore import OutOfCoreModel
-from vastray.protocol import FLAG_COMPLETE, FLAG_FINAL, FLAG_MOVING, CameraState, StreamQuality, Viewport
+from vastray.protocol import (
+    FLAG_COMPLETE,
+    FLAG_FINAL,
+    FLAG_MOVING,
+    CameraState,
+    SectionPlane,
+    StreamQuality,
+    Viewport,
+)
 from vastray.renderer import Frame
 from vastray.server.controller import QualityController
 from vastray.server.encoders import encode
@@ -58,6 +66,7 @@ class RenderJob:
     # when the job was made: rendering never reads the view's changing state.
     accum: np.ndarray | None = None
     accum_n: int = 0
+    camera_state: CameraState | None = None  # the camera as the client gave it (no jitter)
 
 
 @dataclass
@@ -138,6 +147,8 @@ class View:
         self.data_epoch = 0  # the scheduler's block-arrival count when the last frame was rendered
         self.stalls = 0
         self.controller = QualityController()
+        self.sections: list[SectionPlane] = []
+        self.highlight: list[int] = []
         self.subscribers: set[Subscriber] = set()
         self.busy = False
         self.vtime = 0.0
@@ -164,6 +175,33 @@ class View:
         self.quality = quality
         self.version += 1
         self._restart("refining")
+
+    def set_sections(self, planes: list[SectionPlane]) -> None:
+        self.sections = planes
+        self.version += 1
+        self._restart("moving")  # planes are dragged: answer at the moving rate
+
+    def set_highlight(self, parts: list[int]) -> None:
+        self.highlight = parts
+        self.version += 1
+        self._restart("refining")
+
+    def state(self) -> dict[str, Any]:
+        """What a saved view keeps."""
+        return {
+            "camera": self.camera.model_dump(),
+            "quality": self.quality.model_dump(),
+            "sections": [p.model_dump() for p in self.sections],
+            "highlight": list(self.highlight),
+        }
+
+    def apply(self, state: dict[str, Any]) -> None:
+        """Goes to a saved view."""
+        camera = CameraState(**{**state["camera"], "seq": self.camera.seq + 1})
+        self.quality = StreamQuality(**state.get("quality", self.quality.model_dump()))
+        self.sections = [SectionPlane(**p) for p in state.get("sections", [])]
+        self.highlight = list(state.get("highlight", []))
+        self.set_camera(camera)
 
     def _restart(self, phase: str) -> None:
         self.phase = phase
@@ -229,6 +267,7 @@ class View:
             budget_seconds,
             base,
             n,
+            c,
         )
 
     # -- rendering (on the render executor) --------------------------------------------------
@@ -317,6 +356,34 @@ class View:
             result.flags |= FLAG_FINAL
             self.last_final = result
         return result, warning
+
+    def measure_accuracy(self, timeout: float = 120.0) -> dict[str, Any]:
+        """What the chosen accuracy costs on this very view (on the render executor):
+        the view at its pixels of error and at full detail, each complete, compared
+        pixel by pixel — the share of pixels whose hit differs (another triangle, a voxel
+        instead of a triangle, or a miss) and the PSNR of the image — with each frame's
+        render time. Single passes on both sides, so anti-aliasing plays no part."""
+        c, vp = self.camera, self.viewport
+        camera = Camera(c.eye, c.target, c.up, c.fov, vp.width, vp.height)
+        chosen = self.quality.to_native(threads=self.render_threads)
+        exact = self.quality.to_native(threads=self.render_threads)
+        exact.pixels_of_error = 0.0
+        shown = self.model.render_complete(camera, chosen, timeout=timeout)
+        full = self.model.render_complete(camera, exact, timeout=timeout)
+        differs = float((shown.prim != full.prim).mean())
+        mse = float(((shown.image.astype(np.float64) - full.image.astype(np.float64)) ** 2).mean())
+        return {
+            "type": "accuracy",
+            "camera_seq": c.seq,
+            "pixels_of_error": chosen.pixels_of_error,
+            "hit_differs": differs,
+            "psnr_db": None if mse == 0 else 10 * np.log10(255.0**2 / mse),
+            "frame_ms": shown.stats.milliseconds,
+            "full_detail_ms": full.stats.milliseconds,
+            "complete": bool(shown.complete and full.complete),
+            "width": vp.width,
+            "height": vp.height,
+        }
 
     def describe(self) -> dict[str, Any]:
         return {

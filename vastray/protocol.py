@@ -145,13 +145,16 @@ class StreamQuality(Quality):
     min_scale: float = Field(0.25, gt=0.0, le=1.0)  # the lowest resolution scale while moving
     max_moving_poe: float = Field(8.0, ge=0.0, le=1e6)  # how far PoE may rise while moving
     aa_passes: int = Field(4, ge=1, le=64)  # jittered passes averaged when refining
+    auto_accuracy: bool = False  # measure the accuracy of a still, finished view by itself
 
 
 class Hello(Strict):
     type: Literal["hello"]
     protocol: int
     model: str
-    token: str | None = None  # the API key or a viewing token (or ?token= in the URL)
+    token: str | None = None  # the API key, a viewing token or a review token (or ?token= in the URL)
+    review: str | None = None  # join this design review (its model must be `model`)
+    name: str | None = Field(None, max_length=80)  # how other participants see this one
     session: str | None = None  # resume a session after a reconnect
     viewport: Viewport | None = None
     camera: CameraState | None = None
@@ -178,6 +181,76 @@ class QualityMessage(Strict):
     min_scale: float | None = Field(None, gt=0.0, le=1.0)
     max_moving_poe: float | None = Field(None, ge=0.0, le=1e6)
     aa_passes: int | None = Field(None, ge=1, le=64)
+    auto_accuracy: bool | None = None
+
+
+class SectionPlane(Strict):
+    """A clipping plane: geometry where dot(normal, p) + offset < 0 is cut away."""
+
+    normal: Vec3
+    offset: float = Field(allow_inf_nan=False)
+    enabled: bool = True
+
+
+class SectionsMessage(Strict):
+    type: Literal["sections"]
+    planes: list[SectionPlane] = Field(default_factory=list, max_length=6)
+
+
+class HighlightMessage(Strict):
+    """Parts the renderer shades as highlighted (ids of the model's part table)."""
+
+    type: Literal["highlight"]
+    parts: list[int] = Field(default_factory=list, max_length=4096)
+
+
+class AccuracyMessage(Strict):
+    """Measure what the current accuracy costs on this view against full detail."""
+
+    type: Literal["accuracy"]
+
+
+class FollowMessage(Strict):
+    """In a review: follow the presenter's view, or navigate freely."""
+
+    type: Literal["follow"]
+    follow: bool
+
+
+class PointerMessage(Strict):
+    """In a review: a 3D point every participant sees (None: take it away)."""
+
+    type: Literal["pointer"]
+    position: Vec3 | None = None
+
+
+class AnnotateMessage(Strict):
+    """In a review: a note pinned at a 3D point, kept with the review."""
+
+    type: Literal["annotate"]
+    text: str = Field(min_length=1, max_length=2000)
+    position: Vec3
+
+
+class SaveViewMessage(Strict):
+    """In a review: keep this view (camera, sections, quality, highlight) under a name."""
+
+    type: Literal["save_view"]
+    name: str = Field(min_length=1, max_length=200)
+
+
+class JumpMessage(Strict):
+    """In a review: go to a saved view (the presenter moves everyone who follows)."""
+
+    type: Literal["jump"]
+    view: str = Field(max_length=64)
+
+
+class HandoverMessage(Strict):
+    """In a review: the presenter hands the presenter role to another participant."""
+
+    type: Literal["handover"]
+    to: str = Field(max_length=64)
 
 
 class AckMessage(Strict):
@@ -207,6 +280,9 @@ class PickMessage(Strict):
     id: str = Field("", max_length=64)
     points: list[tuple[float, float]] = Field(min_length=1, max_length=64)
     camera: CameraState | None = None
+    # The image the points are pixels of (default: the view's viewport).
+    width: int | None = Field(None, ge=1, le=MAX_IMAGE_SIDE)
+    height: int | None = Field(None, ge=1, le=MAX_IMAGE_SIDE)
 
 
 class ByeMessage(Strict):
@@ -240,13 +316,17 @@ class Welcome(BaseModel):
     camera: CameraState
     viewport: Viewport
     quality: StreamQuality
+    sections: list[SectionPlane] = Field(default_factory=list)
+    highlight: list[int] = Field(default_factory=list)
     limits: dict[str, Any]
+    review: dict[str, Any] | None = None  # id, title, role, participant, presenter, following
 
 
 class StatsEvent(BaseModel):
     type: Literal["stats"] = "stats"
     frame: int
     camera_seq: int
+    camera: CameraState  # the camera this frame shows (a follower's page did not send it)
     pass_number: int
     moving: bool
     complete: bool

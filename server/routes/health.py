@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import time
+from importlib import resources
+from pathlib import Path
 
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse, RedirectResponse, Response
+from fastapi.responses import FileResponse, JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from vastray import __version__, native
 from vastray.server.deps import state_of
 
 router = APIRouter(tags=["health"])
+WEB = Path(str(resources.files("vastray.client") / "web"))
 
 
 @router.get("/healthz", summary="The process is up")
@@ -48,7 +51,6 @@ def metrics(request: Request) -> Response:
 
 
 @router.get("/", include_in_schema=False)
-def index(request: Request) -> RedirectResponse:
-    # The viewer page arrives with the browser client; until then, the API's own page.
-    query = f"?{request.url.query}" if request.url.query else ""
-    return RedirectResponse(f"/docs{query}")
+def index() -> FileResponse:
+    """The viewer page (client/web); it reads the key or token from its own URL."""
+    return FileResponse(WEB / "index.html", headers={"Cache-Control": "no-cache"})

@@ -1,0 +1,98 @@
+// The camera the page drives, and the pinhole model the server renders with
+// (vastray/camera.py): pixel (x, y) of a W x H image looks along
+//   normalize(w + (2x/W - 1) tan(fov/2) (W/H) u + (1 - 2y/H) tan(fov/2) v),
+// w = normalize(target - eye), u = normalize(w x up), v = u x w.
+
+import { add, cross, dot, length, normalize, rotate, scale, sub } from "./vec.js";
+
+export class Camera {
+  constructor({ eye, target, up = [0, 1, 0], fov = 45 }) {
+    this.eye = [...eye];
+    this.target = [...target];
+    this.up = [...up];
+    this.fov = fov;
+  }
+
+  clone() {
+    return new Camera(this);
+  }
+
+  toMessage(seq) {
+    return { seq, eye: this.eye, target: this.target, up: this.up, fov: this.fov };
+  }
+
+  get distance() {
+    return length(sub(this.target, this.eye));
+  }
+
+  basis(width, height) {
+    const w = normalize(sub(this.target, this.eye));
+    const u = normalize(cross(w, this.up));
+    const v = cross(u, w);
+    const t = Math.tan((this.fov * Math.PI) / 360);
+    return { w, u, v, right: scale(u, (t * width) / height), top: scale(v, t) };
+  }
+
+  // World point -> image pixel (x, y) and depth along the view axis (null behind the eye).
+  project(point, width, height) {
+    const { w, right, top } = this.basis(width, height);
+    const d = sub(point, this.eye);
+    const z = dot(d, w);
+    if (z <= 1e-12) return null;
+    const sx = dot(d, right) / (z * dot(right, right));
+    const sy = dot(d, top) / (z * dot(top, top));
+    return { x: ((sx + 1) * width) / 2, y: ((1 - sy) * height) / 2, depth: z };
+  }
+
+  // Orbit the eye about the target: yaw about the up vector, pitch about the right one
+  // (stopping short of the poles, where up and the view would be parallel).
+  orbit(yaw, pitch) {
+    const up = normalize(this.up);
+    let offset = sub(this.eye, this.target);
+    offset = rotate(offset, up, yaw);
+    const right = normalize(cross(offset, up));
+    const angle = Math.acos(Math.max(-1, Math.min(1, dot(normalize(offset), up))));
+    const limit = 0.01;
+    const clamped = Math.max(limit, Math.min(Math.PI - limit, angle - pitch));
+    offset = rotate(offset, right, angle - clamped);
+    this.eye = add(this.target, offset);
+  }
+
+  // Move eye and target together, in image-plane units of the target's distance.
+  pan(dx, dy, width, height) {
+    const { u, v } = this.basis(width, height);
+    const t = Math.tan((this.fov * Math.PI) / 360);
+    const perPixel = (2 * t * this.distance) / height;
+    const move = add(scale(u, -dx * perPixel), scale(v, dy * perPixel));
+    this.eye = add(this.eye, move);
+    this.target = add(this.target, move);
+  }
+
+  // Dolly towards the target (factor < 1) or away (> 1); towards a point under the
+  // cursor when given, as CAD viewers zoom.
+  zoom(factor, towards = null) {
+    const pivot = towards ?? this.target;
+    this.eye = add(pivot, scale(sub(this.eye, pivot), factor));
+    if (towards) this.target = add(pivot, scale(sub(this.target, pivot), factor));
+  }
+
+  // Fly: forward/back along the view, sideways, up/down, by `step` world units.
+  fly(forward, sideways, upwards, step) {
+    const w = normalize(sub(this.target, this.eye));
+    const u = normalize(cross(w, this.up));
+    const v = normalize(this.up);
+    const move = add(add(scale(w, forward * step), scale(u, sideways * step)), scale(v, upwards * step));
+    this.eye = add(this.eye, move);
+    this.target = add(this.target, move);
+  }
+}
+
+// A camera that shows the whole box from a three-quarter view (as the server frames).
+export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0]) {
+  const centre = scale(add(lo, hi), 0.5);
+  const dir = normalize([1, 0.7, 1.3]);
+  const radius = length(sub(hi, lo)) / 2;
+  const t = Math.tan((fov * Math.PI) / 360);
+  const fit = radius / Math.min(t, t * aspect);
+  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up, fov });
+}

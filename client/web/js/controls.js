@@ -1,0 +1,126 @@
+// Mouse, touch and keyboard to camera moves, the way CAD viewers do it:
+//   left drag: orbit   right drag / shift+left / two fingers: pan   wheel / pinch: zoom
+//   W A S D: fly, Q E: down and up (shift: faster)   F: frame the model
+// A click (press and release without moving) is a pick, not a move.
+
+const ORBIT_PER_PIXEL = 0.006; // radians
+const CLICK_SLOP = 4; // pixels a press may move and still be a click
+const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
+
+export class Controls {
+  constructor(element, { camera, onChange, onClick, onFrameAll, flySpeed }) {
+    this.element = element;
+    this.camera = camera; // () => the Camera to change
+    this.onChange = onChange;
+    this.onClick = onClick;
+    this.onFrameAll = onFrameAll;
+    this.flySpeed = flySpeed; // () => world units per second
+    this.pointers = new Map();
+    this.keys = new Set();
+    this.lastFly = 0;
+    this.press = null;
+    element.addEventListener("pointerdown", (e) => this.#down(e));
+    element.addEventListener("pointermove", (e) => this.#move(e));
+    element.addEventListener("pointerup", (e) => this.#up(e));
+    element.addEventListener("pointercancel", (e) => this.#up(e));
+    element.addEventListener("wheel", (e) => this.#wheel(e), { passive: false });
+    element.addEventListener("contextmenu", (e) => e.preventDefault());
+    window.addEventListener("keydown", (e) => this.#key(e, true));
+    window.addEventListener("keyup", (e) => this.#key(e, false));
+    window.addEventListener("blur", () => this.keys.clear());
+  }
+
+  size() {
+    const r = this.element.getBoundingClientRect();
+    return { width: r.width, height: r.height, left: r.left, top: r.top };
+  }
+
+  #down(e) {
+    this.element.setPointerCapture(e.pointerId);
+    this.pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+    this.press = this.pointers.size === 1 ? { x: e.clientX, y: e.clientY, button: e.button, moved: false } : null;
+  }
+
+  #move(e) {
+    const last = this.pointers.get(e.pointerId);
+    if (!last) return;
+    const dx = e.clientX - last.x, dy = e.clientY - last.y;
+    this.pointers.set(e.pointerId, { x: e.clientX, y: e.clientY });
+    if (this.press && Math.hypot(e.clientX - this.press.x, e.clientY - this.press.y) > CLICK_SLOP) {
+      this.press.moved = true;
+    }
+    if (this.press && !this.press.moved) return;
+    const camera = this.camera();
+    const { width, height } = this.size();
+    if (this.pointers.size >= 2) {
+      this.#pinch(e.pointerId, dx, dy);
+    } else if (e.buttons & 2 || e.buttons & 4 || e.shiftKey) {
+      camera.pan(dx, dy, width, height);
+    } else if (e.buttons & 1 || e.pointerType === "touch") {
+      camera.orbit(-dx * ORBIT_PER_PIXEL, -dy * ORBIT_PER_PIXEL);
+    } else {
+      return;
+    }
+    this.onChange();
+  }
+
+  #pinch(id, dx, dy) {
+    const camera = this.camera();
+    const [a, b] = [...this.pointers.values()];
+    const { width, height } = this.size();
+    const spread = Math.hypot(a.x - b.x, a.y - b.y);
+    const before = this.spread ?? spread;
+    this.spread = spread;
+    camera.pan(dx / 2, dy / 2, width, height);
+    if (before > 0 && spread > 0) camera.zoom(before / spread);
+  }
+
+  #up(e) {
+    this.pointers.delete(e.pointerId);
+    if (this.pointers.size < 2) this.spread = undefined;
+    const press = this.press;
+    this.press = null;
+    if (press && !press.moved && e.type === "pointerup") {
+      const { left, top } = this.size();
+      this.onClick({ x: e.clientX - left, y: e.clientY - top, button: press.button, shift: e.shiftKey });
+    }
+  }
+
+  #wheel(e) {
+    e.preventDefault();
+    const delta = e.deltaMode === 1 ? e.deltaY * 16 : e.deltaY;
+    this.camera().zoom(Math.pow(WHEEL_STEP, delta));
+    this.onChange();
+  }
+
+  #key(e, down) {
+    if (e.target instanceof HTMLInputElement || e.target instanceof HTMLTextAreaElement) return;
+    const k = e.key.toLowerCase();
+    if (down && k === "f") {
+      this.onFrameAll();
+      return;
+    }
+    if (!"wasdqe".includes(k) || k.length !== 1) return;
+    if (down) this.keys.add(k);
+    else this.keys.delete(k);
+    this.shift = e.shiftKey;
+    if (down && this.keys.size === 1) {
+      this.lastFly = performance.now();
+      requestAnimationFrame(() => this.#fly());
+    }
+  }
+
+  #fly() {
+    if (this.keys.size === 0) return;
+    const now = performance.now();
+    const dt = Math.min(0.1, (now - this.lastFly) / 1000);
+    this.lastFly = now;
+    const k = this.keys;
+    const forward = (k.has("w") ? 1 : 0) - (k.has("s") ? 1 : 0);
+    const sideways = (k.has("d") ? 1 : 0) - (k.has("a") ? 1 : 0);
+    const upwards = (k.has("e") ? 1 : 0) - (k.has("q") ? 1 : 0);
+    this.camera().fly(forward, sideways, upwards, this.flySpeed() * dt * (this.shift ? 4 : 1));
+    this.onChange();
+    requestAnimationFrame(() => this.#fly());
+  }
+}

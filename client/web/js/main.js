@@ -1,0 +1,387 @@
+// The viewer page: streamed frames on a canvas, navigation, quality, stats, picking and
+// measuring, parts, section planes, the accuracy readout and design reviews. It draws
+// what the protocol gives it (docs/PROTOCOL.md); the server renders everything.
+
+import { Api, ApiError } from "./api.js";
+import { Camera, frameBounds } from "./camera.js";
+import { Controls } from "./controls.js";
+import { Overlay } from "./overlay.js";
+import { Panels } from "./panels.js";
+import { Stream } from "./stream.js";
+import { distance, length, sub } from "./vec.js";
+
+const $ = (id) => document.getElementById(id);
+const params = new URLSearchParams(location.search);
+// The credential: an API key (as `vastray serve` prints it) or a viewing/review token.
+const credential = params.get("key") ?? params.get("token") ?? sessionStorage.getItem("vastray.credential") ?? "";
+if (credential) sessionStorage.setItem("vastray.credential", credential);
+
+class App {
+  constructor() {
+    this.api = new Api(location.origin, credential);
+    this.canvas = $("view");
+    this.ctx = this.canvas.getContext("2d");
+    this.overlay = new Overlay($("overlay"));
+    this.panels = new Panels(this);
+    this.stream = null;
+    this.model = null; // model info
+    this.modelId = params.get("model");
+    this.reviewId = params.get("review");
+    this.camera = null; // the Camera the page drives
+    this.seq = 0;
+    this.sent = new Map(); // camera seq -> { camera, at }: what each frame shows, and when it was asked for
+    this.shown = null; // { header, camera }: the frame on the canvas
+    this.decoding = Promise.resolve();
+    this.lastDrawn = 0;
+    this.frameTimes = [];
+    this.bytes = [];
+    this.latency = null;
+    this.pendingMax = 0;
+    this.cameraQueued = false;
+    this.viewport = { width: 960, height: 540 };
+    this.limits = { max_pixels: 3840 * 2160 };
+    this.picks = []; // measured points [{ position, hit }]
+    this.following = true;
+    this.role = "solo";
+    this.controls = new Controls(this.canvas, {
+      camera: () => this.#driveCamera(),
+      onChange: () => this.cameraChanged(),
+      onClick: (p) => this.#click(p),
+      onFrameAll: () => this.frameAll(),
+      flySpeed: () => (this.model ? 0.25 * length(sub(this.model.bounds[1], this.model.bounds[0])) : 1),
+    });
+    new ResizeObserver(() => this.#resize()).observe($("stage"));
+  }
+
+  async start() {
+    try {
+      if (this.reviewId && !this.modelId) {
+        const review = await this.api.review(this.reviewId);
+        this.modelId = review.model;
+      }
+      await this.refreshModels();
+    } catch (e) {
+      this.banner(this.#explain(e), "error");
+      if (!(e instanceof ApiError) || e.status === 0) setTimeout(() => this.start(), 2000);
+      return;
+    }
+    if (this.modelId) this.open(this.modelId);
+  }
+
+  #explain(e) {
+    if (!(e instanceof ApiError)) return String(e);
+    if (e.status === 0) return "The server cannot be reached; retrying…";
+    if (e.status === 401) return `Access refused: ${e.message}. Open the URL the server printed (it carries the key) or a review link.`;
+    if (e.status === 404) return `Not found: ${e.message}`;
+    return e.message;
+  }
+
+  async refreshModels() {
+    const models = await this.api.models();
+    const select = $("model-select");
+    select.replaceChildren(...models.map((m) => {
+      const o = document.createElement("option");
+      o.value = m.id;
+      o.textContent = m.state === "ready" ? `${m.name} (${(m.triangles ?? 0).toLocaleString()} △)` : `${m.name} (building…)`;
+      return o;
+    }));
+    if (!this.modelId && models.length) this.modelId = (models.find((m) => m.state === "ready") ?? models[0]).id;
+    if (this.modelId) select.value = this.modelId;
+    if (!models.length) this.banner("No models yet: drop a mesh on the page to upload and build one.");
+    return models;
+  }
+
+  open(modelId) {
+    if (this.stream) this.stream.close();
+    this.modelId = modelId;
+    this.model = null;
+    this.camera = null;
+    this.shown = null;
+    this.sent.clear();
+    this.picks = [];
+    this.overlay.clear();
+    const query = new URLSearchParams(location.search);
+    query.set("model", modelId);
+    history.replaceState(null, "", `?${query}`);
+    const wsUrl = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/stream`;
+    this.stream = new Stream({
+      url: wsUrl, token: credential, model: modelId, review: this.reviewId, viewport: this.viewport,
+      quality: this.panels.quality(), name: sessionStorage.getItem("vastray.name"),
+    });
+    const s = this.stream;
+    s.addEventListener("status", (e) => this.#status(e.detail));
+    s.addEventListener("welcome", (e) => this.#welcome(e.detail));
+    s.addEventListener("frame", (e) => this.#frame(e.detail));
+    s.addEventListener("stats", (e) => this.panels.serverStats(e.detail));
+    s.addEventListener("error", (e) => this.#serverError(e.detail));
+    s.addEventListener("pick_result", (e) => this.#picked(e.detail));
+    s.addEventListener("job", (e) => this.panels.job(e.detail));
+    s.addEventListener("accuracy", (e) => this.panels.accuracy(e.detail));
+    s.addEventListener("closing", (e) => this.banner(`The server is closing the connection: ${e.detail.reason}`));
+    s.addEventListener("message", (e) => this.panels.reviewMessage(e.detail));
+    s.open();
+  }
+
+  #welcome(w) {
+    this.model = w.model;
+    this.limits = w.limits;
+    this.role = w.review?.role ?? "solo";
+    this.camera = new Camera(w.camera);
+    this.seq = Math.max(this.seq, w.camera.seq);
+    this.panels.welcome(w);
+    this.banner(null);
+    $("job").hidden = true;
+  }
+
+  #status({ state, reason, code, delay, resumed }) {
+    const badge = $("status");
+    badge.dataset.state = state;
+    const text = {
+      connecting: "connecting…",
+      connected: resumed ? "connected (resumed)" : "connected",
+      reconnecting: `reconnecting in ${((delay ?? 0) / 1000).toFixed(1)} s…`,
+      failed: "disconnected",
+    }[state];
+    badge.textContent = text;
+    if (state === "reconnecting") this.banner(`Connection lost${reason ? ` (${reason})` : ""}; reconnecting…`);
+    if (state === "failed") this.banner(this.#closeReason(code, reason), "error");
+  }
+
+  #closeReason(code, reason) {
+    if (code === 4401) return `Access refused: ${reason}. Open the URL the server printed, or ask for a new link.`;
+    if (code === 4403) return `This link does not give access to this model: ${reason}`;
+    if (code === 4404) return `The model is gone: ${reason}. Pick another one.`;
+    return `The server refused the view: ${reason}`;
+  }
+
+  #serverError(e) {
+    if (e.fatal) this.banner(e.message, "error");
+    else this.panels.notice(e.message);
+  }
+
+  banner(text, kind = "warn") {
+    const b = $("banner");
+    b.hidden = !text;
+    b.textContent = text ?? "";
+    b.dataset.kind = kind;
+  }
+
+  // -- camera ---------------------------------------------------------------------------
+
+  #driveCamera() {
+    if (this.reviewId && this.following && this.role !== "presenter") {
+      // Taking the controls as a follower: go free, from where the presenter is.
+      this.panels.setFollow(false);
+    }
+    return this.camera ?? new Camera({ eye: [1, 1, 1], target: [0, 0, 0] });
+  }
+
+  cameraChanged() {
+    if (!this.camera || this.cameraQueued) return;
+    this.cameraQueued = true;
+    requestAnimationFrame(() => {
+      this.cameraQueued = false;
+      this.seq += 1;
+      this.sent.set(this.seq, { camera: this.camera.clone(), at: performance.now() });
+      if (this.sent.size > 600) this.sent.delete(this.sent.keys().next().value);
+      this.stream?.send({ type: "camera", ...this.camera.toMessage(this.seq) });
+    });
+  }
+
+  setCamera(message) {
+    this.camera = new Camera(message);
+    this.cameraChanged();
+  }
+
+  frameAll() {
+    if (!this.model) return;
+    const [lo, hi] = this.model.bounds;
+    this.camera = frameBounds(lo, hi, this.camera?.fov ?? 45, this.viewport.width / this.viewport.height,
+      this.camera?.up ?? [0, 1, 0]);
+    this.cameraChanged();
+  }
+
+  // -- frames ---------------------------------------------------------------------------
+
+  #frame(header) {
+    // Decode in order, draw only what is newer than what is shown, acknowledge after drawing.
+    this.decoding = this.decoding.then(async () => {
+      const bitmap = await createImageBitmap(header.image);
+      if (header.screenshot) {
+        this.#saveScreenshot(header.image);
+        bitmap.close();
+        this.stream?.ack(header.frame);
+        return;
+      }
+      if (header.frame > this.lastDrawn) {
+        this.lastDrawn = header.frame;
+        const rect = this.#fit(header);
+        this.ctx.fillStyle = "#202329";
+        this.ctx.fillRect(0, 0, this.canvas.width, this.canvas.height);
+        this.ctx.imageSmoothingEnabled = true;
+        this.ctx.imageSmoothingQuality = header.moving ? "low" : "high";
+        this.ctx.drawImage(bitmap, rect.x, rect.y, rect.width, rect.height);
+        // The camera this frame shows: as the server says (a follower did not send it).
+        const camera = header.stats?.camera ? new Camera(header.stats.camera)
+          : this.sent.get(header.cameraSeq)?.camera ?? this.shown?.camera ?? this.camera;
+        this.shown = { header, camera, rect };
+        if (this.following && this.role === "follower") this.camera = camera.clone();
+        this.#measureClient(header);
+        this.redrawOverlay();
+        this.panels.frame(header);
+        this.canvas.dataset.frames = String(header.frame);
+        this.canvas.dataset.final = String(header.final);
+        this.canvas.dataset.complete = String(header.complete);
+      }
+      bitmap.close();
+      this.stream?.ack(header.frame);
+    }).catch((e) => console.error("frame", e));
+  }
+
+  // Where a frame goes on the canvas: as large as fits, its aspect kept (a review's
+  // frames have the presenter's aspect, not this window's).
+  #fit(header) {
+    const fullW = header.width / header.scale, fullH = header.height / header.scale;
+    const s = Math.min(this.canvas.width / fullW, this.canvas.height / fullH);
+    const width = fullW * s, height = fullH * s;
+    return { x: (this.canvas.width - width) / 2, y: (this.canvas.height - height) / 2, width, height, fullW, fullH };
+  }
+
+  #measureClient(header) {
+    const now = performance.now();
+    this.frameTimes.push(now);
+    this.bytes.push([now, header.image.size]);
+    while (this.frameTimes.length && now - this.frameTimes[0] > 2000) this.frameTimes.shift();
+    while (this.bytes.length && now - this.bytes[0][0] > 2000) this.bytes.shift();
+    const asked = this.sent.get(header.cameraSeq);
+    if (asked && !asked.answered) {
+      asked.answered = true;
+      this.latency = now - asked.at;
+    }
+    const span = this.frameTimes.length > 1 ? (now - this.frameTimes[0]) / 1000 : 1;
+    this.panels.clientStats({
+      fps: this.frameTimes.length > 1 ? (this.frameTimes.length - 1) / span : 0,
+      latency: this.latency,
+      mbit: (8 * this.bytes.reduce((a, [, b]) => a + b, 0)) / Math.max(span, 0.5) / 1e6,
+    });
+  }
+
+  redrawOverlay() {
+    if (!this.shown) return;
+    const { camera, rect } = this.shown;
+    const css = this.canvas.clientWidth / this.canvas.width; // canvas pixels -> CSS pixels
+    const project = (p) => {
+      const q = camera.project(p, rect.fullW, rect.fullH);
+      if (!q) return null;
+      return { x: (rect.x + (q.x * rect.width) / rect.fullW) * css, y: (rect.y + (q.y * rect.height) / rect.fullH) * css };
+    };
+    this.overlay.draw(project, { picks: this.picks, pointers: this.panels.pointers, notes: this.panels.annotations });
+  }
+
+  #resize() {
+    const dpr = window.devicePixelRatio || 1;
+    const stage = $("stage");
+    let width = Math.max(16, Math.round(stage.clientWidth * dpr));
+    let height = Math.max(16, Math.round(stage.clientHeight * dpr));
+    const budget = this.limits.max_pixels ?? 3840 * 2160;
+    if (width * height > budget) {
+      const s = Math.sqrt(budget / (width * height));
+      width = Math.floor(width * s);
+      height = Math.floor(height * s);
+    }
+    this.canvas.width = width;
+    this.canvas.height = height;
+    this.viewport = { width, height };
+    if (this.shown) this.redrawOverlay();
+    clearTimeout(this.resizeTimer);
+    this.resizeTimer = setTimeout(() => {
+      this.stream?.send({ type: "viewport", width, height, device_pixel_ratio: dpr });
+      if (this.stream) this.stream.viewport = { width, height };
+    }, 100);
+  }
+
+  // -- picking and measuring -------------------------------------------------------------
+
+  #click({ x, y, shift }) {
+    if (!this.shown || !this.stream) return;
+    const { camera, rect, header } = this.shown;
+    // CSS pixels -> canvas pixels -> pixels of the frame's full-size image.
+    const c = this.canvas.width / this.canvas.clientWidth;
+    const px = ((x * c - rect.x) * rect.fullW) / rect.width;
+    const py = ((y * c - rect.y) * rect.fullH) / rect.height;
+    if (px < 0 || py < 0 || px > rect.fullW || py > rect.fullH) return;
+    this.pickStarted = performance.now();
+    this.pickMode = this.panels.pointerMode ? "pointer" : shift ? "add" : "measure";
+    this.pickCounter = (this.pickCounter ?? 0) + 1;
+    this.stream.send({ type: "pick", id: `p${this.pickCounter}`, points: [[px, py]],
+      camera: camera.toMessage(header.cameraSeq), width: Math.round(rect.fullW), height: Math.round(rect.fullH) });
+  }
+
+  #picked(result) {
+    const hit = result.hits[0];
+    const elapsed = performance.now() - (this.pickStarted ?? performance.now());
+    if (!hit?.hit) {
+      this.panels.pickResult(null, elapsed, result.milliseconds);
+      return;
+    }
+    if (this.pickMode === "pointer") {
+      this.stream.send({ type: "pointer", position: hit.position });
+      return;
+    }
+    if (this.picks.length >= 2) this.picks = [];
+    this.picks.push(hit);
+    const measured = this.picks.length === 2 ? distance(this.picks[0].position, this.picks[1].position) : null;
+    this.panels.pickResult(hit, elapsed, result.milliseconds, measured);
+    this.redrawOverlay();
+  }
+
+  clearMeasure() {
+    this.picks = [];
+    this.panels.pickResult(null);
+    this.redrawOverlay();
+  }
+
+  // -- screenshots -----------------------------------------------------------------------
+
+  screenshot() {
+    this.stream?.send({ type: "screenshot", id: `s${Date.now()}` });
+    this.panels.notice("Screenshot: waiting for the finished view…");
+  }
+
+  #saveScreenshot(blob) {
+    const a = document.createElement("a");
+    a.href = URL.createObjectURL(blob);
+    a.download = `vastray-${this.model?.name ?? "view"}-${new Date().toISOString().replace(/[:.]/g, "-")}.png`;
+    document.body.appendChild(a);
+    a.click();
+    a.remove();
+    setTimeout(() => URL.revokeObjectURL(a.href), 10000);
+    this.panels.notice("Screenshot saved.");
+  }
+
+  // -- uploads ---------------------------------------------------------------------------
+
+  async upload(file) {
+    $("job").hidden = false;
+    $("job-label").textContent = `uploading ${file.name}`;
+    const bar = $("job-progress");
+    try {
+      const up = await this.api.upload(file, (f) => { bar.value = 100 * f; });
+      const created = up.created;
+      if (created?.job) {
+        $("job-label").textContent = `building ${created.model.name}`;
+        await this.api.followJob(created.job.id, (job) => this.panels.job(job));
+      }
+      await this.refreshModels();
+      this.open(created.model.id);
+    } catch (e) {
+      this.banner(`${file.name}: ${this.#explain(e)}`, "error");
+      $("job").hidden = true;
+    }
+  }
+
+}
+
+const app = new App();
+window.vastray = app; // for the console and the browser tests
+app.start();

@@ -1,0 +1,54 @@
+// What the page draws over the streamed image, pinned to 3D points: picked points and
+// the measured distance, review pointers, annotations. Positions are projected with the
+// camera of the frame on the canvas, so marks stay on the picture as the camera moves.
+
+import { distance, formatLength, lerp } from "./vec.js";
+
+const NS = "http://www.w3.org/2000/svg";
+
+export class Overlay {
+  constructor(svg) {
+    this.svg = svg;
+  }
+
+  clear() {
+    this.svg.replaceChildren();
+  }
+
+  #el(name, attrs, text = null) {
+    const e = document.createElementNS(NS, name);
+    for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+    if (text !== null) e.textContent = text;
+    this.svg.appendChild(e);
+    return e;
+  }
+
+  draw(project, { picks = [], pointers = new Map(), notes = [] }) {
+    this.clear();
+    const points = picks.map((p) => project(p.position));
+    if (points.length === 2 && points[0] && points[1]) {
+      const [a, b] = points;
+      this.#el("line", { x1: a.x, y1: a.y, x2: b.x, y2: b.y });
+      const mid = project(lerp(picks[0].position, picks[1].position, 0.5));
+      if (mid) this.#el("text", { x: mid.x + 6, y: mid.y - 6, class: "distance" },
+        formatLength(distance(picks[0].position, picks[1].position)));
+    }
+    points.forEach((p, i) => {
+      if (!p) return;
+      this.#el("circle", { cx: p.x, cy: p.y, r: 5, class: "marker" });
+      this.#el("text", { x: p.x + 8, y: p.y + 4 }, String.fromCharCode(65 + i));
+    });
+    for (const [, pointer] of pointers) {
+      const p = pointer.position && project(pointer.position);
+      if (!p) continue;
+      this.#el("path", { d: `M${p.x} ${p.y} l -6 -14 l 12 0 z`, class: "pointer" });
+      this.#el("text", { x: p.x + 8, y: p.y - 8, class: "pointer-label" }, pointer.name ?? "pointer");
+    }
+    for (const note of notes) {
+      const p = project(note.position);
+      if (!p) continue;
+      this.#el("rect", { x: p.x - 5, y: p.y - 5, width: 10, height: 10, class: "note" });
+      this.#el("text", { x: p.x + 8, y: p.y + 4, class: "note-label" }, note.text);
+    }
+  }
+}

@@ -1,0 +1,435 @@
+// The side panels: quality (with the live accuracy readout), stats, pick & measure,
+// parts, section planes, and the review (participants, follow, pointer, annotations,
+// saved views).
+
+import { formatLength } from "./vec.js";
+
+const $ = (id) => document.getElementById(id);
+
+function li(text, { title = "", onClick = null, extra = null } = {}) {
+  const item = document.createElement("li");
+  const label = document.createElement("span");
+  label.textContent = text;
+  item.appendChild(label);
+  if (extra) {
+    const e = document.createElement("span");
+    e.className = "muted";
+    e.textContent = extra;
+    item.appendChild(e);
+  }
+  if (title) item.title = title;
+  if (onClick) item.addEventListener("click", onClick);
+  return item;
+}
+
+function bytes(n) {
+  if (!Number.isFinite(n)) return "–";
+  const units = ["B", "KiB", "MiB", "GiB"];
+  let i = 0;
+  while (n >= 1024 && i < units.length - 1) { n /= 1024; i += 1; }
+  return `${n.toFixed(i ? 1 : 0)} ${units[i]}`;
+}
+
+export class Panels {
+  constructor(app) {
+    this.app = app;
+    this.client = {};
+    this.server = {};
+    this.header = null;
+    this.pointers = new Map();
+    this.annotations = [];
+    this.views = [];
+    this.sections = [];
+    this.parts = [];
+    this.highlight = new Set();
+    this.pointerMode = false;
+    this.#wireQuality();
+    this.#wireTools();
+  }
+
+  // -- quality ---------------------------------------------------------------------------
+
+  quality() {
+    return {
+      shading: $("shading").value,
+      pixels_of_error: Number($("poe").value),
+      min_scale: Number($("min-scale").value),
+      jpeg_quality: Number($("jpeg").value),
+      refine: $("refine").checked,
+    };
+  }
+
+  #wireQuality() {
+    const show = () => {
+      $("poe-value").textContent = $("poe").value;
+      $("scale-value").textContent = $("min-scale").value;
+      $("jpeg-value").textContent = $("jpeg").value;
+    };
+    show();
+    let timer = null;
+    const send = () => {
+      show();
+      clearTimeout(timer);
+      timer = setTimeout(() => this.app.stream?.send({ type: "quality", ...this.quality() }), 60);
+    };
+    for (const id of ["shading", "poe", "min-scale", "jpeg", "refine"]) {
+      $(id).addEventListener("input", send);
+      $(id).addEventListener("change", send);
+    }
+    $("accuracy-button").addEventListener("click", () => {
+      $("accuracy").textContent = "measuring: rendering this view at full detail…";
+      this.app.stream?.send({ type: "accuracy" });
+    });
+    $("accuracy-auto").addEventListener("change", (e) =>
+      this.app.stream?.send({ type: "quality", auto_accuracy: e.target.checked }));
+  }
+
+  welcome(w) {
+    const q = w.quality;
+    $("shading").value = q.shading;
+    $("poe").value = q.pixels_of_error;
+    $("min-scale").value = q.min_scale;
+    $("jpeg").value = q.jpeg_quality;
+    $("refine").checked = q.refine;
+    $("poe-value").textContent = q.pixels_of_error;
+    $("scale-value").textContent = q.min_scale;
+    $("jpeg-value").textContent = q.jpeg_quality;
+    this.parts = w.model.parts ?? [];
+    this.#renderParts();
+    this.sections = w.sections ?? this.sections;
+    this.#renderSections();
+    this.#welcomeReview(w.review);
+  }
+
+  accuracy(a) {
+    $("accuracy").textContent =
+      `at PoE ${a.pixels_of_error}: ${(100 * a.hit_differs).toFixed(2)} % of pixels hit other geometry, ` +
+      `PSNR ${Number.isFinite(a.psnr_db) ? a.psnr_db.toFixed(1) + " dB" : "∞"}\n` +
+      `frame ${a.frame_ms.toFixed(0)} ms vs ${a.full_detail_ms.toFixed(0)} ms at full detail`;
+    $("accuracy").dataset.measured = "true";
+  }
+
+  // -- stats -----------------------------------------------------------------------------
+
+  frame(header) {
+    this.header = header;
+    this.#renderStats();
+    const loading = $("loading");
+    loading.hidden = header.complete;
+    if (!header.complete) {
+      const pending = this.server.pending_blocks ?? 0;
+      this.pendingMax = Math.max(this.pendingMax ?? 0, pending);
+      $("loading-bar").style.width = `${100 * (1 - pending / Math.max(1, this.pendingMax))}%`;
+    } else {
+      this.pendingMax = 0;
+    }
+  }
+
+  serverStats(s) {
+    this.server = s;
+  }
+
+  clientStats(c) {
+    this.client = c;
+  }
+
+  #renderStats() {
+    const h = this.header, s = this.server, c = this.client;
+    const rows = [
+      ["frames/s", c.fps?.toFixed(1)],
+      ["input → frame", c.latency != null ? `${c.latency.toFixed(0)} ms` : "–"],
+      ["bandwidth", c.mbit != null ? `${c.mbit.toFixed(1)} Mbit/s` : "–"],
+      ["render + encode", h ? `${h.renderMs.toFixed(0)} + ${h.encodeMs.toFixed(0)} ms` : "–"],
+      ["image", h ? `${h.width}×${h.height} (scale ${h.scale.toFixed(2)})` : "–"],
+      ["pixels of error", h ? h.pixelsOfError.toFixed(2) : "–"],
+      ["pass", h ? (h.moving ? "moving" : `${h.pass}${h.final ? " (final)" : ""}`) : "–"],
+      ["complete", h ? (h.complete ? "yes" : `loading, ${s.pending_blocks ?? "?"} blocks pending`) : "–"],
+      ["working set", bytes(s.working_set_bytes)],
+      ["cache hit rate", s.cache_hit_rate != null ? `${(100 * s.cache_hit_rate).toFixed(1)} %` : "–"],
+      ["voxel hits", s.voxel_hits?.toLocaleString() ?? "–"],
+    ];
+    $("stats").replaceChildren(...rows.map(([k, v]) => {
+      const tr = document.createElement("tr");
+      for (const text of [k, v ?? "–"]) {
+        const td = document.createElement("td");
+        td.textContent = text;
+        tr.appendChild(td);
+      }
+      return tr;
+    }));
+  }
+
+  notice(text) {
+    $("pick").dataset.notice = text;
+    this.app.banner(text);
+    clearTimeout(this.noticeTimer);
+    this.noticeTimer = setTimeout(() => this.app.banner(null), 4000);
+  }
+
+  job(job) {
+    $("job").hidden = job.state === "succeeded";
+    $("job-label").textContent = `${job.name}: ${job.phase ?? job.state}` +
+      (job.eta_seconds ? ` (about ${Math.ceil(job.eta_seconds)} s left)` : "");
+    $("job-progress").value = job.percent;
+    if (job.state === "failed") this.app.banner(`The build failed: ${job.error}`, "error");
+  }
+
+  // -- pick & measure ----------------------------------------------------------------------
+
+  pickResult(hit, elapsedMs = 0, serverMs = 0, measured = null) {
+    const out = $("pick");
+    if (!hit) {
+      out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
+      delete out.dataset.distance;
+      return;
+    }
+    const p = hit.position.map((x) => formatLength(x)).join(", ");
+    const part = hit.part != null ? `\npart: ${hit.part}` : "";
+    let text = `point: ${p}\ndistance from the eye: ${formatLength(hit.distance)}\ntriangle: ${hit.triangle}${part}` +
+      `\nanswered in ${elapsedMs.toFixed(0)} ms (server ${serverMs.toFixed(0)} ms)`;
+    if (measured != null) {
+      text = `A → B: ${formatLength(measured)}\n` + text;
+      out.dataset.distance = String(measured);
+    } else {
+      delete out.dataset.distance;
+    }
+    out.textContent = text;
+    this.lastPick = hit;
+  }
+
+  #wireTools() {
+    $("clear-measure").addEventListener("click", () => this.app.clearMeasure());
+    $("screenshot-button").addEventListener("click", () => this.app.screenshot());
+    $("model-select").addEventListener("change", (e) => this.app.open(e.target.value));
+    $("upload-button").addEventListener("click", () => $("upload-input").click());
+    $("upload-input").addEventListener("change", (e) => e.target.files[0] && this.app.upload(e.target.files[0]));
+    const stage = $("stage");
+    stage.addEventListener("dragover", (e) => { e.preventDefault(); $("drop-hint").hidden = false; });
+    stage.addEventListener("dragleave", () => { $("drop-hint").hidden = true; });
+    stage.addEventListener("drop", (e) => {
+      e.preventDefault();
+      $("drop-hint").hidden = true;
+      const file = e.dataTransfer.files[0];
+      if (file) this.app.upload(file);
+    });
+    $("parts-search").addEventListener("input", () => this.#renderParts());
+    for (const button of document.querySelectorAll("#sections-panel button[data-axis]")) {
+      button.addEventListener("click", () => this.addSection(Number(button.dataset.axis)));
+    }
+    $("section-view").addEventListener("click", () => this.addSection(null));
+    $("review-start").addEventListener("click", () => this.#startReview());
+    $("review-copy").addEventListener("click", () => navigator.clipboard?.writeText($("review-link").value));
+    $("follow").addEventListener("change", (e) => this.setFollow(e.target.checked));
+    $("pointer-mode").addEventListener("change", (e) => { this.pointerMode = e.target.checked; });
+    $("annotate").addEventListener("click", () => this.#annotate());
+    $("save-view").addEventListener("click", () => {
+      const name = $("view-name").value.trim() || `view ${this.views.length + 1}`;
+      this.app.stream?.send({ type: "save_view", name });
+      $("view-name").value = "";
+    });
+  }
+
+  // -- parts -----------------------------------------------------------------------------
+
+  #renderParts() {
+    const query = $("parts-search").value.trim().toLowerCase();
+    const list = $("parts");
+    if (!this.parts.length) {
+      list.replaceChildren(li("this model has no part structure", {}));
+      return;
+    }
+    const shown = this.parts.filter((p) => !query || p.name.toLowerCase().includes(query)).slice(0, 500);
+    list.replaceChildren(...shown.map((part) => {
+      const item = li(part.name, {
+        extra: `${part.triangles.toLocaleString()} △`,
+        title: "click: frame and highlight",
+        onClick: () => this.#framePart(part),
+      });
+      if (this.highlight.has(part.id)) item.classList.add("active");
+      return item;
+    }));
+    const matches = query ? this.parts.filter((p) => p.name.toLowerCase().includes(query)).map((p) => p.id) : [];
+    this.#sendHighlight(query ? matches : [...this.highlight]);
+  }
+
+  #framePart(part) {
+    this.highlight = new Set([part.id]);
+    const [lo, hi] = part.bounds;
+    const centre = lo.map((v, i) => (v + hi[i]) / 2);
+    const size = Math.hypot(...lo.map((v, i) => hi[i] - v));
+    const cam = this.app.camera;
+    const dir = cam ? cam.eye.map((v, i) => v - cam.target[i]) : [1, 0.7, 1.3];
+    const len = Math.hypot(...dir);
+    const eye = centre.map((v, i) => v + (dir[i] / len) * size * 1.6);
+    this.app.setCamera({ eye, target: centre, up: cam?.up ?? [0, 1, 0], fov: cam?.fov ?? 45 });
+    this.#renderParts();
+  }
+
+  #sendHighlight(ids) {
+    const key = ids.join(",");
+    if (key === this.lastHighlight) return;
+    this.lastHighlight = key;
+    this.app.stream?.send({ type: "highlight", parts: ids.slice(0, 4096) });
+  }
+
+  // -- sections --------------------------------------------------------------------------
+
+  addSection(axis) {
+    const m = this.app.model;
+    if (!m) return;
+    const [lo, hi] = m.bounds;
+    let normal, offset;
+    if (axis === null) {
+      const cam = this.app.camera;
+      const d = cam.target.map((v, i) => v - cam.eye[i]);
+      const l = Math.hypot(...d);
+      normal = d.map((v) => -v / l);
+      offset = -normal.reduce((a, n, i) => a + n * cam.target[i], 0);
+    } else {
+      normal = [0, 0, 0];
+      normal[axis] = -1;
+      offset = (lo[axis] + hi[axis]) / 2;
+    }
+    this.sections.push({ normal, offset, enabled: true });
+    this.#renderSections();
+    this.#sendSections();
+  }
+
+  #sendSections() {
+    this.app.stream?.send({ type: "sections", planes: this.sections });
+  }
+
+  #renderSections() {
+    const m = this.app.model;
+    const box = $("sections");
+    box.replaceChildren(...this.sections.map((plane, i) => {
+      const div = document.createElement("div");
+      div.className = "section";
+      const label = document.createElement("label");
+      label.className = "check";
+      const on = document.createElement("input");
+      on.type = "checkbox";
+      on.checked = plane.enabled;
+      on.addEventListener("change", () => { plane.enabled = on.checked; this.#sendSections(); });
+      const axis = plane.normal.findIndex((v) => Math.abs(v) === 1);
+      label.append(on, ` ${axis >= 0 ? "XYZ"[axis] : "view"} plane`);
+      const slider = document.createElement("input");
+      slider.type = "range";
+      const extent = m ? Math.hypot(...m.bounds[0].map((v, k) => m.bounds[1][k] - v)) : 1;
+      const centre = m ? -plane.normal.reduce((a, n, k) => a + n * (m.bounds[0][k] + m.bounds[1][k]) / 2, 0) : 0;
+      slider.min = String(centre - extent / 2);
+      slider.max = String(centre + extent / 2);
+      slider.step = String(extent / 500);
+      slider.value = String(plane.offset);
+      slider.setAttribute("aria-label", "plane position");
+      slider.addEventListener("input", () => { plane.offset = Number(slider.value); this.#sendSections(); });
+      const remove = document.createElement("button");
+      remove.textContent = "remove";
+      remove.addEventListener("click", () => {
+        this.sections.splice(i, 1);
+        this.#renderSections();
+        this.#sendSections();
+      });
+      div.append(label, slider, remove);
+      return div;
+    }));
+  }
+
+  // -- review ----------------------------------------------------------------------------
+
+  #welcomeReview(review) {
+    this.review = review ?? null;
+    $("review-idle").hidden = !!review;
+    $("review-active").hidden = !review;
+    if (!review) return;
+    $("review-panel").open = true;
+    $("review-link").value = review.join_url ?? location.href;
+    $("follow").checked = review.following ?? true;
+    this.app.following = review.following ?? true;
+  }
+
+  async #startReview() {
+    try {
+      const r = await this.app.api.createReview(this.app.modelId, `${this.app.model?.name ?? "model"} review`);
+      // The presenter joins through its own link: the page reloads into the review.
+      location.href = r.presenter_url;
+    } catch (e) {
+      this.app.banner(`Cannot start a review: ${e.message}`, "error");
+    }
+  }
+
+  setFollow(follow) {
+    $("follow").checked = follow;
+    this.app.following = follow;
+    this.app.stream?.send({ type: "follow", follow });
+  }
+
+  #annotate() {
+    const text = $("annotation-text").value.trim();
+    const at = this.lastPick?.position;
+    if (!text || !at) {
+      this.notice(at ? "Write the note first." : "Pick a point first: the note is pinned there.");
+      return;
+    }
+    this.app.stream?.send({ type: "annotate", text, position: at });
+    $("annotation-text").value = "";
+  }
+
+  reviewMessage(m) {
+    switch (m.type) {
+      case "participants": {
+        this.participants = m.participants;
+        $("participants").replaceChildren(...m.participants.map((p) => {
+          const item = li(`${p.name}${p.id === this.review?.participant ? " (you)" : ""}`, {
+            extra: p.role === "presenter" ? "presenter" : p.following ? "following" : "free",
+            title: this.review?.role === "presenter" && p.role !== "presenter" ? "click: hand the presenter role over" : "",
+            onClick: this.review?.role === "presenter" && p.role !== "presenter"
+              ? () => this.app.stream?.send({ type: "handover", to: p.id }) : null,
+          });
+          return item;
+        }));
+        break;
+      }
+      case "role":
+        if (this.review) {
+          this.review.role = m.role;
+          this.app.role = m.role;
+          this.notice(m.role === "presenter" ? "You are the presenter now." : "You follow the presenter.");
+          if (m.role !== "presenter") this.setFollow(true);
+        }
+        break;
+      case "pointer":
+        if (m.position) this.pointers.set(m.from, { position: m.position, name: m.name });
+        else this.pointers.delete(m.from);
+        this.app.redrawOverlay();
+        break;
+      case "annotations":
+        this.annotations = m.annotations;
+        $("annotations").replaceChildren(...m.annotations.map((a) => li(a.text, {
+          extra: a.author ?? "",
+          title: "click: go there",
+          onClick: () => a.camera && this.#jump({ camera: a.camera }),
+        })));
+        this.app.redrawOverlay();
+        break;
+      case "views":
+        this.views = m.views;
+        $("views").replaceChildren(...m.views.map((v) => li(v.name, { title: "click: go to this view", onClick: () => this.#jump(v) })));
+        break;
+      case "sections":
+        this.sections = m.planes;
+        this.#renderSections();
+        break;
+      default:
+        break;
+    }
+  }
+
+  #jump(view) {
+    if (view.id) {
+      this.app.stream?.send({ type: "jump", view: view.id });
+    } else {
+      this.app.setCamera(view.camera);
+    }
+  }
+}
