@@ -11,7 +11,12 @@ STAMP   := $(VENV)/.installed
 SOURCES := pyproject.toml CMakeLists.txt README.md \
            $(shell find native vastray server client -type f -not -name '*.pyc' -not -path '*/__pycache__/*' 2>/dev/null)
 
-.PHONY: run test test-fast install dev bench lint clean tsan
+# Debian packages: Chromium for the browser tests (Playwright drives it; no browser
+# download), liblz4 and libdeflate for the native block codecs.
+APT_PACKAGES := chromium nginx openssl liblz4-dev libdeflate-dev pkg-config
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: run test test-fast install dev bench lint clean tsan system-deps
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -21,10 +26,17 @@ $(STAMP): $(BIN)/python $(SOURCES)
 	$(BIN)/pip install -q '.[test]'
 	@touch $@
 
-install: $(STAMP)
+install: system-deps $(STAMP)
+
+system-deps:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+		echo "installing Debian packages:$$missing"; \
+		$(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
 
 # Editable install for working on the code (rerun after changing C++).
-dev: $(BIN)/python
+dev: system-deps $(BIN)/python
 	$(BIN)/pip install -q scikit-build-core pybind11
 	$(BIN)/pip install -q --no-build-isolation -e '.[test,bench]'
 	@rm -f $(STAMP)
