@@ -90,7 +90,9 @@ class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
-        self.frames = Counter("vastray_frames", "Frames rendered", ["kind"], registry=r)
+        self.frames = Counter("vastray_frames", "Frames rendered and encoded", ["kind"], registry=r)
+        # Frames sent: a review's shared frame is rendered once and sent to every follower.
+        self.frames_sent = Counter("vastray_frames_sent", "Frames sent to clients", ["kind"], registry=r)
         self.frame_seconds = Histogram(
             "vastray_frame_seconds", "Render time of a frame", ["kind"], buckets=FRAME_BUCKETS, registry=r
         )

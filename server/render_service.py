@@ -104,6 +104,7 @@ class RenderService:
             data = encode(frame.image, request.format, quality=request.jpeg_quality)
             encode_ms = 1000 * (time.perf_counter() - start)
         self.metrics.frame_rendered("oneshot", frame.stats, encode_ms / 1000)
+        self.metrics.frames_sent.labels("oneshot").inc()
         self.metrics.bytes_sent.labels("oneshot").inc(len(data))
         return RenderedImage(data, MEDIA_TYPES[request.format], frame, encode_ms)
 

@@ -102,6 +102,9 @@ class StreamHub:
         )
 
     def deliver(self, view: View, frame: RenderedFrame | None, warning: str | None) -> None:
+        """A frame rendered and encoded once, offered to every subscriber of the view."""
+        if frame is not None:
+            self.state.metrics.frame_rendered("stream", frame.stats, frame.encode_ms / 1000)
         for sub in list(view.subscribers):
             assert isinstance(sub, Connection)
             if warning is not None:
@@ -349,12 +352,32 @@ class Connection:
         except ApiError as exc:
             await self._fail(CLOSE_UNAUTHORIZED, exc.code, exc.message)
             return None
-        if not grant.may_view_model(hello.model):
-            await self._fail(
-                CLOSE_FORBIDDEN, "forbidden", f"this token does not grant access to model {hello.model}"
-            )
+        problem = self._access_problem(grant, hello)
+        if problem is not None:
+            await self._fail(*problem)
             return None
+        self.grant = grant
         return hello
+
+    def _access_problem(self, grant: Any, hello: Hello) -> tuple[int, str, str] | None:
+        """Why this credential may not open this hello's view (None: it may). A review
+        token grants its review, and through it the review's model."""
+        if hello.review is None:
+            if grant.may_view_model(hello.model):
+                return None
+            return CLOSE_FORBIDDEN, "forbidden", f"this token does not grant access to model {hello.model}"
+        if not (grant.admin or (grant.scope == "review" and grant.subject == hello.review)):
+            return CLOSE_FORBIDDEN, "forbidden", f"this token does not grant access to review {hello.review}"
+        review = self.state.registry.review(hello.review)
+        if review is None:
+            return CLOSE_NOT_FOUND, "review_not_found", f"no review {hello.review!r}"
+        if review["model_id"] != hello.model:
+            return (
+                CLOSE_FORBIDDEN,
+                "forbidden",
+                f"review {hello.review} is of model {review['model_id']}, not {hello.model}",
+            )
+        return None
 
     async def _open_view(self, hello: Hello) -> None:
         store = self.state.store
@@ -689,10 +712,9 @@ class Connection:
         self.sent_times.append(mono)
         latency = mono - job.camera_at
         metrics = self.state.metrics
-        if not flags & FLAG_SCREENSHOT:
-            metrics.frame_rendered("stream", frame.stats, frame.encode_ms / 1000)
-            if job.moving or job.pass_number == 1:
-                metrics.latency.observe(latency)
+        if not flags & FLAG_SCREENSHOT and (job.moving or job.pass_number == 1):
+            metrics.latency.observe(latency)
+        metrics.frames_sent.labels("stream").inc()
         metrics.bytes_sent.labels("stream").inc(len(data))
         s = frame.stats
         fps = (
