@@ -176,7 +176,8 @@ def main() -> int:
                     rows.append(row)
                     print(
                         f"  {row['kind']} +{n}: {row['fps_per_client']:.1f} fps/client, "
-                        f"CPU {row['server_cpu_cores']:.2f} cores, rendered {row['frames_rendered_per_s']:.1f}/s, "
+                        f"CPU {row['server_cpu_cores']:.2f} cores, "
+                        f"rendered {row['frames_rendered_per_s']:.1f}/s, "
                         f"sent {row['frames_sent_per_s']:.1f}/s, "
                         f"pick p95 {row['pick_p95_ms']:.0f} ms",
                         file=sys.stderr,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter
 
@@ -297,11 +297,23 @@ ClientMessage = Annotated[
     | PingMessage
     | ScreenshotMessage
     | PickMessage
+    | SectionsMessage
+    | HighlightMessage
+    | AccuracyMessage
+    | FollowMessage
+    | PointerMessage
+    | AnnotateMessage
+    | SaveViewMessage
+    | JumpMessage
+    | HandoverMessage
     | ByeMessage,
     Field(discriminator="type"),
 ]
 CLIENT_MESSAGE = TypeAdapter(ClientMessage)
-CLIENT_TYPES = ("camera", "viewport", "quality", "ack", "ping", "screenshot", "pick", "bye")
+# Every message type a client may send (the union's `type` literals, in its order).
+CLIENT_TYPES = tuple(
+    get_args(m.model_fields["type"].annotation)[0] for m in get_args(get_args(ClientMessage)[0])
+)
 
 
 # ---- server -> client (JSON) --------------------------------------------------------------
