@@ -248,6 +248,10 @@ class Connection:
         self.view = view
         self.latest = None
         self.last_sent_seq = -1  # another view: its own camera sequence
+        if view.phase == "idle" and view.last_final is not None:
+            # A still, finished view renders nothing more: a subscriber that joins it (a
+            # review's follower, one going back to following) gets its last frame.
+            self.offer(view.last_final)
         self.hub.scheduler.notify()
 
     def _unsubscribe(self) -> None:
