@@ -27,7 +27,7 @@ export class Controls {
     element.addEventListener("contextmenu", (e) => e.preventDefault());
     window.addEventListener("keydown", (e) => this.#key(e, true));
     window.addEventListener("keyup", (e) => this.#key(e, false));
-    window.addEventListener("blur", () => this.keys.clear());
+    window.addEventListener("blur", () => this.keys.clear()); // keys released elsewhere
   }
 
   size() {
@@ -80,7 +80,8 @@ export class Controls {
     if (this.pointers.size < 2) this.spread = undefined;
     const press = this.press;
     this.press = null;
-    if (press && !press.moved && e.type === "pointerup") {
+    // A click of the main button (or a tap) picks; a right click is the start of a pan.
+    if (press && !press.moved && press.button === 0 && e.type === "pointerup") {
       const { left, top } = this.size();
       this.onClick({ x: e.clientX - left, y: e.clientY - top, button: press.button, shift: e.shiftKey });
     }
@@ -94,24 +95,33 @@ export class Controls {
   }
 
   #key(e, down) {
-    if (e.target instanceof HTMLInputElement || e.target instanceof HTMLTextAreaElement) return;
+    const t = e.target;
+    if (t instanceof HTMLInputElement || t instanceof HTMLTextAreaElement || t instanceof HTMLSelectElement ||
+        t?.isContentEditable) return; // typing, not flying
     const k = e.key.toLowerCase();
+    if (k.length !== 1) return;
+    if (down && (e.ctrlKey || e.metaKey || e.altKey)) return; // the browser's shortcuts (Ctrl+F, Ctrl+S, ...)
     if (down && k === "f") {
-      this.onFrameAll();
+      if (!e.repeat) this.onFrameAll();
       return;
     }
-    if (!"wasdqe".includes(k) || k.length !== 1) return;
+    if (!"wasdqe".includes(k)) return;
     if (down) this.keys.add(k);
     else this.keys.delete(k);
     this.shift = e.shiftKey;
-    if (down && this.keys.size === 1) {
+    // One fly loop while keys are held, however many keys and key repeats there are.
+    if (down && !this.flying) {
+      this.flying = true;
       this.lastFly = performance.now();
       requestAnimationFrame(() => this.#fly());
     }
   }
 
   #fly() {
-    if (this.keys.size === 0) return;
+    if (this.keys.size === 0) {
+      this.flying = false;
+      return;
+    }
     const now = performance.now();
     const dt = Math.min(0.1, (now - this.lastFly) / 1000);
     this.lastFly = now;

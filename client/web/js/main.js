@@ -12,9 +12,23 @@ import { distance, length, sub } from "./vec.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
-// The credential: an API key (as `vastray serve` prints it) or a viewing/review token.
-const credential = params.get("key") ?? params.get("token") ?? sessionStorage.getItem("vastray.credential") ?? "";
-if (credential) sessionStorage.setItem("vastray.credential", credential);
+// The credential: an API key (as `vastray serve` prints it) or a viewing/review token
+// (`vt_…`). A key is kept for the tab, so the page still works at a URL without it (after
+// leaving a review); a token stays in the URL it came with.
+const fromUrl = params.get("key") ?? params.get("token");
+const isToken = (c) => c.startsWith("vt_");
+if (fromUrl && !isToken(fromUrl)) sessionStorage.setItem("vastray.key", fromUrl);
+const credential = fromUrl ?? sessionStorage.getItem("vastray.key") ?? "";
+const hasKey = credential !== "" && !isToken(credential);
+// The join link of a review this tab started rides in the fragment of the presenter's
+// link (a fragment never reaches the server); it is kept for the tab.
+{
+  const hash = new URLSearchParams(location.hash.slice(1));
+  if (params.get("review") && hash.get("join")) {
+    sessionStorage.setItem(`vastray.join.${params.get("review")}`, hash.get("join"));
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+}
 
 class App {
   constructor() {
@@ -30,9 +44,14 @@ class App {
     this.camera = null; // the Camera the page drives
     this.seq = 0;
     this.sent = new Map(); // camera seq -> { camera, at }: what each frame shows, and when it was asked for
-    this.shown = null; // { header, camera }: the frame on the canvas
+    this.shown = null; // { header, camera, rect }: the frame on the canvas
+    this.bitmap = null; // its pixels, to draw again when the canvas changes size
     this.decoding = Promise.resolve();
-    this.lastDrawn = 0;
+    this.lastDrawn = 0; // the newest frame drawn: its number on its connection ...
+    this.drawnGeneration = 0; // ... and that connection (Stream.generation)
+    this.drawn = 0; // frames drawn since the page loaded
+    this.welcomed = false;
+    this.picking = new Map(); // pick id -> { mode, at }
     this.frameTimes = [];
     this.bytes = [];
     this.latency = null;
@@ -54,6 +73,7 @@ class App {
   }
 
   async start() {
+    this.panels.access({ hasKey, review: !!this.reviewId, storedKey: sessionStorage.getItem("vastray.key") });
     try {
       if (this.reviewId && !this.modelId) {
         const review = await this.api.review(this.reviewId);
@@ -62,7 +82,9 @@ class App {
       await this.refreshModels();
     } catch (e) {
       this.banner(this.#explain(e), "error");
-      if (!(e instanceof ApiError) || e.status === 0) setTimeout(() => this.start(), 2000);
+      const retry = !(e instanceof ApiError) || e.status === 0;
+      this.#status(retry ? { state: "reconnecting", delay: 2000, quiet: true } : { state: "failed", quiet: true });
+      if (retry) setTimeout(() => this.start(), 2000);
       return;
     }
     if (this.modelId) this.open(this.modelId);
@@ -86,9 +108,29 @@ class App {
       return o;
     }));
     if (!this.modelId && models.length) this.modelId = (models.find((m) => m.state === "ready") ?? models[0]).id;
-    if (this.modelId) select.value = this.modelId;
-    if (!models.length) this.banner("No models yet: drop a mesh on the page to upload and build one.");
+    // A review token lists no models (the welcome names it); a model not listed is gone.
+    if (this.modelId) {
+      this.#selectModel({ id: this.modelId, name: this.reviewId ? this.modelId : `${this.modelId} (not found)` });
+    }
+    if (!models.length && !this.reviewId) {
+      this.banner(hasKey ? "No models yet: drop a mesh on the page to upload and build one."
+        : "No models to show with this link. Open the URL the server printed (it carries the key).");
+    }
     return models;
+  }
+
+  // Shows `model` as the one chosen in the model picker (adding it when the list lacks it).
+  #selectModel(model) {
+    const select = $("model-select");
+    let option = [...select.options].find((o) => o.value === model.id);
+    if (!option) {
+      option = document.createElement("option");
+      option.value = model.id;
+      select.appendChild(option);
+    }
+    if (model.triangles != null) option.textContent = `${model.name} (${model.triangles.toLocaleString()} △)`;
+    else if (!option.textContent) option.textContent = model.name;
+    select.value = model.id;
   }
 
   open(modelId) {
@@ -97,9 +139,14 @@ class App {
     this.model = null;
     this.camera = null;
     this.shown = null;
+    this.bitmap?.close();
+    this.bitmap = null;
+    this.welcomed = false;
     this.sent.clear();
     this.picks = [];
+    this.picking.clear();
     this.overlay.clear();
+    this.panels.pickResult(null);
     const query = new URLSearchParams(location.search);
     query.set("model", modelId);
     history.replaceState(null, "", `?${query}`);
@@ -117,23 +164,29 @@ class App {
     s.addEventListener("pick_result", (e) => this.#picked(e.detail));
     s.addEventListener("job", (e) => this.panels.job(e.detail));
     s.addEventListener("accuracy", (e) => this.panels.accuracy(e.detail));
-    s.addEventListener("closing", (e) => this.banner(`The server is closing the connection: ${e.detail.reason}`));
+    s.addEventListener("closing", (e) => {
+      this.lostReason = e.detail.reason; // said again while the page tries to reconnect
+      this.banner(`The server is closing the connection: ${e.detail.reason}`);
+    });
     s.addEventListener("message", (e) => this.panels.reviewMessage(e.detail));
     s.open();
   }
 
   #welcome(w) {
+    const reconnected = this.welcomed;
+    this.welcomed = true;
     this.model = w.model;
     this.limits = w.limits;
     this.role = w.review?.role ?? "solo";
     this.camera = new Camera(w.camera);
     this.seq = Math.max(this.seq, w.camera.seq);
-    this.panels.welcome(w);
+    this.#selectModel(w.model);
+    this.panels.welcome(w, { reconnected });
     this.banner(null);
     $("job").hidden = true;
   }
 
-  #status({ state, reason, code, delay, resumed }) {
+  #status({ state, reason, code, delay, resumed, quiet = false }) {
     const badge = $("status");
     badge.dataset.state = state;
     const text = {
@@ -143,7 +196,14 @@ class App {
       failed: "disconnected",
     }[state];
     badge.textContent = text;
-    if (state === "reconnecting") this.banner(`Connection lost${reason ? ` (${reason})` : ""}; reconnecting…`);
+    // The picture stays, dimmed, while it is not live.
+    $("stage").dataset.live = String(state === "connected");
+    if (state === "connected") this.lostReason = null;
+    if (quiet) return; // the caller says why in the banner
+    if (state === "reconnecting") {
+      this.lostReason = reason || this.lostReason;
+      this.banner(`Connection lost${this.lostReason ? ` (${this.lostReason})` : ""}; reconnecting by itself…`);
+    }
     if (state === "failed") this.banner(this.#closeReason(code, reason), "error");
   }
 
@@ -204,38 +264,61 @@ class App {
   // -- frames ---------------------------------------------------------------------------
 
   #frame(header) {
-    // Decode in order, draw only what is newer than what is shown, acknowledge after drawing.
+    // Decode in order, draw only what is newer than what is shown (frame numbers start
+    // again on every connection), acknowledge after drawing.
     this.decoding = this.decoding.then(async () => {
       const bitmap = await createImageBitmap(header.image);
       if (header.screenshot) {
         this.#saveScreenshot(header.image);
         bitmap.close();
-        this.stream?.ack(header.frame);
+        this.stream?.ack(header.frame, header.generation);
         return;
       }
-      if (header.frame > this.lastDrawn) {
-        this.lastDrawn = header.frame;
-        const rect = this.#fit(header);
-        this.ctx.fillStyle = "#202329";
-        this.ctx.fillRect(0, 0, this.canvas.width, this.canvas.height);
-        this.ctx.imageSmoothingEnabled = true;
-        this.ctx.imageSmoothingQuality = header.moving ? "low" : "high";
-        this.ctx.drawImage(bitmap, rect.x, rect.y, rect.width, rect.height);
-        // The camera this frame shows: as the server says (a follower did not send it).
-        const camera = header.stats?.camera ? new Camera(header.stats.camera)
-          : this.sent.get(header.cameraSeq)?.camera ?? this.shown?.camera ?? this.camera;
-        this.shown = { header, camera, rect };
-        if (this.following && this.role === "follower") this.camera = camera.clone();
-        this.#measureClient(header);
-        this.redrawOverlay();
-        this.panels.frame(header);
-        this.canvas.dataset.frames = String(header.frame);
-        this.canvas.dataset.final = String(header.final);
-        this.canvas.dataset.complete = String(header.complete);
+      const newer = header.generation > this.drawnGeneration ||
+        (header.generation === this.drawnGeneration && header.frame > this.lastDrawn);
+      if (!newer) {
+        bitmap.close();
+        this.stream?.ack(header.frame, header.generation);
+        return;
       }
-      bitmap.close();
-      this.stream?.ack(header.frame);
+      this.drawnGeneration = header.generation;
+      this.lastDrawn = header.frame;
+      this.bitmap?.close();
+      this.bitmap = bitmap;
+      // The camera this frame shows: as the server says (a follower did not send it).
+      const camera = header.stats?.camera ? new Camera(header.stats.camera)
+        : this.sent.get(header.cameraSeq)?.camera ?? this.shown?.camera ?? this.camera;
+      const follower = this.following && this.role === "follower";
+      this.shown = { header, camera, rect: this.#fit(header) };
+      this.#paint();
+      if (follower) this.camera = camera.clone();
+      // The next camera this page sends must be newer than any shown (a presenter's, a
+      // saved view's), or the server would take it for an old one.
+      this.seq = Math.max(this.seq, header.cameraSeq);
+      this.#measureClient(header, !follower);
+      this.redrawOverlay();
+      this.panels.frame(header);
+      this.drawn += 1;
+      const data = this.canvas.dataset;
+      data.frames = String(this.drawn);
+      data.cameraSeq = String(header.cameraSeq);
+      data.moving = String(header.moving);
+      data.final = String(header.final);
+      data.complete = String(header.complete);
+      this.stream?.ack(header.frame, header.generation);
     }).catch((e) => console.error("frame", e));
+  }
+
+  // Draws the frame shown (again, after the canvas changed size: that clears it).
+  #paint() {
+    const { header } = this.shown;
+    const rect = this.#fit(header);
+    this.shown.rect = rect;
+    this.ctx.fillStyle = "#202329";
+    this.ctx.fillRect(0, 0, this.canvas.width, this.canvas.height);
+    this.ctx.imageSmoothingEnabled = true;
+    this.ctx.imageSmoothingQuality = header.moving ? "low" : "high";
+    this.ctx.drawImage(this.bitmap, rect.x, rect.y, rect.width, rect.height);
   }
 
   // Where a frame goes on the canvas: as large as fits, its aspect kept (a review's
@@ -247,13 +330,14 @@ class App {
     return { x: (this.canvas.width - width) / 2, y: (this.canvas.height - height) / 2, width, height, fullW, fullH };
   }
 
-  #measureClient(header) {
+  #measureClient(header, ownCamera) {
     const now = performance.now();
     this.frameTimes.push(now);
     this.bytes.push([now, header.image.size]);
     while (this.frameTimes.length && now - this.frameTimes[0] > 2000) this.frameTimes.shift();
     while (this.bytes.length && now - this.bytes[0][0] > 2000) this.bytes.shift();
-    const asked = this.sent.get(header.cameraSeq);
+    // Input to frame: from sending a camera to drawing the first frame that shows it.
+    const asked = ownCamera ? this.sent.get(header.cameraSeq) : null;
     if (asked && !asked.answered) {
       asked.answered = true;
       this.latency = now - asked.at;
@@ -292,7 +376,10 @@ class App {
     this.canvas.width = width;
     this.canvas.height = height;
     this.viewport = { width, height };
-    if (this.shown) this.redrawOverlay();
+    if (this.shown) {
+      this.#paint();
+      this.redrawOverlay();
+    }
     clearTimeout(this.resizeTimer);
     this.resizeTimer = setTimeout(() => {
       this.stream?.send({ type: "viewport", width, height, device_pixel_ratio: dpr });
@@ -302,7 +389,7 @@ class App {
 
   // -- picking and measuring -------------------------------------------------------------
 
-  #click({ x, y, shift }) {
+  #click({ x, y }) {
     if (!this.shown || !this.stream) return;
     const { camera, rect, header } = this.shown;
     // CSS pixels -> canvas pixels -> pixels of the frame's full-size image.
@@ -310,22 +397,27 @@ class App {
     const px = ((x * c - rect.x) * rect.fullW) / rect.width;
     const py = ((y * c - rect.y) * rect.fullH) / rect.height;
     if (px < 0 || py < 0 || px > rect.fullW || py > rect.fullH) return;
-    this.pickStarted = performance.now();
-    this.pickMode = this.panels.pointerMode ? "pointer" : shift ? "add" : "measure";
     this.pickCounter = (this.pickCounter ?? 0) + 1;
-    this.stream.send({ type: "pick", id: `p${this.pickCounter}`, points: [[px, py]],
+    const id = `p${this.pickCounter}`;
+    // Each answer is handled as its click asked, whatever was clicked since.
+    this.picking.set(id, { mode: this.panels.pointerMode ? "pointer" : "measure", at: performance.now() });
+    this.stream.send({ type: "pick", id, points: [[px, py]],
       camera: camera.toMessage(header.cameraSeq), width: Math.round(rect.fullW), height: Math.round(rect.fullH) });
   }
 
   #picked(result) {
+    const asked = this.picking.get(result.id);
+    if (!asked) return; // not this page's (or from before the model changed)
+    this.picking.delete(result.id);
     const hit = result.hits[0];
-    const elapsed = performance.now() - (this.pickStarted ?? performance.now());
-    if (!hit?.hit) {
-      this.panels.pickResult(null, elapsed, result.milliseconds);
+    const elapsed = performance.now() - asked.at;
+    if (asked.mode === "pointer") {
+      // Pointing at nothing takes one's pointer away.
+      this.stream.send({ type: "pointer", position: hit?.hit ? hit.position : null });
       return;
     }
-    if (this.pickMode === "pointer") {
-      this.stream.send({ type: "pointer", position: hit.position });
+    if (!hit?.hit) {
+      this.panels.pickResult(null, elapsed, result.milliseconds);
       return;
     }
     if (this.picks.length >= 2) this.picks = [];
@@ -362,6 +454,10 @@ class App {
   // -- uploads ---------------------------------------------------------------------------
 
   async upload(file) {
+    if (!hasKey) {
+      this.banner("Uploading needs the API key: open the URL the server printed (it carries the key).", "error");
+      return;
+    }
     $("job").hidden = false;
     $("job-label").textContent = `uploading ${file.name}`;
     const bar = $("job-progress");

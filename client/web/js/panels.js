@@ -84,7 +84,20 @@ export class Panels {
       this.app.stream?.send({ type: "quality", auto_accuracy: e.target.checked }));
   }
 
-  welcome(w) {
+  // What the page can offer with its credential: uploads and starting reviews need the
+  // API key (a token only views).
+  access({ hasKey, review, storedKey }) {
+    $("upload-button").hidden = !hasKey;
+    $("review-start").disabled = !hasKey;
+    $("review-start").title = hasKey ? "" : "Starting a review needs the API key (the URL the server printed)";
+    $("model-select").disabled = review; // a review is of one model
+    document.body.classList.toggle("in-review", review);
+    $("review-leave").hidden = !(review && storedKey);
+    this.storedKey = storedKey;
+  }
+
+  welcome(w, { reconnected = false } = {}) {
+    this.#welcomeReview(w.review);
     const q = w.quality;
     $("shading").value = q.shading;
     $("poe").value = q.pixels_of_error;
@@ -94,11 +107,38 @@ export class Panels {
     $("poe-value").textContent = q.pixels_of_error;
     $("scale-value").textContent = q.min_scale;
     $("jpeg-value").textContent = q.jpeg_quality;
+    $("accuracy").textContent = "–";
+    delete $("accuracy").dataset.measured;
     this.parts = w.model.parts ?? [];
+    // What the view highlights now; the parts panel sends what the page wants if it differs
+    // (after a restart, what the page had).
+    this.lastHighlight = (w.highlight ?? []).join(",");
+    if (!reconnected || w.review) this.highlight = new Set(w.highlight ?? []);
     this.#renderParts();
-    this.sections = w.sections ?? this.sections;
+    if (reconnected && !w.review && !w.sections?.length && this.sections.length) {
+      // The server lost the planes with the connection (a restart): give them back.
+      this.#sendSections();
+    } else {
+      this.sections = w.sections ?? [];
+    }
     this.#renderSections();
-    this.#welcomeReview(w.review);
+  }
+
+  // Whether this page's settings drive what it shows: not while following a presenter.
+  mayDrive() {
+    return !(this.review && this.app.role === "follower" && this.app.following);
+  }
+
+  // Settings a follower cannot change are disabled (and say why) while it follows.
+  #syncDriving() {
+    const drive = this.mayDrive();
+    const why = drive ? "" : "You follow the presenter: stop following to change this";
+    const controls = "#quality-panel input, #quality-panel select, #sections-panel button, #sections-panel input";
+    for (const el of document.querySelectorAll(controls)) {
+      if (el.dataset.title === undefined) el.dataset.title = el.title;
+      el.disabled = !drive;
+      el.title = drive ? el.dataset.title : why;
+    }
   }
 
   accuracy(a) {
@@ -218,7 +258,11 @@ export class Panels {
     }
     $("section-view").addEventListener("click", () => this.addSection(null));
     $("review-start").addEventListener("click", () => this.#startReview());
-    $("review-copy").addEventListener("click", () => navigator.clipboard?.writeText($("review-link").value));
+    $("review-copy").addEventListener("click", () => this.#copyLink());
+    $("review-leave").addEventListener("click", () => {
+      // Back to a view of one's own, with the key this tab was opened with.
+      location.href = `/?${new URLSearchParams({ key: this.storedKey, model: this.app.modelId })}`;
+    });
     $("follow").addEventListener("change", (e) => this.setFollow(e.target.checked));
     $("pointer-mode").addEventListener("change", (e) => { this.pointerMode = e.target.checked; });
     $("annotate").addEventListener("click", () => this.#annotate());
@@ -267,23 +311,26 @@ export class Panels {
 
   #sendHighlight(ids) {
     const key = ids.join(",");
-    if (key === this.lastHighlight) return;
+    if (key === (this.lastHighlight ?? "") || !this.mayDrive()) return;
     this.lastHighlight = key;
     this.app.stream?.send({ type: "highlight", parts: ids.slice(0, 4096) });
   }
 
   // -- sections --------------------------------------------------------------------------
 
+  // A plane keeps geometry where dot(normal, p) + offset >= 0 (docs/PROTOCOL.md). "+ X"
+  // cuts away x > the model's centre; "+ view" the near side of a plane through the
+  // target, facing the camera, so the cut shows.
   addSection(axis) {
     const m = this.app.model;
-    if (!m) return;
+    if (!m || !this.app.camera) return;
     const [lo, hi] = m.bounds;
     let normal, offset;
     if (axis === null) {
       const cam = this.app.camera;
       const d = cam.target.map((v, i) => v - cam.eye[i]);
       const l = Math.hypot(...d);
-      normal = d.map((v) => -v / l);
+      normal = d.map((v) => v / l);
       offset = -normal.reduce((a, n, i) => a + n * cam.target[i], 0);
     } else {
       normal = [0, 0, 0];
@@ -295,6 +342,12 @@ export class Panels {
     this.#sendSections();
   }
 
+  // Whether a plane's normal points away from the camera (it then cuts the near side).
+  #facesAway(normal) {
+    const cam = this.app.camera;
+    return !cam || normal.reduce((a, n, k) => a + n * (cam.target[k] - cam.eye[k]), 0) > 0;
+  }
+
   #sendSections() {
     this.app.stream?.send({ type: "sections", planes: this.sections });
   }
@@ -303,6 +356,13 @@ export class Panels {
     const m = this.app.model;
     const box = $("sections");
     box.replaceChildren(...this.sections.map((plane, i) => {
+      const axis = plane.normal.findIndex((v) => Math.abs(v) === 1);
+      const name = axis >= 0 ? "XYZ"[axis] : "view";
+      // The slider moves the plane along its axis in world units (a view plane: along its
+      // normal); `offset` follows.
+      const u = axis >= 0 ? plane.normal.map((_, k) => (k === axis ? 1 : 0)) : plane.normal;
+      const sign = plane.normal.reduce((a, n, k) => a + n * u[k], 0); // +1 or -1
+      const position = () => -plane.offset * sign;
       const div = document.createElement("div");
       div.className = "section";
       const label = document.createElement("label");
@@ -310,19 +370,40 @@ export class Panels {
       const on = document.createElement("input");
       on.type = "checkbox";
       on.checked = plane.enabled;
+      on.setAttribute("aria-label", `${name} plane on`);
       on.addEventListener("change", () => { plane.enabled = on.checked; this.#sendSections(); });
-      const axis = plane.normal.findIndex((v) => Math.abs(v) === 1);
-      label.append(on, ` ${axis >= 0 ? "XYZ"[axis] : "view"} plane`);
+      const readout = document.createElement("span");
+      const describe = () => {
+        const at = formatLength(position());
+        readout.textContent = axis >= 0
+          ? ` ${name} plane at ${at}: cuts ${name.toLowerCase()} ${sign < 0 ? ">" : "<"} ${at}`
+          : ` view plane: cuts the ${this.#facesAway(plane.normal) ? "near" : "far"} side`;
+      };
+      describe();
+      label.append(on, readout);
       const slider = document.createElement("input");
       slider.type = "range";
       const extent = m ? Math.hypot(...m.bounds[0].map((v, k) => m.bounds[1][k] - v)) : 1;
-      const centre = m ? -plane.normal.reduce((a, n, k) => a + n * (m.bounds[0][k] + m.bounds[1][k]) / 2, 0) : 0;
+      const centre = m ? u.reduce((a, x, k) => a + x * (m.bounds[0][k] + m.bounds[1][k]) / 2, 0) : 0;
       slider.min = String(centre - extent / 2);
       slider.max = String(centre + extent / 2);
       slider.step = String(extent / 500);
-      slider.value = String(plane.offset);
-      slider.setAttribute("aria-label", "plane position");
-      slider.addEventListener("input", () => { plane.offset = Number(slider.value); this.#sendSections(); });
+      slider.value = String(position());
+      slider.setAttribute("aria-label", `${name} plane position`);
+      slider.addEventListener("input", () => {
+        plane.offset = -Number(slider.value) * sign;
+        describe();
+        this.#sendSections();
+      });
+      const flip = document.createElement("button");
+      flip.textContent = "flip";
+      flip.title = "Cut away the other side";
+      flip.addEventListener("click", () => {
+        plane.normal = plane.normal.map((n) => -n);
+        plane.offset = -plane.offset;
+        this.#renderSections();
+        this.#sendSections();
+      });
       const remove = document.createElement("button");
       remove.textContent = "remove";
       remove.addEventListener("click", () => {
@@ -330,31 +411,64 @@ export class Panels {
         this.#renderSections();
         this.#sendSections();
       });
-      div.append(label, slider, remove);
+      const row = document.createElement("div");
+      row.className = "row";
+      row.append(flip, remove);
+      div.append(label, slider, row);
       return div;
     }));
+    this.#syncDriving();
   }
 
   // -- review ----------------------------------------------------------------------------
 
   #welcomeReview(review) {
     this.review = review ?? null;
+    this.pointers.clear(); // the server sends those there are now
     $("review-idle").hidden = !!review;
     $("review-active").hidden = !review;
-    if (!review) return;
-    $("review-panel").open = true;
-    $("review-link").value = review.join_url ?? location.href;
-    $("follow").checked = review.following ?? true;
-    this.app.following = review.following ?? true;
+    if (review) {
+      $("review-panel").open = true;
+      $("review-title").textContent = review.title ?? "";
+      // Never the presenter's own link: that would make whoever opens it a presenter.
+      const join = review.role === "presenter"
+        ? sessionStorage.getItem(`vastray.join.${review.id}`) ?? "" : location.href;
+      $("review-link").value = join;
+      $("review-link").placeholder = join ? "" : "the join link came with the review (POST /api/reviews: join_url)";
+      $("review-copy").disabled = !join;
+      $("follow").checked = review.following ?? true;
+      this.app.following = review.following ?? true;
+      this.#showRole(review.role);
+    }
+    this.#syncDriving();
+  }
+
+  #showRole(role) {
+    $("review-role").textContent = role === "presenter" ? "You present: the others see your view."
+      : "You follow the presenter's view (navigate to look on your own).";
+    $("follow-label").hidden = role === "presenter"; // the presenter is who the others follow
+    this.#syncDriving();
   }
 
   async #startReview() {
     try {
       const r = await this.app.api.createReview(this.app.modelId, `${this.app.model?.name ?? "model"} review`);
-      // The presenter joins through its own link: the page reloads into the review.
-      location.href = r.presenter_url;
+      // The presenter joins through its own link: the page reloads into the review,
+      // with the join link (to show and share) in the fragment.
+      location.href = `${r.presenter_url}#${new URLSearchParams({ join: r.join_url })}`;
     } catch (e) {
       this.app.banner(`Cannot start a review: ${e.message}`, "error");
+    }
+  }
+
+  async #copyLink() {
+    const input = $("review-link");
+    try {
+      await navigator.clipboard.writeText(input.value);
+      this.notice("The join link is copied: send it to the others.");
+    } catch {
+      input.select(); // no clipboard here (an insecure origin): the user copies it
+      this.notice("Copy the selected link (Ctrl+C) and send it to the others.");
     }
   }
 
@@ -362,6 +476,7 @@ export class Panels {
     $("follow").checked = follow;
     this.app.following = follow;
     this.app.stream?.send({ type: "follow", follow });
+    this.#syncDriving();
   }
 
   #annotate() {
@@ -381,11 +496,16 @@ export class Panels {
         this.participants = m.participants;
         $("participants").replaceChildren(...m.participants.map((p) => {
           const item = li(`${p.name}${p.id === this.review?.participant ? " (you)" : ""}`, {
-            extra: p.role === "presenter" ? "presenter" : p.following ? "following" : "free",
-            title: this.review?.role === "presenter" && p.role !== "presenter" ? "click: hand the presenter role over" : "",
-            onClick: this.review?.role === "presenter" && p.role !== "presenter"
-              ? () => this.app.stream?.send({ type: "handover", to: p.id }) : null,
+            extra: p.role === "presenter" ? "presenter" : p.following ? "following" : "looking around",
           });
+          if (this.review?.role === "presenter" && p.role !== "presenter") {
+            // Handing over is explicit: a button, not a click on the name.
+            const give = document.createElement("button");
+            give.textContent = "make presenter";
+            give.setAttribute("aria-label", `hand the presenter role to ${p.name}`);
+            give.addEventListener("click", () => this.app.stream?.send({ type: "handover", to: p.id }));
+            item.appendChild(give);
+          }
           return item;
         }));
         break;
@@ -396,6 +516,7 @@ export class Panels {
           this.app.role = m.role;
           this.notice(m.role === "presenter" ? "You are the presenter now." : "You follow the presenter.");
           if (m.role !== "presenter") this.setFollow(true);
+          this.#showRole(m.role);
         }
         break;
       case "pointer":
@@ -417,6 +538,8 @@ export class Panels {
         $("views").replaceChildren(...m.views.map((v) => li(v.name, { title: "click: go to this view", onClick: () => this.#jump(v) })));
         break;
       case "sections":
+        // The presenter's own planes, echoed: re-rendering would break a drag of a slider.
+        if (this.review?.role === "presenter") break;
         this.sections = m.planes;
         this.#renderSections();
         break;

@@ -7,6 +7,8 @@ const PING_MS = 15000;
 const BACKOFF_MS = [200, 500, 1000, 2000, 5000];
 // Close codes after which retrying cannot help.
 const FATAL = { 4400: "bad request", 4401: "not authorised", 4403: "forbidden", 4404: "not found" };
+// Numbers every connection of the page (of any Stream): frame numbers start again on each.
+let connections = 0;
 
 export class Stream extends EventTarget {
   constructor({ url, token, model, review = null, viewport, camera = null, quality = null, name = null }) {
@@ -20,6 +22,7 @@ export class Stream extends EventTarget {
     this.camera = camera; // the last camera sent (a message object), re-sent on reconnect
     this.quality = quality;
     this.session = null;
+    this.generation = 0; // this stream's current connection (see `connections`)
     this.ws = null;
     this.closed = false;
     this.attempt = 0;
@@ -42,8 +45,16 @@ export class Stream extends EventTarget {
   }
 
   send(message) {
-    if (message.type === "camera") this.camera = message;
+    // What a reconnect's hello must carry to bring the view back as it was.
+    if (message.type === "camera") {
+      const { type, ...camera } = message; // the hello's camera is the state, without the type
+      this.camera = camera;
+    }
     if (message.type === "viewport") this.viewport = { width: message.width, height: message.height };
+    if (message.type === "quality") {
+      const { type, ...changes } = message;
+      this.quality = { ...(this.quality ?? {}), ...changes };
+    }
     if (this.ws && this.ws.readyState === WebSocket.OPEN && this.connected) {
       this.ws.send(JSON.stringify(message));
       return true;
@@ -59,6 +70,8 @@ export class Stream extends EventTarget {
     const ws = new WebSocket(this.url);
     ws.binaryType = "arraybuffer";
     this.ws = ws;
+    this.generation = ++connections;
+    this.pending = null;
     this.connected = false;
     this.#emit("status", { state: "connecting", attempt: this.attempt });
     ws.onopen = () => {
@@ -79,6 +92,7 @@ export class Stream extends EventTarget {
   #receive(data) {
     if (data instanceof ArrayBuffer) {
       const frame = parseFrame(data);
+      frame.generation = this.generation;
       // A frame is followed by its stats (the camera it shows among them): hand both out
       // together. Screenshots have none.
       if (frame.screenshot) this.#emit("frame", frame);
@@ -105,8 +119,9 @@ export class Stream extends EventTarget {
     this.#emit("message", message);
   }
 
-  ack(frame) {
-    this.send({ type: "ack", frame });
+  // Acknowledges a frame shown; one of an earlier connection has nobody to thank.
+  ack(frame, generation = this.generation) {
+    if (generation === this.generation) this.send({ type: "ack", frame });
   }
 
   #closed(event) {
