@@ -242,7 +242,11 @@ export class Panels {
     $("screenshot-button").addEventListener("click", () => this.app.screenshot());
     $("model-select").addEventListener("change", (e) => this.app.open(e.target.value));
     $("upload-button").addEventListener("click", () => $("upload-input").click());
-    $("upload-input").addEventListener("change", (e) => e.target.files[0] && this.app.upload(e.target.files[0]));
+    $("upload-input").addEventListener("change", (e) => {
+      const file = e.target.files[0];
+      e.target.value = ""; // so that choosing the same file again uploads it again
+      if (file) this.app.upload(file);
+    });
     const stage = $("stage");
     stage.addEventListener("dragover", (e) => { e.preventDefault(); $("drop-hint").hidden = false; });
     stage.addEventListener("dragleave", () => { $("drop-hint").hidden = true; });
@@ -444,8 +448,10 @@ export class Panels {
   }
 
   #showRole(role) {
+    const presenter = this.review?.presenter;
     $("review-role").textContent = role === "presenter" ? "You present: the others see your view."
-      : "You follow the presenter's view (navigate to look on your own).";
+      : presenter ? "You follow the presenter's view (navigate to look on your own)."
+        : "No presenter is here now: the shared view stays where it was left.";
     $("follow-label").hidden = role === "presenter"; // the presenter is who the others follow
     this.#syncDriving();
   }
@@ -494,6 +500,10 @@ export class Panels {
     switch (m.type) {
       case "participants": {
         this.participants = m.participants;
+        if (this.review) {
+          this.review.presenter = m.presenter;
+          this.#showRole(this.review.role);
+        }
         $("participants").replaceChildren(...m.participants.map((p) => {
           const item = li(`${p.name}${p.id === this.review?.participant ? " (you)" : ""}`, {
             extra: p.role === "presenter" ? "presenter" : p.following ? "following" : "looking around",
@@ -513,6 +523,7 @@ export class Panels {
       case "role":
         if (this.review) {
           this.review.role = m.role;
+          this.review.presenter = m.presenter;
           this.app.role = m.role;
           this.notice(m.role === "presenter" ? "You are the presenter now." : "You follow the presenter.");
           if (m.role !== "presenter") this.setFollow(true);
