@@ -5,12 +5,16 @@ plane hides the geometry on its cut side."""
 
 from __future__ import annotations
 
+import base64
+import subprocess
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from conftest import build_model, grid, not_blank, pick
 from PIL import Image
+from serverproc import VASTRAY
 
 
 def test_the_page_loads_and_shows_the_model(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:
@@ -241,3 +245,50 @@ def test_clear_messages_for_a_wrong_key_and_a_missing_model(open_viewer: Any, se
     gone.wait_for("() => document.getElementById('status').dataset.state === 'failed'")
     text = gone.page.locator("#banner").inner_text()
     assert "model is gone" in text and "mdl-000000000000" in text, text
+
+
+def test_a_dropped_mesh_is_uploaded_built_and_shown(
+    open_viewer: Any, server: Any, model: dict[str, Any], tmp_path: Path
+) -> None:
+    mesh = tmp_path / "balls.ply"
+    subprocess.run(
+        [VASTRAY, "scene", "spheres", "--triangles", "3000", "--seed", "2", "-o", mesh], check=True
+    )
+    v = open_viewer(f"{server.open_url}&model={model['id']}")
+    n = v.wait_final()
+    v.js(
+        """() => {
+            const label = document.getElementById('job-label');
+            window.__job = [];
+            new MutationObserver(() => window.__job.push(label.textContent))
+                .observe(label, {childList: true, characterData: true, subtree: true});
+        }"""
+    )
+    # Drop the file on the stage, as a user drags it from the desktop.
+    v.js(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const data = new DataTransfer();
+            data.items.add(new File([bytes], name));
+            const stage = document.getElementById('stage');
+            const drag = {dataTransfer: data, bubbles: true, cancelable: true};
+            stage.dispatchEvent(new DragEvent('dragover', drag));
+            stage.dispatchEvent(new DragEvent('drop', drag));
+        }""",
+        [mesh.name, base64.b64encode(mesh.read_bytes()).decode()],
+    )
+    try:
+        v.wait_for("() => window.vastray.model?.name === 'balls'")
+        v.wait_final(n)
+        v.shot("built")
+        labels = v.js("window.__job")
+        assert any(t.startswith("uploading balls.ply") for t in labels), labels
+        assert any(t.startswith("balls:") for t in labels), labels  # the build's live progress
+        assert v.page.locator("#job").is_hidden() and v.page.locator("#drop-hint").is_hidden()
+        assert "balls (3,0" in v.page.locator("#model-select option:checked").inner_text()
+        assert not_blank(v.thumbnail())
+    finally:
+        with server.client() as api:  # the other tests open the server's URL: one model there
+            for m in api.get("/api/models").json():
+                if m["id"] != model["id"]:
+                    api.delete(f"/api/models/{m['id']}")
