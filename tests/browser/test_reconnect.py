@@ -45,6 +45,10 @@ def test_the_page_reconnects_after_a_server_restart(
     v.wait_for("() => document.getElementById('status').dataset.state === 'reconnecting'")
     v.shot("down")
     assert page.locator("#banner").is_visible() and "reconnecting" in page.locator("#banner").inner_text()
+    # A pick meanwhile is refused with a notice, and then the banner says again what holds.
+    v.click_image(*[x / 2 for x in (v.shown()["width"], v.shown()["height"])])
+    v.wait_for("() => document.getElementById('banner').innerText.startsWith('Not connected')")
+    v.wait_for("() => document.getElementById('banner').innerText.includes('reconnecting')")
 
     again = ServerProcess(server.data_dir, "--no-demo", "--cache", "128M", port=server.port)
     restartable.append(again)

@@ -216,14 +216,32 @@ class App {
 
   #serverError(e) {
     if (e.fatal) this.banner(e.message, "error");
-    else this.panels.notice(e.message);
+    else this.notice(e.message);
   }
 
+  // The banner says what holds until it changes (a lost connection, an error; null:
+  // nothing); a notice shows for a few seconds over it, then the banner is back.
   banner(text, kind = "warn") {
+    this.lasting = text ? { text, kind } : null;
+    this.#showBanner();
+  }
+
+  notice(text) {
+    this.noticeText = text;
+    this.#showBanner();
+    clearTimeout(this.noticeTimer);
+    this.noticeTimer = setTimeout(() => {
+      this.noticeText = null;
+      this.#showBanner();
+    }, 4000);
+  }
+
+  #showBanner() {
+    const shown = this.noticeText ? { text: this.noticeText, kind: "notice" } : this.lasting;
     const b = $("banner");
-    b.hidden = !text;
-    b.textContent = text ?? "";
-    b.dataset.kind = kind;
+    b.hidden = !shown;
+    b.textContent = shown?.text ?? "";
+    b.dataset.kind = shown?.kind ?? "warn";
   }
 
   // -- camera ---------------------------------------------------------------------------
@@ -401,8 +419,12 @@ class App {
     const id = `p${this.pickCounter}`;
     // Each answer is handled as its click asked, whatever was clicked since.
     this.picking.set(id, { mode: this.panels.pointerMode ? "pointer" : "measure", at: performance.now() });
-    this.stream.send({ type: "pick", id, points: [[px, py]],
+    const sent = this.stream.send({ type: "pick", id, points: [[px, py]],
       camera: camera.toMessage(header.cameraSeq), width: Math.round(rect.fullW), height: Math.round(rect.fullH) });
+    if (!sent) {
+      this.picking.delete(id);
+      this.notice("Not connected: pick again once the status says connected.");
+    }
   }
 
   #picked(result) {
@@ -436,8 +458,9 @@ class App {
   // -- screenshots -----------------------------------------------------------------------
 
   screenshot() {
-    this.stream?.send({ type: "screenshot", id: `s${Date.now()}` });
-    this.panels.notice("Screenshot: waiting for the finished view…");
+    const sent = this.stream?.send({ type: "screenshot", id: `s${Date.now()}` });
+    this.notice(sent ? "Screenshot: waiting for the finished view…"
+      : "Not connected: take the screenshot once the status says connected.");
   }
 
   #saveScreenshot(blob) {
@@ -448,7 +471,7 @@ class App {
     a.click();
     a.remove();
     setTimeout(() => URL.revokeObjectURL(a.href), 10000);
-    this.panels.notice("Screenshot saved.");
+    this.notice("Screenshot saved.");
   }
 
   // -- uploads ---------------------------------------------------------------------------

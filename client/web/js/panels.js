@@ -200,10 +200,7 @@ export class Panels {
   }
 
   notice(text) {
-    $("pick").dataset.notice = text;
-    this.app.banner(text);
-    clearTimeout(this.noticeTimer);
-    this.noticeTimer = setTimeout(() => this.app.banner(null), 4000);
+    this.app.notice(text);
   }
 
   job(job) {
