@@ -213,6 +213,25 @@ class Viewer:
             )
         )
 
+    def stream_pick(self, points: list[tuple[float, float]]) -> list[dict[str, Any]]:
+        """Picks through image points of the frame shown, over the page's own stream (so
+        with its view's settings, as a click would)."""
+        return self.js(
+            """(points) => new Promise((resolve) => {
+                const app = window.vastray, {camera, rect, header} = app.shown;
+                const id = `test-${Math.random()}`;
+                const answer = (e) => {
+                    if (e.detail.id !== id) return;
+                    app.stream.removeEventListener('pick_result', answer);
+                    resolve(e.detail.hits);
+                };
+                app.stream.addEventListener('pick_result', answer);
+                app.stream.send({type: 'pick', id, points, camera: camera.toMessage(header.cameraSeq),
+                                 width: Math.round(rect.fullW), height: Math.round(rect.fullH)});
+            })""",
+            points,
+        )
+
     def click_image(self, x: float, y: float) -> None:
         px, py = self.page_point(x, y)
         self.page.mouse.click(px, py)

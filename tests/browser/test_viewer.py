@@ -206,14 +206,17 @@ def test_a_section_plane_hides_geometry(
     changed = lambda a, b: np.abs(a - b).sum(axis=-1) > 40  # noqa: E731
     # The kept side is as it was (a control: this holds with or without sections) ...
     assert changed(v.pixels_at(kept), before_kept).mean() < 0.2
-    # ... and what lay on the cut side is gone.
-    assert changed(v.pixels_at(cut), before_cut).mean() > 0.6, "the section plane hid nothing"
-    # A pick through a cut-side point misses or finds geometry on the kept side.
+    # ... rays through what lay on the cut side miss, or hit deeper, on the kept side ...
+    tolerance = 1e-6 * float(np.abs(hi - lo).max())
+    beyond = [h["position"] for h in v.stream_pick(cut) if h["hit"] and h["position"][0] > cut_x + tolerance]
+    assert not beyond, f"{len(beyond)} of {len(cut)} picks hit cut-away geometry, e.g. {beyond[0]}"
+    # ... and the picture shows it.
+    assert changed(v.pixels_at(cut), before_cut).mean() > 0.5, "the section plane hid nothing"
+    # A click on such a point says so too.
     v.click_image(*cut[len(cut) // 2])
     v.wait_for("() => !document.getElementById('pick').innerText.startsWith('Click')")
     if not page.locator("#pick").inner_text().startswith("Nothing there"):
-        position = v.js("window.vastray.picks.at(-1).position")
-        assert position[0] <= cut_x + 1e-6 * float(np.abs(hi - lo).max()), position
+        assert v.js("window.vastray.picks.at(-1).position")[0] <= cut_x + tolerance
 
 
 def test_the_model_picker_switches_models(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:
