@@ -54,9 +54,10 @@ class Grant:
     subject: str | None = None
     role: str | None = None
     token_id: str | None = None
+    model: str | None = None  # the model a viewing or review token shows
 
     def may_view_model(self, model_id: str) -> bool:
-        return self.admin or (self.scope == "model" and self.subject == model_id)
+        return self.admin or (self.model is not None and self.model == model_id)
 
 
 class Auth:
@@ -108,8 +109,17 @@ class Auth:
                         "token_expired",
                         f"this token expired at {time.ctime(row.expires_at)}; ask for a new link",
                     )
+                model = row.subject
+                if row.scope == "review":
+                    review = self.registry.review(row.subject)
+                    model = review["model_id"] if review is not None else None
                 return Grant(
-                    admin=False, scope=row.scope, subject=row.subject, role=row.role, token_id=row.id
+                    admin=False,
+                    scope=row.scope,
+                    subject=row.subject,
+                    role=row.role,
+                    token_id=row.id,
+                    model=model,
                 )
         raise ApiError(401, "unauthorized", "the key or token is not valid")
 

@@ -11,6 +11,7 @@ are kept in the registry with the review.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import secrets
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from vastray.protocol import (
     HandoverMessage,
     JumpMessage,
     PointerMessage,
+    RenameMessage,
     SaveViewMessage,
 )
 from vastray.server.views import View
@@ -31,7 +33,7 @@ if TYPE_CHECKING:
     from vastray.server.stream import Connection, StreamHub
 
 log = logging.getLogger("vastray.reviews")
-REVIEW_MESSAGES = ("follow", "pointer", "annotate", "save_view", "jump", "handover")
+REVIEW_MESSAGES = ("follow", "pointer", "annotate", "save_view", "jump", "handover", "rename")
 
 
 @dataclass
@@ -78,7 +80,7 @@ class ReviewSession:
         log.info("review %s: %s joined as %s", self.id, label, role)
         return participant
 
-    def leave(self, participant: Participant) -> None:
+    async def leave(self, participant: Participant) -> None:
         self.participants.pop(participant.id, None)
         if self.pointers.pop(participant.id, None) is not None:
             self.broadcast(
@@ -86,7 +88,7 @@ class ReviewSession:
             )
         if self.shared is not None:
             self.saved_state = self.shared.state()
-            self.registry.update_review_state(self.id, self.saved_state)
+            await asyncio.to_thread(self.registry.update_review_state, self.id, self.saved_state)
         self.broadcast_participants()
         if not self.participants:
             self.hub.reviews.pop(self.id, None)
@@ -123,20 +125,24 @@ class ReviewSession:
             }
         )
 
-    def send_state(self, participant: Participant) -> None:
+    async def send_state(self, participant: Participant) -> None:
         """What a joining participant needs besides frames: people, pointers, notes, views."""
         self.broadcast_participants()
         for pid, pointer in self.pointers.items():
             participant.conn.event({"type": "pointer", "from": pid, **pointer})
-        participant.conn.event(self._annotations())
-        participant.conn.event(self._views())
+        participant.conn.event(await self._annotations())
+        participant.conn.event(await self._views())
 
-    def _annotations(self) -> dict[str, Any]:
-        return {"type": "annotations", "annotations": self.registry.annotations(self.id)}
+    # The registry is read and written off the event loop.
+    async def _annotations(self) -> dict[str, Any]:
+        return {
+            "type": "annotations",
+            "annotations": await asyncio.to_thread(self.registry.annotations, self.id),
+        }
 
-    def _views(self) -> dict[str, Any]:
-        views = [{"id": v["id"], "name": v["name"], **v["state"]} for v in self.registry.saved_views(self.id)]
-        return {"type": "views", "views": views}
+    async def _views(self) -> dict[str, Any]:
+        saved = await asyncio.to_thread(self.registry.saved_views, self.id)
+        return {"type": "views", "views": [{"id": v["id"], "name": v["name"], **v["state"]} for v in saved]}
 
     # -- messages --------------------------------------------------------------------------
 
@@ -145,7 +151,7 @@ class ReviewSession:
         presenter's change the shared view, a free participant's its own."""
         return participant.role == "presenter" or not participant.following
 
-    def handle(self, participant: Participant, msg: Any) -> None:
+    async def handle(self, participant: Participant, msg: Any) -> None:
         conn = participant.conn
         if isinstance(msg, FollowMessage):
             if participant.role == "presenter":
@@ -160,6 +166,9 @@ class ReviewSession:
                 return
             participant.following = msg.follow
             conn.follow(self.shared if msg.follow else None)
+            self.broadcast_participants()
+        elif isinstance(msg, RenameMessage):
+            participant.name = msg.name.strip() or participant.name
             self.broadcast_participants()
         elif isinstance(msg, PointerMessage):
             if msg.position is None:
@@ -177,7 +186,8 @@ class ReviewSession:
         elif isinstance(msg, AnnotateMessage):
             view = conn.view
             camera = view.camera.model_dump() if view is not None else None
-            self.registry.add_annotation(
+            await asyncio.to_thread(
+                self.registry.add_annotation,
                 f"note-{secrets.token_hex(5)}",
                 self.id,
                 participant.name,
@@ -185,14 +195,18 @@ class ReviewSession:
                 list(msg.position),
                 camera,
             )
-            self.broadcast(self._annotations())
+            self.broadcast(await self._annotations())
         elif isinstance(msg, SaveViewMessage):
             view = conn.view
             if view is not None:
-                self.registry.add_saved_view(f"view-{secrets.token_hex(5)}", self.id, msg.name, view.state())
-                self.broadcast(self._views())
+                view_id = f"view-{secrets.token_hex(5)}"
+                await asyncio.to_thread(
+                    self.registry.add_saved_view, view_id, self.id, msg.name, view.state()
+                )
+                self.broadcast(await self._views())
         elif isinstance(msg, JumpMessage):
-            saved = next((v for v in self.registry.saved_views(self.id) if v["id"] == msg.view), None)
+            views = await asyncio.to_thread(self.registry.saved_views, self.id)
+            saved = next((v for v in views if v["id"] == msg.view), None)
             if saved is None:
                 conn.event(
                     {

@@ -225,18 +225,18 @@ class Connection:
             sender.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sender
-            self._leave()
+            await self._leave()
             self.hub.connections.discard(self)
             self.state.viewers -= 1
 
-    def _leave(self) -> None:
+    async def _leave(self) -> None:
         view = self.view
         if view is not None and (self.review is None or view is not self.review.shared):
             self.hub.remember(self.session_id, view)
         self._unsubscribe()
         if self.review is not None and self.participant is not None:
             review = self.review
-            review.leave(self.participant)
+            await review.leave(self.participant)
             if not review.participants and review.shared is not None:
                 shared, review.shared = review.shared, None
                 self._drop(shared)
@@ -352,11 +352,11 @@ class Connection:
             return None
         credential = hello.token or self.ws.query_params.get("token") or self.ws.query_params.get("key")
         try:
-            grant = self.state.auth.grant(credential)
+            grant = await asyncio.to_thread(self.state.auth.grant, credential)
         except ApiError as exc:
             await self._fail(CLOSE_UNAUTHORIZED, exc.code, exc.message)
             return None
-        problem = self._access_problem(grant, hello)
+        problem = await asyncio.to_thread(self._access_problem, grant, hello)
         if problem is not None:
             await self._fail(*problem)
             return None
@@ -385,7 +385,7 @@ class Connection:
 
     async def _open_view(self, hello: Hello) -> None:
         store = self.state.store
-        row = self.state.registry.model(hello.model)
+        row = await asyncio.to_thread(self.state.registry.model, hello.model)
         if row is None or row.state == "deleting":
             await self._fail(CLOSE_NOT_FOUND, "model_not_found", f"no model {hello.model!r}")
             return
@@ -393,7 +393,9 @@ class Connection:
             if not await self._wait_for_build(row.job_id):
                 return
         try:
-            model = store.acquire(hello.model)  # held for the connection (views take their own)
+            # Opening reads the model's header, index and coarsest levels: off the loop. The
+            # connection holds this lease while it sets up; its views take their own.
+            model = await asyncio.to_thread(store.acquire, hello.model)
         except ApiError as exc:
             await self._fail(CLOSE_NOT_FOUND, exc.code, exc.message)
             return
@@ -420,9 +422,10 @@ class Connection:
             quality = hello.quality or StreamQuality()
         review_info = None
         if hello.review is not None:
+            stored = await asyncio.to_thread(self.state.registry.review, hello.review)
             review = self.hub.reviews.get(hello.review)
-            if review is None:
-                review = ReviewSession(self.hub, self.state.registry.review(hello.review))
+            if review is None:  # (looked up again: another participant may have made it meanwhile)
+                review = ReviewSession(self.hub, stored)
                 self.hub.reviews[hello.review] = review
             presenter = bool(self.grant.admin or self.grant.role == "presenter")
             self.review = review
@@ -444,7 +447,8 @@ class Connection:
             self._subscribe(self._new_view(self.session_id, camera, viewport, quality))
         view = self.view
         assert view is not None
-        info = self.state.store.info(self.state.store.row(hello.model)).model_dump()
+        row = await asyncio.to_thread(self.state.store.row, hello.model)
+        info = self.state.store.info(row).model_dump()
         limits = {
             "max_pixels": self.state.settings.max_pixels,
             "max_in_flight": MAX_IN_FLIGHT,
@@ -465,7 +469,7 @@ class Connection:
         )
         self.event(welcome.model_dump())
         if self.review is not None and self.participant is not None:
-            self.review.send_state(self.participant)
+            await self.review.send_state(self.participant)
 
     async def _wait_for_build(self, job_id: str | None) -> bool:
         """Streams the build's progress until the model is ready (True) or the build
@@ -552,7 +556,7 @@ class Connection:
             if self.review is None or self.participant is None:
                 self._error("not_in_review", f"{kind}: this connection is not in a review")
                 return
-            self.review.handle(self.participant, msg)
+            await self.review.handle(self.participant, msg)
             scheduler.notify()
             return
         if kind in DRIVING and self.participant is not None and self.review is not None:

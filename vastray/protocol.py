@@ -246,6 +246,13 @@ class JumpMessage(Strict):
     view: str = Field(max_length=64)
 
 
+class RenameMessage(Strict):
+    """In a review: the name other participants see."""
+
+    type: Literal["rename"]
+    name: str = Field(min_length=1, max_length=80)
+
+
 class HandoverMessage(Strict):
     """In a review: the presenter hands the presenter role to another participant."""
 
@@ -306,6 +313,7 @@ ClientMessage = Annotated[
     | SaveViewMessage
     | JumpMessage
     | HandoverMessage
+    | RenameMessage
     | ByeMessage,
     Field(discriminator="type"),
 ]

@@ -158,6 +158,11 @@ def test_pointer_annotations_views_and_handover(
             Participant(srv, model["id"], rid, review["presenter_token"], "Ana") as ana,
             Participant(srv, model["id"], rid, review["join_token"], "Bo") as bo,
         ):
+            await bo.send(type="rename", name="Bo Lindqvist")
+            named = await ana.event(
+                "participants", lambda e: any(p["name"] == "Bo Lindqvist" for p in e["participants"])
+            )
+            assert {p["name"] for p in named["participants"]} == {"Ana", "Bo Lindqvist"}
             centre = orbit(model, 0)["target"]
             await ana.send(type="pointer", position=centre)
             pointer = await bo.event("pointer")
@@ -165,7 +170,7 @@ def test_pointer_annotations_views_and_handover(
             await bo.send(type="annotate", text="check this flange", position=centre)
             notes = await ana.event("annotations", lambda e: e["annotations"])
             assert notes["annotations"][-1]["text"] == "check this flange"
-            assert notes["annotations"][-1]["author"] == "Bo"
+            assert notes["annotations"][-1]["author"] == "Bo Lindqvist"
             await ana.send(type="camera", seq=3, **orbit(model, 5))
             await ana.final(3)
             await ana.send(type="save_view", name="overview")
@@ -197,6 +202,9 @@ def test_pointer_annotations_views_and_handover(
     with srv.client(key=review["join_token"]) as follower:
         assert follower.get(f"/api/reviews/{rid}").status_code == 200
         assert follower.post("/api/reviews", json={"model": model["id"]}).status_code == 403
+        # A review link shows the review's model, and only it.
+        assert [m["id"] for m in follower.get("/api/models").json()] == [model["id"]]
+        assert follower.get(f"/api/models/{model['id']}").status_code == 200
 
 
 def test_review_links_are_checked(srv: ServerProcess, model: dict[str, Any], review: dict[str, Any]) -> None:

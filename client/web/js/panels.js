@@ -260,6 +260,15 @@ export class Panels {
     $("section-view").addEventListener("click", () => this.addSection(null));
     $("review-start").addEventListener("click", () => this.#startReview());
     $("review-copy").addEventListener("click", () => this.#copyLink());
+    const rename = () => {
+      const name = $("review-name").value.trim();
+      if (!name) return;
+      sessionStorage.setItem("vastray.name", name); // the next hello carries it too
+      if (this.app.stream) this.app.stream.name = name;
+      this.app.stream?.send({ type: "rename", name });
+    };
+    $("review-rename").addEventListener("click", rename);
+    $("review-name").addEventListener("keydown", (e) => e.key === "Enter" && rename());
     $("review-leave").addEventListener("click", () => {
       // Back to a view of one's own, with the key this tab was opened with.
       location.href = `/?${new URLSearchParams({ key: this.storedKey, model: this.app.modelId })}`;
@@ -424,6 +433,7 @@ export class Panels {
   // -- review ----------------------------------------------------------------------------
 
   #welcomeReview(review) {
+    if (review) $("review-name").value = review.name ?? "";
     this.review = review ?? null;
     this.pointers.clear(); // the server sends those there are now
     $("review-idle").hidden = !!review;
