@@ -85,6 +85,8 @@ class Session:
     viewport: Viewport
     quality: StreamQuality
     expires: float
+    sections: list[SectionPlane]
+    highlight: list[int]
 
 
 class StreamHub:
@@ -117,7 +119,14 @@ class StreamHub:
         now = time.time()
         self.sessions = {k: s for k, s in self.sessions.items() if s.expires > now}
         self.sessions[session_id] = Session(
-            session_id, view.model_id, view.camera, view.viewport, view.quality, now + SESSION_TTL
+            session_id,
+            view.model_id,
+            view.camera,
+            view.viewport,
+            view.quality,
+            now + SESSION_TTL,
+            list(view.sections),
+            list(view.highlight),
         )
 
     async def close_all(self, reason: str) -> None:
@@ -417,7 +426,9 @@ class Connection:
         if resumed and session is not None:
             self.session_id = session.id
             camera, quality = session.camera, session.quality
+            sections, highlight = session.sections, session.highlight
         else:
+            sections, highlight = [], []
             camera = hello.camera or default_camera(model, viewport)
             quality = hello.quality or StreamQuality()
         review_info = None
@@ -444,7 +455,7 @@ class Connection:
             self._subscribe(review.shared)
             review_info = review.welcome(self.participant)
         else:
-            self._subscribe(self._new_view(self.session_id, camera, viewport, quality))
+            self._subscribe(self._new_view(self.session_id, camera, viewport, quality, sections, highlight))
         view = self.view
         assert view is not None
         row = await asyncio.to_thread(self.state.store.row, hello.model)
