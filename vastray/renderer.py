@@ -42,6 +42,8 @@ RENDER_PARAM_FIELDS: tuple[str, ...] = (
     "packets",
     "pixels_of_error",
     "solid_angle",
+    "sample_index",
+    "request_limit",
 )
 
 

@@ -122,9 +122,10 @@ public:
 
     // Frame protocol. begin_frame returns the frame's tick (stamps and epochs).
     std::uint32_t begin_frame(FrameCacheStats& stats);
-    // `requests`: the (model, block) pairs this frame asked for first.
+    // `requests`: the (model, block) pairs this frame asked for first. `limit` bounds how
+    // many of them join the fetch queue (0: max_requests_per_frame).
     void end_frame(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
-                   FrameCacheStats& stats);
+                   FrameCacheStats& stats, std::size_t limit = 0);
 
     // Slot bytes (valid for the frame that looked the slot up).
     const std::uint8_t* slot_data(std::int32_t slot) const {

@@ -17,9 +17,10 @@
 
 #include "vastray/block_cache.h"
 #include "vastray/format.h"
+#include "vastray/isa.h"
 #include "vastray/traverse.h"
 
-namespace vastray {
+VASTRAY_KERNEL_BEGIN
 
 constexpr std::uint32_t kVoxelPrim = 0xfffffffeu;  // LodHit::prim of a voxel hit
 
@@ -346,4 +347,4 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     }
 }
 
-}  // namespace vastray
+VASTRAY_KERNEL_END
