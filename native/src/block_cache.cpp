@@ -343,6 +343,12 @@ void BlockCache::drain() {
     done_.wait(lock, [this] { return loading_ == 0 && (pending_.empty() || free_slots_.empty()); });
 }
 
+bool BlockCache::wait_idle(double timeout_ms) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    return done_.wait_for(lock, std::chrono::duration<double, std::milli>(timeout_ms),
+                          [this] { return loading_ == 0 && (pending_.empty() || free_slots_.empty()); });
+}
+
 CacheTotals BlockCache::totals() const {
     std::lock_guard<std::mutex> lock(mutex_);
     CacheTotals t;

@@ -213,7 +213,7 @@ Frame render_model(BlockCache& cache, CachedModel& model, const Camera& camera, 
     const std::uint32_t tick = cache.begin_frame(frame.stats.cache);
     std::vector<LodLane> lanes = make_lanes(cache, model, tick);
     try {
-        trace_frame(backend, camera, params, params.packets_or(1), lanes, frame);
+        trace_frame(backend, camera, params, params.packets_or(16), lanes, frame);
     } catch (...) {
         close_frame(cache, tick, lanes, frame.stats);
         throw;

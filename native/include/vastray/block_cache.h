@@ -147,6 +147,8 @@ public:
     bool wait_for_fetches(double timeout_ms);
     // Blocks until nothing is queued or loading (tests and benchmarks).
     void drain();
+    // Blocks until nothing is queued or loading, or `timeout_ms` passes; true if idle.
+    bool wait_idle(double timeout_ms);
 
     CacheTotals totals() const;
     // Resident blocks of a model with the tick of the frame that last used each (tests,

@@ -144,7 +144,9 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
     // The lanes `which` of vector v stop at voxel `vx`, entered at their current tmin.
     auto take_voxels = [&](const Voxel& vx, int v, int which) {
         if (AnyHit) {
-            occluded |= static_cast<std::uint32_t>(which) << (W * v);
+            // A voxel counts where it lies before the ray's end, as in lod_traverse().
+            const int before = (tmin[v] < hit_t[v]).bits() & which;
+            occluded |= static_cast<std::uint32_t>(before) << (W * v);
             lane.voxel_hits += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(which)));
         } else {
             alignas(32) float tv[W], ax[W];
@@ -160,6 +162,29 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
         }
         live[v] = andnot(vm::from_bits(static_cast<unsigned>(which)), live[v]);
     };
+    // The one active lane of `act` finishes the subtree at `at` as a single ray.
+    auto hand_off = [&](const NodeRef& at, const Voxel& last, const vm* act) {
+        for (int v = 0; v < K; ++v) {
+            const int bits = act[v].bits();
+            if (!bits) continue;
+            const int k = __builtin_ctz(static_cast<unsigned>(bits));
+            const int i = W * v + k;
+            alignas(32) float t0v[W], t1v[W], axv[W];
+            tmin[v].store(t0v);
+            tmax[v].store(t1v);
+            axis_in[v].store(axv);
+            LodHit& h = hits[i];
+            const bool finished = lod_walk<AnyHit>(lane, rays[i], sheared[i], at, t0v[k], t1v[k],
+                                                   static_cast<int>(axv[k]), last, h, skip ? skip[i] : kNoHit);
+            if (AnyHit) {
+                if (h.prim != kNoHit) occluded |= 1u << i;
+            } else {
+                hit_t[v] = HitV<W>::load(hits + W * v).t;
+            }
+            if (finished || (AnyHit && h.prim != kNoHit)) live[v] = andnot(vm::from_bits(1u << k), live[v]);
+            return;
+        }
+    };
     auto nearest_of = [&](const vm* act) {
         vf nearest = v_inf;
         for (int v = 0; v < K; ++v) nearest = min(select(act[v], tmin[v] + cone_t0[v], v_inf), nearest);
@@ -174,12 +199,20 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
         bool leaf = false;
         vm active[K];
         for (;;) {
-            int any = 0;
+            int any = 0, count = 0;
             for (int v = 0; v < K; ++v) {
                 active[v] = live[v] & (tmin[v] <= tmax[v]);
-                any |= active[v].bits();
+                const int bits = active[v].bits();
+                any |= bits;
+                count += __builtin_popcount(static_cast<unsigned>(bits));
             }
             if (!any) break;
+            if (count == 1) {
+                // The rays have parted: the last one walks this subtree alone, which costs
+                // it a scalar step per node instead of a packet's K vectors.
+                hand_off(node, voxel, active);
+                break;
+            }
             const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
             if (!is_inner(w)) {
                 leaf = true;
@@ -230,6 +263,8 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
             if (!far_node.block) any_far = 0;
             const vf axis_v = vf::broadcast(static_cast<float>(axis));
             if (any_near && any_far && top < 64) {
+                // The far child is needed later: start its load now, beside the near one's.
+                __builtin_prefetch(far_node.block + far_node.off);
                 Entry& e = stack[top++];
                 e.node = far_node;
                 e.voxel = voxel;
@@ -260,11 +295,16 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
                 act[v] = active[v].bits();
             }
             Vec3f v0, v1, v2;
-            std::uint32_t id, local;
-            while (triangles.next(v0, v1, v2, id, local)) {
+            std::uint32_t local;
+            while (triangles.next(v0, v1, v2, local)) {
+                // The input id is read only when a lane needs it (a skip test or a hit).
+                std::uint32_t id = kNoHit;
                 for (int v = 0; v < K; ++v) {
                     int lanes = act[v];
-                    if (skip && lanes) lanes &= ~lod_detail::equal_lanes<W>(skip + W * v, id);
+                    if (skip && lanes) {
+                        if (id == kNoHit) id = triangles.id(local);
+                        lanes &= ~lod_detail::equal_lanes<W>(skip + W * v, id);
+                    }
                     if (!lanes) continue;
                     lane.triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
                     int changed = 0;
@@ -276,11 +316,14 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
                         for (int k = 0; k < W; ++k) {
                             if ((lanes >> k & 1) &&
                                 intersect_triangle(rays[W * v + k].ray, sheared[W * v + k], v0, v1, v2, hits[W * v + k])) {
-                                hits[W * v + k].prim = id;
                                 changed |= 1 << k;
                             }
                         }
                         hv[v] = HitV<W>::load(hits + W * v);
+                    }
+                    if (changed) {
+                        if (id == kNoHit) id = triangles.id(local);
+                        hv[v].prim = select(vm::from_bits(static_cast<unsigned>(changed)), vf::bits(id), hv[v].prim);
                     }
                     if (AnyHit) {
                         // Retired at their first hit.
