@@ -66,7 +66,7 @@ if TYPE_CHECKING:
 
 SLOT = 65536
 BIG = 64 << 20  # a cache that holds every model of this module whole
-SHADINGS = ("headlight", "normal", "sun", "ao")
+SHADINGS = ("headlight", "normal", "sun", "ao", "indirect")
 
 
 # ---- inputs and built models ---------------------------------------------------------------------

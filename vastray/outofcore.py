@@ -32,6 +32,9 @@ PRIORITIES = ("count", "size")  # paper 000 §5.3 request counts, paper 003 proj
 # Node levels loaded when a model opens: a handful of blocks that give the first frame
 # voxels a few levels down instead of the single root voxel.
 OPEN_PRELOAD_LEVELS = 3
+# Blocks a render_complete frame may queue (the cache caps it at its max_pending): a
+# full-detail render waits for its data, so it asks for all it finds missing at once.
+FULL_DETAIL_REQUEST_LIMIT = 4096
 
 
 class CacheTooSmallError(RuntimeError):
@@ -135,6 +138,10 @@ class OutOfCoreModel:
         the whole wait. `cancelled` is polled between frames (a server's time limit or
         a client that went away)."""
         params = render_params(params, **fields)
+        if params.request_limit == 0:
+            # It waits for the data anyway: let each frame queue all it found missing
+            # (up to the cache's queue), not the interactive per-frame bound.
+            params = render_params(params, request_limit=FULL_DETAIL_REQUEST_LIMIT)
         native_camera = camera.to_native()
         start = time.perf_counter()
         frames = 0
@@ -149,9 +156,13 @@ class OutOfCoreModel:
                 raise RenderCancelledError(f"{self.name}: render cancelled")
             if time.perf_counter() - start > timeout:
                 raise TimeoutError(f"{self.name}: view not complete after {timeout:g} s")
-            # Between frames, wait for at least one block; a cache that cannot make room
-            # (the view's working set is larger than the budget) makes no progress.
-            progressed = self.cache.wait_for_fetches(min(1000.0, 1000.0 * timeout))
+            # Between frames, let the fetchers work through what this frame asked for
+            # (another frame now would only find the same blocks missing, and take the
+            # cores the fetchers decompress on), but no longer than a few frame times,
+            # so blocks found one level deeper join the queue early. A cache that cannot
+            # make room (the view's working set is larger than the budget) makes no
+            # progress.
+            progressed = self._wait_for_queue(max(0.05, 3 * stats.milliseconds / 1000.0), start + timeout)
             stalled = 0 if progressed or stats.blocks_loaded else stalled + 1
             if stalled >= 3:
                 totals = self.cache.totals()
@@ -163,6 +174,19 @@ class OutOfCoreModel:
         frame.frames = frames
         frame.seconds = time.perf_counter() - start
         return frame
+
+    def _wait_for_queue(self, seconds: float, deadline: float) -> bool:
+        """Waits until the fetch queue is empty, `seconds` pass or `deadline` comes;
+        True if some fetch finished meanwhile."""
+        def fetched() -> tuple[int, int, int]:
+            t = self.cache.totals()
+            return t["bytes_read"], t["failed"], t["ready"]
+
+        before = fetched()
+        wait = max(0.001, min(seconds, deadline - time.perf_counter()))
+        self.cache.wait_idle(1000.0 * wait)
+        after = fetched()
+        return after[:2] != before[:2] or after[2] > 0
 
     def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
         """Full-detail closest hits of world rays. Rays whose blocks are not cached are

@@ -42,6 +42,8 @@ RENDER_PARAM_FIELDS: tuple[str, ...] = (
     "packets",
     "pixels_of_error",
     "solid_angle",
+    "sample_index",
+    "request_limit",
 )
 
 
@@ -87,6 +89,25 @@ def trace(
     cam = camera.to_native() if isinstance(camera, Camera) else camera
     image, depth, prim, stats = target.render(cam, render_params(params, **fields))
     return Frame(image, depth, prim, stats, 1, stats.milliseconds / 1000.0)
+
+
+def average_passes(images: list[np.ndarray]) -> np.ndarray:
+    """The image of a still view refined over passes: the mean of the images of passes
+    0 .. K-1 (rendered with sample_index 0 .. K-1), rounded to 8 bits.
+
+    Averaging finished images is exact up to rounding, because every pass shades the
+    same hits and the indirect mode's filter weighs pixels by the guides (depth,
+    normal) alone: each pass is a linear function of its noisy samples, so the mean of
+    the filtered passes is the filtered mean of their samples. A server keeps a running
+    sum (float32) and a count instead of the list."""
+    if not images:
+        raise ValueError("no passes to average")
+    total = np.zeros(images[0].shape, dtype=np.float64)
+    for image in images:
+        if image.shape != total.shape:
+            raise ValueError("passes of different sizes cannot be averaged")
+        total += image
+    return np.clip(np.rint(total / len(images)), 0, 255).astype(np.uint8)
 
 
 @dataclass

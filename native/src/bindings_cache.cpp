@@ -140,6 +140,8 @@ void bind_cache(py::module_& m) {
         .def("check_invariants", &BlockCache::check_invariants)
         .def("drain", &BlockCache::drain, py::call_guard<py::gil_scoped_release>(),
              "Wait until nothing is queued or loading (or no slot is free)")
+        .def("wait_idle", &BlockCache::wait_idle, py::arg("timeout_ms"), py::call_guard<py::gil_scoped_release>(),
+             "Wait until nothing is queued or loading (or no slot is free); False on timeout")
         .def("wait_for_fetches", &BlockCache::wait_for_fetches, py::arg("timeout_ms"),
              py::call_guard<py::gil_scoped_release>(), "Wait for a fetch to finish; False on timeout or if none pending")
         .def_property_readonly("slot_count", &BlockCache::slot_count)

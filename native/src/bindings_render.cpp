@@ -6,6 +6,7 @@
 #include <sstream>
 
 #include "bindings_common.h"
+#include "vastray/isa.h"
 
 namespace py = pybind11;
 
@@ -49,8 +50,16 @@ const std::vector<std::pair<const char*, StatGetter>>& stat_fields() {
 }  // namespace
 
 void bind_render_types(py::module_& m) {
+    m.def("isa", [] { return std::string(isa_name(active_isa())); },
+          "The instruction-set path the kernels run on (sse2, avx, avx2): VASTRAY_ISA if set, else the "
+          "best this CPU supports");
+    m.def("supported_isas", [] {
+        std::vector<std::string> out;
+        for (const Isa isa : supported_isas()) out.emplace_back(isa_name(isa));
+        return out;
+    }, "The instruction-set paths this build and CPU can run, slowest first (values for VASTRAY_ISA)");
     m.attr("MAX_IMAGE_SIDE") = kMaxImageSide;
-    m.attr("SHADING_MODES") = py::make_tuple("normal", "headlight", "sun", "ao");
+    m.attr("SHADING_MODES") = py::make_tuple("normal", "headlight", "sun", "ao", "indirect");
 
     py::class_<Camera>(m, "Camera", "Pinhole camera in world coordinates (double precision)")
         .def(py::init([](const std::vector<double>& eye, const std::vector<double>& target,
@@ -80,7 +89,8 @@ void bind_render_types(py::module_& m) {
         .def_property(
             "shading", [](const RenderParams& p) { return std::string(shading_name(p.shading)); },
             [](RenderParams& p, const std::string& name) { p.shading = parse_shading(name); },
-            "normal, headlight, sun (shadow rays) or ao (ambient occlusion)")
+            "normal, headlight, sun (shadow rays), ao (ambient occlusion) or indirect (sun, shadows, one "
+            "bounce and a sky, denoised)")
         .def_readwrite("ao_samples", &RenderParams::ao_samples, "AO rays per pixel, 1..1024")
         .def_readwrite("ao_distance", &RenderParams::ao_distance, "AO ray length; 0: a fifth of the model diagonal")
         .def_property(
@@ -100,13 +110,17 @@ void bind_render_types(py::module_& m) {
         .def_readwrite("pixels_of_error", &RenderParams::pixels_of_error,
                        "LOD accuracy: a voxel may stand in once it is at most this many pixels wide; 0: full detail")
         .def_readwrite("solid_angle", &RenderParams::solid_angle,
-                       "AO LOD metric in steradians; negative: derived from pixels_of_error")
+                       "AO and diffuse-ray LOD metric in steradians; negative: derived from pixels_of_error")
+        .def_readwrite("sample_index", &RenderParams::sample_index,
+                       "pass of a still view: pass k draws other AO and diffuse directions than passes before it")
+        .def_readwrite("request_limit", &RenderParams::request_limit,
+                       "out of core: blocks this frame may add to the fetch queue; 0: the cache's bound")
         .def("validate", &RenderParams::validate, "ValueError naming the field and its range")
         .def("__copy__", [](const RenderParams& p) { return p; })
         .def(py::pickle([](const RenderParams& p) {
                             return py::make_tuple(std::string(shading_name(p.shading)), p.ao_samples, p.ao_distance,
                                                   to_list(p.sun_direction), p.threads, p.tile_size, p.packets,
-                                                  p.pixels_of_error, p.solid_angle);
+                                                  p.pixels_of_error, p.solid_angle, p.sample_index, p.request_limit);
                         },
                         [](const py::tuple& t) {
                             RenderParams p;
@@ -119,6 +133,8 @@ void bind_render_types(py::module_& m) {
                             p.packets = t[6].cast<int>();
                             p.pixels_of_error = t[7].cast<double>();
                             p.solid_angle = t[8].cast<double>();
+                            p.sample_index = t[9].cast<int>();
+                            p.request_limit = t[10].cast<int>();
                             return p;
                         }));
 

@@ -179,8 +179,9 @@ void BlockCache::publish_locked(FrameCacheStats* stats) {
 }
 
 void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
-                           FrameCacheStats& stats) {
+                           FrameCacheStats& stats, std::size_t limit) {
     std::lock_guard<std::mutex> lock(mutex_);
+    const std::size_t per_frame = limit > 0 ? std::min(limit, config_.max_pending) : config_.max_requests_per_frame;
     active_ticks_.erase(std::find(active_ticks_.begin(), active_ticks_.end(), tick));
 
     // Collect this frame's requests with their priorities; the atomics start again at 0.
@@ -200,10 +201,10 @@ void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<Cache
     stats.requested += requests.size();
     // The fetch list a frame may add to is bounded: the best requests go first, the rest
     // are asked again by the next frame if they still matter.
-    if (fresh.size() > config_.max_requests_per_frame) {
-        std::nth_element(fresh.begin(), fresh.begin() + static_cast<std::ptrdiff_t>(config_.max_requests_per_frame),
-                         fresh.end(), [](const Request& a, const Request& b) { return a.priority > b.priority; });
-        fresh.resize(config_.max_requests_per_frame);
+    if (fresh.size() > per_frame) {
+        std::nth_element(fresh.begin(), fresh.begin() + static_cast<std::ptrdiff_t>(per_frame), fresh.end(),
+                         [](const Request& a, const Request& b) { return a.priority > b.priority; });
+        fresh.resize(per_frame);
     }
     for (Request& r : fresh) {
         r.serial = ++serial_;
@@ -235,7 +236,7 @@ void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<Cache
     // Make room for what the fetchers can load before the next frame, evicting only
     // blocks no running frame and not this frame used.
     reclaim_locked();
-    const std::size_t want = std::min(pending_.size(), config_.max_requests_per_frame);
+    const std::size_t want = std::min(pending_.size(), per_frame);
     const std::size_t have = free_slots_.size() + retired_.size();
     if (want > have) {
         std::uint32_t protect = tick;
@@ -340,6 +341,12 @@ bool BlockCache::wait_for_fetches(double timeout_ms) {
 void BlockCache::drain() {
     std::unique_lock<std::mutex> lock(mutex_);
     done_.wait(lock, [this] { return loading_ == 0 && (pending_.empty() || free_slots_.empty()); });
+}
+
+bool BlockCache::wait_idle(double timeout_ms) {
+    std::unique_lock<std::mutex> lock(mutex_);
+    return done_.wait_for(lock, std::chrono::duration<double, std::milli>(timeout_ms),
+                          [this] { return loading_ == 0 && (pending_.empty() || free_slots_.empty()); });
 }
 
 CacheTotals BlockCache::totals() const {

@@ -1,20 +1,18 @@
-#include "vastray/lod_render.h"
-
+// The out-of-core renderer and ray queries, one build per ISA (isa.h): a built model in
+// the block cache as a frame-loop backend (frame_renderer.h), and full-detail queries.
+#include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
+#include <utility>
+#include <vector>
 
 #include "vastray/frame_renderer.h"
+#include "vastray/kernels.h"
+#include "vastray/lod_render.h"
 #include "vastray/lod_traverse_packet.h"
 
-namespace vastray {
-
-double solid_angle_cone(const RenderParams& params, double pixel_angle) {
-    if (params.solid_angle >= 0) return std::sqrt(params.solid_angle / 3.14159265358979323846);
-    // Default: a cone twice the primary rays' (PoE pixels wide at unit distance). Wider
-    // cones buy little speed and darken AO: near its origin a probe then meets voxels
-    // whose boxes straddle the surface it leaves (bench/results/tradeoff-poe.md).
-    return params.pixels_of_error * pixel_angle;
-}
+VASTRAY_KERNEL_BEGIN
 
 namespace {
 
@@ -40,7 +38,8 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
 // Ends the frame `tick`: hands the lanes' block requests to the cache and adds up what
 // the lanes saw. Also the exit path of a frame that throws (its requests reset the
 // per-block request counters).
-void close_frame(BlockCache& cache, std::uint32_t tick, const std::vector<LodLane>& lanes, FrameStats& stats) {
+void close_frame(BlockCache& cache, std::uint32_t tick, const std::vector<LodLane>& lanes, FrameStats& stats,
+                 std::size_t request_limit = 0) {
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;
     std::uint64_t missing = 0;
     for (const LodLane& lane : lanes) {
@@ -53,7 +52,7 @@ void close_frame(BlockCache& cache, std::uint32_t tick, const std::vector<LodLan
         stats.cache.bad_blocks += lane.bad;
         missing += lane.missing;
     }
-    cache.end_frame(tick, requests, stats.cache);
+    cache.end_frame(tick, requests, stats.cache, request_limit);
     stats.complete = missing == 0;
 }
 
@@ -72,12 +71,19 @@ void triangle_of(const LodHit& hit, bool has_colours, Vec3f* v) {
     }
 }
 
+// A secondary ray over a cached model: never reports the triangle it starts on.
+struct ModelSecondary {
+    LodRay ray;
+    std::uint32_t skip = kNoHit;
+};
+
 // A built model in the block cache as a frame-loop backend (frame_renderer.h).
 class ModelBackend {
 public:
     using Ray = LodRay;
     using Hit = LodHit;
     using Lane = LodLane;
+    using Secondary = ModelSecondary;
 
     ModelBackend(const ModelIndex& index, const Camera& camera, const RenderParams& params)
         : index_(index), camera_(camera), centre_(index.centre()), root_(index.root_cell()) {
@@ -133,27 +139,56 @@ public:
     // A secondary ray leaving a hit. LOD rays must clear the voxels of their own
     // surface: a triangle's ray skips what a cone of this footprint would accept around
     // its origin, a voxel's ray starts outside the voxel (offset grows with its size).
-    // Shadow rays continue the primary ray's cone (PoE metric); AO rays start their own
-    // (solid-angle metric).
-    bool occluded(Lane& lane, const Ray& primary, const Hit& hit, const Vec3f& n, const Vec3f& dir, float tmax,
-                  SecondaryRay kind) const {
-        LodRay r;
+    // Shadow rays continue the cone of the ray that found the hit (PoE metric for a
+    // primary ray's); AO and diffuse rays start their own (solid-angle metric).
+    Secondary secondary_ray(const Ray& incoming, const Hit& hit, const Vec3f& n, const Vec3f& dir, float tmax,
+                            SecondaryRay kind) const {
+        Secondary s;
+        LodRay& r = s.ray;
         r.ray.dir = dir;
         r.ray.tmax = tmax;
         const bool shadow = kind == SecondaryRay::Shadow;
-        r.cone = shadow ? primary_cone_ : ao_cone_;
-        r.cone_t0 = shadow ? hit.t : 0.0f;
+        r.cone = shadow ? incoming.cone : ao_cone_;
+        r.cone_t0 = shadow ? incoming.cone_t0 + hit.t : 0.0f;
         if (hit.prim == kVoxelPrim) {
-            r.ray.org = primary.ray.org + primary.ray.dir * hit.t + n * (2.0f * hit.voxel_radius);
+            r.ray.org = incoming.ray.org + incoming.ray.dir * hit.t + n * (2.0f * hit.voxel_radius);
             r.ray.tmin = 0;
         } else {
             Vec3f v[3];
             triangle_of(hit, index_.has_colours(), v);
             r.ray.org = shading::offset_origin(v, hit, n);
             r.ray.tmin = 2.5f * r.cone_t0 * r.cone;
+            s.skip = hit.prim;
         }
-        LodHit occluder;
-        return lod_traverse<true>(lane, root_, r, occluder, hit.prim == kVoxelPrim ? kNoHit : hit.prim);
+        return s;
+    }
+
+    // Any hits (voxels count): one ray singly, more as a packet, sharing an origin (the
+    // AO rays of a pixel) or a direction (shadow rays). Lanes outside `mask` copy a
+    // live ray and are ignored.
+    template <int N>
+    std::uint32_t occluded(Lane& lane, const Secondary* rays, std::uint32_t mask, RayGroup group) const {
+        if constexpr (N == 1) {
+            LodHit occluder;
+            return (mask & 1u) && lod_traverse<true>(lane, root_, rays[0].ray, occluder, rays[0].skip) ? 1u : 0u;
+        } else {
+            LodRay r[N];
+            LodHit scratch[N];
+            std::uint32_t skip[N];
+            const int any = __builtin_ctz(mask);
+            for (int i = 0; i < N; ++i) {
+                const Secondary& s = rays[(mask >> i & 1u) ? i : any];
+                r[i] = s.ray;
+                skip[i] = s.skip;
+            }
+            return group == RayGroup::SharedOrigin
+                       ? lod_packet_walk<N, true, LodPacketOrder::SharedOrigin>(lane, root_, r, scratch, skip, mask)
+                       : lod_packet_walk<N, true, LodPacketOrder::SharedSigns>(lane, root_, r, scratch, skip, mask);
+        }
+    }
+
+    void trace_secondary(Lane& lane, const Secondary& s, Hit& hit) const {
+        lod_traverse<false>(lane, root_, s.ray, hit, s.skip);
     }
 
     float ao_distance() const { return ao_distance_; }
@@ -168,7 +203,7 @@ private:
 
 }  // namespace
 
-Frame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, const RenderParams& params) {
+Frame render_model(BlockCache& cache, CachedModel& model, const Camera& camera, const RenderParams& params) {
     camera.validate();
     params.validate();
     const FrameClock clock;
@@ -178,17 +213,17 @@ Frame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, co
     const std::uint32_t tick = cache.begin_frame(frame.stats.cache);
     std::vector<LodLane> lanes = make_lanes(cache, model, tick);
     try {
-        trace_frame(backend, camera, params, params.packets_or(1), lanes, frame);
+        trace_frame(backend, camera, params, params.packets_or(16), lanes, frame);
     } catch (...) {
         close_frame(cache, tick, lanes, frame.stats);
         throw;
     }
-    close_frame(cache, tick, lanes, frame.stats);
+    close_frame(cache, tick, lanes, frame.stats, static_cast<std::size_t>(params.request_limit));
     clock.stop(params, frame.stats);
     return frame;
 }
 
-LodRayHits intersect_lod(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
+LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
                          const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
     const FrameClock clock;
     const ModelIndex& index = model.index();
@@ -263,4 +298,4 @@ LodRayHits intersect_lod(BlockCache& cache, CachedModel& model, const double* or
     return out;
 }
 
-}  // namespace vastray
+VASTRAY_KERNEL_END

@@ -1,68 +1,49 @@
-#include "vastray/render.h"
-
+// The in-core renderer and batch queries, one build per ISA (isa.h): a Scene as a
+// frame-loop backend (frame_renderer.h), and closest/any-hit queries of world rays.
+#include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
+#include <vector>
 
 #include "vastray/frame_renderer.h"
+#include "vastray/kernels.h"
+#include "vastray/thread_pool.h"
 #include "vastray/traverse_packet.h"
 
-namespace vastray {
-
-void Camera::validate() const {
-    if (!all_finite(eye) || !all_finite(target) || !all_finite(up) || !std::isfinite(fov_deg)) {
-        throw std::invalid_argument("camera values must be finite numbers");
-    }
-    const Vec3d view = target - eye;
-    if (!(dot(view, view) > 0)) throw std::invalid_argument("camera eye and target coincide (zero-length view direction)");
-    if (!(dot(up, up) > 0)) throw std::invalid_argument("camera up vector has zero length");
-    const Vec3d side = cross(normalize(view), normalize(up));
-    if (!(length(side) > 1e-9)) throw std::invalid_argument("camera up vector is parallel to the view direction");
-    if (!(fov_deg > 0 && fov_deg < 180)) throw std::invalid_argument("fov must be between 0 and 180 degrees (exclusive)");
-    if (width <= 0 || height <= 0 || width > kMaxImageSide || height > kMaxImageSide) {
-        throw std::invalid_argument("image size must be between 1x1 and " + std::to_string(kMaxImageSide) + "x" +
-                                    std::to_string(kMaxImageSide));
-    }
-}
-
-Shading parse_shading(const std::string& name) {
-    if (name == "normal") return Shading::Normal;
-    if (name == "headlight") return Shading::Headlight;
-    if (name == "sun") return Shading::Sun;
-    if (name == "ao") return Shading::AmbientOcclusion;
-    throw std::invalid_argument("unknown shading mode '" + name + "' (normal, headlight, sun, ao)");
-}
-
-const char* shading_name(Shading shading) {
-    switch (shading) {
-        case Shading::Normal: return "normal";
-        case Shading::Headlight: return "headlight";
-        case Shading::Sun: return "sun";
-        case Shading::AmbientOcclusion: return "ao";
-    }
-    return "headlight";
-}
-
-void RenderParams::validate() const {
-    if (!all_finite(sun_direction) || !(dot(sun_direction, sun_direction) > 0)) {
-        throw std::invalid_argument("sun direction must be a finite non-zero vector");
-    }
-    if (ao_samples < 1 || ao_samples > 1024) throw std::invalid_argument("ao_samples must be in [1, 1024]");
-    if (!std::isfinite(ao_distance) || ao_distance < 0) {
-        throw std::invalid_argument("ao_distance must be a finite number >= 0 (0: a fifth of the model's diagonal)");
-    }
-    if (tile_size < 4 || tile_size > 1024) throw std::invalid_argument("tile_size must be in [4, 1024]");
-    if (packets != 0 && packets != 1 && packets != 4 && packets != 16) {
-        throw std::invalid_argument("packets must be 0 (the renderer's fastest), 1, 4 or 16");
-    }
-    if (!std::isfinite(pixels_of_error) || pixels_of_error < 0) {
-        throw std::invalid_argument("pixels of error must be a finite number >= 0");
-    }
-    if (!std::isfinite(solid_angle) || solid_angle > 2 * 3.14159265358979323846) {
-        throw std::invalid_argument("solid angle must be at most 2 pi steradians (negative: derived from PoE)");
-    }
-}
+VASTRAY_KERNEL_BEGIN
 
 namespace {
+
+// A secondary ray of the in-core scene: never reports the triangle it starts on.
+struct SceneSecondary {
+    Ray ray;
+    std::uint32_t skip = kNoHit;
+};
+
+// Any hits of N rays (N = 1: traverse(), else a packet), the rays outside `mask` left
+// alone. Shared by the renderer and the batch query.
+template <int N>
+std::uint32_t scene_occluded(const Scene& scene, const SceneSecondary* rays, std::uint32_t mask,
+                             TraversalCounters& counters) {
+    if constexpr (N == 1) {
+        Hit occluder;
+        return (mask & 1u) && traverse<true>(scene.tree(), scene.tri_vertices(), rays[0].ray, occluder, counters,
+                                              rays[0].skip)
+                   ? 1u
+                   : 0u;
+    } else {
+        Ray r[N];
+        std::uint32_t skip[N];
+        const int any = __builtin_ctz(mask);  // lanes outside the mask copy a live ray
+        for (int i = 0; i < N; ++i) {
+            const SceneSecondary& s = rays[(mask >> i & 1u) ? i : any];
+            r[i] = s.ray;
+            skip[i] = s.skip;
+        }
+        return occluded_packet<N>(scene.tree(), scene.tri_vertices(), r, skip, mask, counters);
+    }
+}
 
 // The in-core scene as a frame-loop backend (frame_renderer.h).
 class SceneBackend {
@@ -70,6 +51,7 @@ public:
     using Ray = vastray::Ray;
     using Hit = vastray::Hit;
     using Lane = TraversalCounters;
+    using Secondary = SceneSecondary;
 
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
         : scene_(scene), camera_(camera) {
@@ -85,28 +67,16 @@ public:
         return scene_.to_local(wr);
     }
 
-    void trace(Lane& lane, const Ray& ray, Hit& hit) const { scene_.trace<false>(ray, hit, lane); }
+    void trace(Lane& lane, const Ray& ray, Hit& hit) const {
+        traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);
+    }
 
     template <int Side>
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {
-#if defined(VASTRAY_HAVE_PACKETS)
         constexpr int N = Side * Side;
         if (!packet_is_coherent(rays, N)) return false;
-        if constexpr (Side == 2) {
-            traverse_packet<1>(scene_.tree(), scene_.tri_vertices(), rays, hits, lane);
-        } else {
-            // The SSE packet is four 2x2 quads, one per vector: regroup the rows.
-            Ray quads[16];
-            Hit quad_hits[16];
-            for (int i = 0; i < 16; ++i) quads[i] = rays[quad_order(i)];
-            traverse_packet<4>(scene_.tree(), scene_.tri_vertices(), quads, quad_hits, lane);
-            for (int i = 0; i < 16; ++i) hits[quad_order(i)] = quad_hits[i];
-        }
+        traverse_packet<N>(scene_.tree(), scene_.tri_vertices(), rays, hits, lane);
         return true;
-#else
-        (void)lane, (void)rays, (void)hits;
-        return false;
-#endif
     }
 
     std::int32_t prim_id(const Hit& hit) const { return static_cast<std::int32_t>(scene_.input_id(hit.prim)); }
@@ -123,34 +93,54 @@ public:
 
     // Secondary rays start on the surface (offset by a bound on its float error) and
     // never report the triangle they start on.
-    bool occluded(Lane& lane, const Ray&, const Hit& hit, const Vec3f& n, const Vec3f& dir, float tmax,
-                  SecondaryRay) const {
-        Ray r;
-        r.org = shading::offset_origin(scene_.tri_vertices() + 3 * static_cast<std::size_t>(hit.prim), hit, n);
-        r.dir = dir;
-        r.tmin = 0;
-        r.tmax = tmax;
-        Hit occluder;
-        return scene_.trace<true>(r, occluder, lane, hit.prim);
+    Secondary secondary_ray(const Ray&, const Hit& hit, const Vec3f& n, const Vec3f& dir, float tmax,
+                            SecondaryRay) const {
+        Secondary s;
+        s.ray.org = shading::offset_origin(scene_.tri_vertices() + 3 * static_cast<std::size_t>(hit.prim), hit, n);
+        s.ray.dir = dir;
+        s.ray.tmin = 0;
+        s.ray.tmax = tmax;
+        s.skip = hit.prim;
+        return s;
+    }
+
+    template <int N>
+    std::uint32_t occluded(Lane& lane, const Secondary* rays, std::uint32_t mask, RayGroup) const {
+        return scene_occluded<N>(scene_, rays, mask, lane);
+    }
+
+    void trace_secondary(Lane& lane, const Secondary& s, Hit& hit) const {
+        traverse<false>(scene_.tree(), scene_.tri_vertices(), s.ray, hit, lane, s.skip);
     }
 
     float ao_distance() const { return ao_distance_; }
 
 private:
-    // Row-order index of the i-th ray of the 16-ray packet's quad order.
-    static int quad_order(int i) {
-        const int q = i / 4, k = i % 4;
-        return (2 * (q / 2) + k / 2) * 4 + 2 * (q % 2) + k % 2;
-    }
-
     const Scene& scene_;
     shading::CameraRays camera_;
     float ao_distance_ = 1;
 };
 
+WorldRay load_ray(const double* origins, const double* directions, const double* tmin, const double* tmax,
+                  std::size_t i) {
+    WorldRay r;
+    r.org = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
+    r.dir = {directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]};
+    r.tmin = tmin[i];
+    r.tmax = tmax[i];
+    return r;
+}
+
+bool ray_is_valid(const WorldRay& r) {
+    return all_finite(r.org) && all_finite(r.dir) && dot(r.dir, r.dir) > 0 && !std::isnan(r.tmin) &&
+           !std::isnan(r.tmax);
+}
+
+constexpr std::size_t kBatch = 1024;
+
 }  // namespace
 
-Frame render(const Scene& scene, const Camera& camera, const RenderParams& params) {
+Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams& params) {
     camera.validate();
     params.validate();
     const FrameClock clock;
@@ -163,4 +153,69 @@ Frame render(const Scene& scene, const Camera& camera, const RenderParams& param
     return frame;
 }
 
-}  // namespace vastray
+BatchResult intersect_scene(const Scene& scene, const double* origins, const double* directions, const double* tmin,
+                            const double* tmax, std::size_t n, unsigned threads) {
+    BatchResult out;
+    out.t.assign(n, std::numeric_limits<double>::infinity());
+    out.prim.assign(n, -1);
+    out.u.assign(n, 0.0f);
+    out.v.assign(n, 0.0f);
+    out.normal.assign(3 * n, 0.0f);
+    ThreadPool& pool = ThreadPool::global();
+    std::vector<TraversalCounters> lane_counters(pool.lanes());
+    pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned lane) {
+        TraversalCounters& c = lane_counters[lane];
+        for (std::size_t i = b * kBatch; i < std::min(n, (b + 1) * kBatch); ++i) {
+            const WorldRay wr = load_ray(origins, directions, tmin, tmax, i);
+            if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
+            Hit hit;
+            if (traverse<false>(scene.tree(), scene.tri_vertices(), scene.to_local(wr), hit, c)) {
+                out.t[i] = hit.t;
+                out.prim[i] = scene.input_id(hit.prim);
+                out.u[i] = hit.u;
+                out.v[i] = hit.v;
+                const Vec3f nrm = normalize(scene.normal(hit.prim));
+                for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
+            }
+        }
+    }, threads);
+    for (const auto& c : lane_counters) {
+        out.counters.node_visits += c.node_visits;
+        out.counters.triangle_tests += c.triangle_tests;
+    }
+    return out;
+}
+
+std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
+                                         const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
+    // Runs of rays from one origin (the AO rays of a point) go as packets of up to 8.
+    constexpr int kPacket = 8;
+    std::vector<std::uint8_t> out(n, 0);
+    ThreadPool& pool = ThreadPool::global();
+    pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
+        TraversalCounters c;
+        const std::size_t end = std::min(n, (b + 1) * kBatch);
+        for (std::size_t i = b * kBatch; i < end;) {
+            SceneSecondary rays[kPacket];
+            std::uint32_t mask = 0;
+            int count = 0;
+            const Vec3d o(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]);
+            for (; count < kPacket && i + static_cast<std::size_t>(count) < end; ++count) {
+                const std::size_t j = i + static_cast<std::size_t>(count);
+                if (origins[3 * j] != o.x || origins[3 * j + 1] != o.y || origins[3 * j + 2] != o.z) break;
+                const WorldRay wr = load_ray(origins, directions, tmin, tmax, j);
+                if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
+                rays[count].ray = scene.to_local(wr);
+                mask |= 1u << count;
+            }
+            const std::uint32_t blocked = count == 1 ? scene_occluded<1>(scene, rays, mask, c)
+                                          : mask    ? scene_occluded<kPacket>(scene, rays, mask, c)
+                                                    : 0u;
+            for (int k = 0; k < count; ++k) out[i + static_cast<std::size_t>(k)] = (blocked >> k & 1u) ? 1 : 0;
+            i += static_cast<std::size_t>(std::max(count, 1));
+        }
+    }, threads);
+    return out;
+}
+
+VASTRAY_KERNEL_END

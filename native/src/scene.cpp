@@ -3,8 +3,6 @@
 #include <stdexcept>
 #include <string>
 
-#include "vastray/thread_pool.h"
-
 namespace vastray {
 
 Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
@@ -54,77 +52,6 @@ Ray Scene::to_local(const WorldRay& r) const {
 Vec3f Scene::normal(std::uint32_t prim) const {
     const Vec3f* v = tri_vertices_.data() + 3 * static_cast<std::size_t>(prim);
     return cross(v[1] - v[0], v[2] - v[0]);
-}
-
-namespace {
-
-WorldRay load_ray(const double* origins, const double* directions, const double* tmin,
-                  const double* tmax, std::size_t i) {
-    WorldRay r;
-    r.org = {origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]};
-    r.dir = {directions[3 * i], directions[3 * i + 1], directions[3 * i + 2]};
-    r.tmin = tmin[i];
-    r.tmax = tmax[i];
-    return r;
-}
-
-bool ray_is_valid(const WorldRay& r) {
-    return all_finite(r.org) && all_finite(r.dir) && dot(r.dir, r.dir) > 0 && !std::isnan(r.tmin) &&
-           !std::isnan(r.tmax);
-}
-
-constexpr std::size_t kBatch = 1024;
-
-}  // namespace
-
-BatchResult intersect_batch(const Scene& scene, const double* origins, const double* directions,
-                            const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    BatchResult out;
-    out.t.assign(n, std::numeric_limits<double>::infinity());
-    out.prim.assign(n, -1);
-    out.u.assign(n, 0.0f);
-    out.v.assign(n, 0.0f);
-    out.normal.assign(3 * n, 0.0f);
-    ThreadPool& pool = ThreadPool::global();
-    std::vector<TraversalCounters> lane_counters(pool.lanes());
-    pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned lane) {
-        TraversalCounters& c = lane_counters[lane];
-        for (std::size_t i = b * kBatch; i < std::min(n, (b + 1) * kBatch); ++i) {
-            const WorldRay wr = load_ray(origins, directions, tmin, tmax, i);
-            if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
-            Hit hit;
-            if (scene.trace<false>(scene.to_local(wr), hit, c)) {
-                out.t[i] = hit.t;
-                out.prim[i] = scene.input_id(hit.prim);
-                out.u[i] = hit.u;
-                out.v[i] = hit.v;
-                const Vec3f nrm = normalize(scene.normal(hit.prim));
-                for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
-            }
-        }
-    }, threads);
-    for (const auto& c : lane_counters) {
-        out.counters.node_visits += c.node_visits;
-        out.counters.triangle_tests += c.triangle_tests;
-    }
-    return out;
-}
-
-std::vector<std::uint8_t> occluded_batch(const Scene& scene, const double* origins,
-                                         const double* directions, const double* tmin,
-                                         const double* tmax, std::size_t n, unsigned threads) {
-    std::vector<std::uint8_t> out(n, 0);
-    ThreadPool& pool = ThreadPool::global();
-    pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
-        TraversalCounters c;
-        for (std::size_t i = b * kBatch; i < std::min(n, (b + 1) * kBatch); ++i) {
-            const WorldRay wr = load_ray(origins, directions, tmin, tmax, i);
-            if (!ray_is_valid(wr)) continue;
-            Hit hit;
-            out[i] = scene.trace<true>(scene.to_local(wr), hit, c) ? 1 : 0;
-        }
-    }, threads);
-    return out;
 }
 
 }  // namespace vastray

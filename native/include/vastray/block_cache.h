@@ -122,9 +122,10 @@ public:
 
     // Frame protocol. begin_frame returns the frame's tick (stamps and epochs).
     std::uint32_t begin_frame(FrameCacheStats& stats);
-    // `requests`: the (model, block) pairs this frame asked for first.
+    // `requests`: the (model, block) pairs this frame asked for first. `limit` bounds how
+    // many of them join the fetch queue (0: max_requests_per_frame).
     void end_frame(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
-                   FrameCacheStats& stats);
+                   FrameCacheStats& stats, std::size_t limit = 0);
 
     // Slot bytes (valid for the frame that looked the slot up).
     const std::uint8_t* slot_data(std::int32_t slot) const {
@@ -146,6 +147,8 @@ public:
     bool wait_for_fetches(double timeout_ms);
     // Blocks until nothing is queued or loading (tests and benchmarks).
     void drain();
+    // Blocks until nothing is queued or loading, or `timeout_ms` passes; true if idle.
+    bool wait_idle(double timeout_ms);
 
     CacheTotals totals() const;
     // Resident blocks of a model with the tick of the frame that last used each (tests,

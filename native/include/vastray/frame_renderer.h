@@ -1,38 +1,64 @@
 // The one frame loop of both renderers: tiles over the thread pool, primary rays in
-// packets or singly, and the shading of every mode. A renderer supplies only its
-// traversal, as a Backend:
+// packets or singly, and the shading of every mode, secondary rays included. A renderer
+// supplies only its traversal, as a Backend:
 //
 //   using Ray = ...; using Hit = ...;   // Hit derives from vastray::Hit (t, prim, u, v)
 //   using Lane = ...;                   // per-thread traversal state; has node_visits
 //                                       // and triangle_tests counters
+//   using Secondary = ...;              // a secondary ray: has `ray`, a Ray
 //   Ray primary_ray(int x, int y) const;
 //   void trace(Lane&, const Ray&, Hit&) const;                       // closest hit
 //   template <int Side> bool trace_packet(Lane&, const Ray*, Hit*) const;
 //       // Side x Side rays in row order; false (nothing traced) when not coherent
 //   std::int32_t prim_id(const Hit&) const;                          // what Frame::prim holds
 //   void surface(const Hit&, Vec3f& unit_normal, Vec3f& colour) const;
-//   bool occluded(Lane&, const Ray& primary, const Hit&, const Vec3f& n, const Vec3f& dir,
-//                 float tmax, SecondaryRay kind) const;            // shadow and AO rays
+//   Secondary secondary_ray(const Ray& incoming, const Hit&, const Vec3f& n, const Vec3f& dir,
+//                           float tmax, SecondaryRay kind) const;  // leaving a hit
+//   template <int N> std::uint32_t occluded(Lane&, const Secondary* rays, std::uint32_t mask,
+//                                           RayGroup group) const;
+//       // any hit of the rays selected by mask (N = 1, 4, 8 or 16): the bits of those blocked
+//   void trace_secondary(Lane&, const Secondary&, Hit&) const;       // closest hit (diffuse)
 //   float ao_distance() const;
 //
 // Both backends trace the same rays (CameraRays) and shade them with the same terms,
-// so a full-detail out-of-core image equals the in-core one pixel for pixel.
+// so a full-detail out-of-core image equals the in-core one pixel for pixel. Secondary
+// rays go to the backend in groups that share an origin (the AO rays of a pixel) or a
+// direction (the shadow rays of a pixel block), which its packets exploit; any-hit
+// answers do not depend on how rays are grouped.
 #pragma once
 
 #include <algorithm>
 #include <chrono>
+#include <cstdint>
+#include <limits>
+#include <memory>
 #include <vector>
 
+#include "vastray/denoise.h"
+#include "vastray/isa.h"
 #include "vastray/render.h"
 #include "vastray/shading.h"
 
-namespace vastray {
+VASTRAY_KERNEL_BEGIN
 
-enum class SecondaryRay { Shadow, AmbientOcclusion };
+// Shadow rays continue the cone of the ray that found the hit (PoE metric); AO and
+// diffuse rays start their own (solid-angle metric).
+enum class SecondaryRay { Shadow, AmbientOcclusion, Diffuse };
+// How the rays of one occlusion query relate.
+enum class RayGroup { SharedOrigin, SharedDirection };
 
 // Rays traced by one lane; node and triangle counts live in the backend's lane.
 struct LaneRays {
     std::uint64_t primary = 0, secondary = 0;
+};
+
+// Per-pixel terms of the indirect mode, kept until the whole frame is traced: the
+// filter needs every pixel's neighbours.
+struct IndirectTerms {
+    std::vector<float> albedo, direct, light, normal;  // 3, 1, 3, 3 floats per pixel
+
+    explicit IndirectTerms(std::size_t pixels)
+        : albedo(3 * pixels, 0.0f), direct(pixels, 0.0f), light(3 * pixels, 0.0f), normal(3 * pixels, 0.0f) {}
 };
 
 template <typename Backend>
@@ -41,10 +67,14 @@ public:
     using Ray = typename Backend::Ray;
     using Hit = typename Backend::Hit;
     using Lane = typename Backend::Lane;
+    using Secondary = typename Backend::Secondary;
 
-    FrameShader(const Backend& backend, const RenderParams& params, int packets, Frame& frame)
-        : backend_(backend), params_(params), packets_(packets), frame_(frame),
-          sun_(Vec3f(normalize(params.sun_direction))) {}
+    FrameShader(const Backend& backend, const RenderParams& params, const Camera& camera, int packets, Frame& frame,
+                IndirectTerms* indirect)
+        : backend_(backend), params_(params), packets_(packets), frame_(frame), indirect_(indirect),
+          sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)) {
+        up_ = normalize(up_);
+    }
 
     void render_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
         for (int y = y0; y < y1; y += 4) {
@@ -63,80 +93,223 @@ public:
     }
 
 private:
+    // A block of primary hits being shaded together (one packet, or one pixel).
+    template <int P>
+    struct Block {
+        int x[P], y[P];
+        Ray ray[P];
+        Hit hit[P];
+        Vec3f n[P], colour[P];
+        std::uint32_t lit = 0;  // pixels that see the model
+    };
+
     template <int Side>
     bool trace_packet(int x, int y, Lane& lane, LaneRays& rays) const {
         constexpr int N = Side * Side;
-        Ray ray[N];
-        Hit hit[N];
-        for (int i = 0; i < N; ++i) ray[i] = backend_.primary_ray(x + i % Side, y + i / Side);
-        if (!backend_.template trace_packet<Side>(lane, ray, hit)) return false;
+        Block<N> b;
+        for (int i = 0; i < N; ++i) {
+            b.x[i] = x + i % Side;
+            b.y[i] = y + i / Side;
+            b.ray[i] = backend_.primary_ray(b.x[i], b.y[i]);
+        }
+        if (!backend_.template trace_packet<Side>(lane, b.ray, b.hit)) return false;
         rays.primary += N;
-        for (int i = 0; i < N; ++i) shade_pixel(x + i % Side, y + i / Side, ray[i], hit[i], lane, rays);
+        shade(b, lane, rays);
         return true;
     }
 
     void trace_single(int x, int y, Lane& lane, LaneRays& rays) const {
-        const Ray ray = backend_.primary_ray(x, y);
-        Hit hit;
-        backend_.trace(lane, ray, hit);
+        Block<1> b;
+        b.x[0] = x;
+        b.y[0] = y;
+        b.ray[0] = backend_.primary_ray(x, y);
+        backend_.trace(lane, b.ray[0], b.hit[0]);
         ++rays.primary;
-        shade_pixel(x, y, ray, hit, lane, rays);
+        shade(b, lane, rays);
     }
 
-    void shade_pixel(int x, int y, const Ray& ray, const Hit& hit, Lane& lane, LaneRays& rays) const {
-        const std::size_t px = static_cast<std::size_t>(y) * frame_.width + x;
-        std::uint8_t* rgb = frame_.rgb.data() + 3 * px;
-        if (hit.prim == kNoHit) {
-            shading::background(y, frame_.height, rgb);
-            return;
-        }
-        frame_.depth[px] = hit.t;
-        frame_.prim[px] = backend_.prim_id(hit);
-        Vec3f n, colour;
-        backend_.surface(hit, n, colour);
-        if (params_.shading == Shading::Normal) {
-            colour = (n + Vec3f(1, 1, 1)) * 0.5f;
-        } else {
-            const Vec3f dir = direction(ray);
-            if (dot(n, dir) > 0) n = -n;  // shade the side the viewer sees
-            colour = colour * light(ray, hit, n, dir, x, y, lane, rays);
-        }
-        shading::store_rgb(colour, rgb);
-    }
+    std::size_t pixel(int x, int y) const { return static_cast<std::size_t>(y) * frame_.width + x; }
 
-    float light(const Ray& ray, const Hit& hit, const Vec3f& n, const Vec3f& dir, int x, int y, Lane& lane,
-                LaneRays& rays) const {
+    template <int P>
+    void shade(Block<P>& b, Lane& lane, LaneRays& rays) const {
+        for (int i = 0; i < P; ++i) {
+            const std::size_t px = pixel(b.x[i], b.y[i]);
+            if (b.hit[i].prim == kNoHit) {
+                shading::background(b.y[i], frame_.height, frame_.rgb.data() + 3 * px);
+                continue;
+            }
+            b.lit |= 1u << i;
+            frame_.depth[px] = b.hit[i].t;
+            frame_.prim[px] = backend_.prim_id(b.hit[i]);
+            backend_.surface(b.hit[i], b.n[i], b.colour[i]);
+            if (params_.shading != Shading::Normal && dot(b.n[i], direction(b.ray[i])) > 0) {
+                b.n[i] = -b.n[i];  // shade the side the viewer sees
+            }
+        }
+        if (!b.lit) return;
+        float light[P];
         switch (params_.shading) {
-            case Shading::Headlight:
-                return shading::headlight(n, dir);
-            case Shading::Sun: {
-                const float lambert = dot(n, sun_);
-                float visible = 0;
-                if (lambert > 0) {
-                    ++rays.secondary;
-                    const float inf = std::numeric_limits<float>::infinity();
-                    visible = backend_.occluded(lane, ray, hit, n, sun_, inf, SecondaryRay::Shadow) ? 0.0f : 1.0f;
-                }
-                return shading::sun(lambert, visible);
-            }
-            case Shading::AmbientOcclusion: {
-                const int samples = std::max(1, params_.ao_samples);
-                const shading::Basis basis(n);
-                int open = 0;
-                for (int k = 0; k < samples; ++k) {
-                    ++rays.secondary;
-                    const Vec3f probe = shading::ao_direction(basis, x, y, k);
-                    if (!backend_.occluded(lane, ray, hit, n, probe, backend_.ao_distance(),
-                                           SecondaryRay::AmbientOcclusion)) {
-                        ++open;
-                    }
-                }
-                return shading::ambient(open, samples);
-            }
             case Shading::Normal:
-                break;
+                for (int i = 0; i < P; ++i) {
+                    if (b.lit >> i & 1u) store(b, i, (b.n[i] + Vec3f(1, 1, 1)) * 0.5f);
+                }
+                return;
+            case Shading::Headlight:
+                for (int i = 0; i < P; ++i) {
+                    if (b.lit >> i & 1u) store(b, i, b.colour[i] * shading::headlight(b.n[i], direction(b.ray[i])));
+                }
+                return;
+            case Shading::Sun: {
+                const std::uint32_t visible = sunlit(b, lane, rays);
+                for (int i = 0; i < P; ++i) {
+                    if (!(b.lit >> i & 1u)) continue;
+                    light[i] = shading::sun(dot(b.n[i], sun_), (visible >> i & 1u) ? 1.0f : 0.0f);
+                    store(b, i, b.colour[i] * light[i]);
+                }
+                return;
+            }
+            case Shading::AmbientOcclusion:
+                for (int i = 0; i < P; ++i) {
+                    if (b.lit >> i & 1u) store(b, i, b.colour[i] * ambient_occlusion(b, i, lane, rays));
+                }
+                return;
+            case Shading::Indirect:
+                indirect(b, lane, rays);
+                return;
         }
-        return 1.0f;
+    }
+
+    template <int P>
+    void store(const Block<P>& b, int i, const Vec3f& colour) const {
+        shading::store_rgb(colour, frame_.rgb.data() + 3 * pixel(b.x[i], b.y[i]));
+    }
+
+    // Occlusion of up to P rays sharing an origin or a direction, in packets the backend
+    // can use: 16, 8 or 4 rays, or one.
+    template <int P>
+    std::uint32_t occluded(Lane& lane, const Secondary* rays, std::uint32_t mask, RayGroup group) const {
+        if (!mask) return 0;
+        if constexpr (P >= 16) {
+            std::uint32_t out = 0;
+            for (int i = 0; i < P; i += 16) {
+                out |= backend_.template occluded<16>(lane, rays + i, (mask >> i) & 0xffffu, group) << i;
+            }
+            return out;
+        } else if constexpr (P >= 4) {
+            return backend_.template occluded<P>(lane, rays, mask, group);
+        } else {
+            std::uint32_t out = 0;
+            for (int i = 0; i < P; ++i) {
+                if (mask >> i & 1u) out |= backend_.template occluded<1>(lane, rays + i, 1u, group) << i;
+            }
+            return out;
+        }
+    }
+
+    // The pixels of the block that see the sun (facing it, and no shadow ray blocked).
+    template <int P>
+    std::uint32_t sunlit(const Block<P>& b, Lane& lane, LaneRays& rays) const {
+        Secondary shadow[P];
+        std::uint32_t facing = 0;
+        const float inf = std::numeric_limits<float>::infinity();
+        for (int i = 0; i < P; ++i) {
+            if (!(b.lit >> i & 1u) || !(dot(b.n[i], sun_) > 0)) {
+                shadow[i] = Secondary{};
+                continue;
+            }
+            facing |= 1u << i;
+            shadow[i] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], sun_, inf, SecondaryRay::Shadow);
+        }
+        rays.secondary += static_cast<std::uint64_t>(__builtin_popcount(facing));
+        return facing & ~occluded<P>(lane, shadow, facing, RayGroup::SharedDirection);
+    }
+
+    template <int P>
+    float ambient_occlusion(const Block<P>& b, int i, Lane& lane, LaneRays& rays) const {
+        constexpr int kGroup = 8;  // AO rays of one pixel per occlusion query
+        const int samples = std::max(1, params_.ao_samples);
+        const shading::Basis basis(b.n[i]);
+        const int first = params_.sample_index * samples;
+        int open = 0;
+        for (int k0 = 0; k0 < samples; k0 += kGroup) {
+            Secondary probe[kGroup];
+            const int count = std::min(kGroup, samples - k0);
+            for (int k = 0; k < count; ++k) {
+                const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], first + k0 + k);
+                probe[k] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, backend_.ao_distance(),
+                                                  SecondaryRay::AmbientOcclusion);
+            }
+            for (int k = count; k < kGroup; ++k) probe[k] = probe[0];
+            const std::uint32_t mask = (1u << count) - 1;
+            open += count - __builtin_popcount(occluded<kGroup>(lane, probe, mask, RayGroup::SharedOrigin));
+        }
+        rays.secondary += static_cast<std::uint64_t>(samples);
+        return shading::ambient(open, samples);
+    }
+
+    // Sun with shadows, plus one bounce: kDiffuseRays cosine-weighted rays per pixel
+    // bring the sky's light where they escape and the sunlit surface's where they hit
+    // (a shadow ray from that surface). The noisy part (the diffuse rays' light) waits
+    // in `indirect_` for the filter; compose() makes the pixel.
+    template <int P>
+    void indirect(const Block<P>& b, Lane& lane, LaneRays& rays) const {
+        constexpr int D = shading::kDiffuseRays;
+        const std::uint32_t visible = sunlit(b, lane, rays);
+        Secondary diffuse[P * D];
+        Hit bounce[P * D];
+        Vec3f bounce_light[P * D];
+        Secondary shadow[P * D];
+        std::uint32_t facing[(P * D + 31) / 32] = {};
+        const float inf = std::numeric_limits<float>::infinity();
+        for (int i = 0; i < P; ++i) {
+            if (!(b.lit >> i & 1u)) continue;
+            const shading::Basis basis(b.n[i]);
+            for (int k = 0; k < D; ++k) {
+                const int j = D * i + k;
+                const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], D * params_.sample_index + k,
+                                                        shading::kDiffuseSalt);
+                diffuse[j] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, inf, SecondaryRay::Diffuse);
+                backend_.trace_secondary(lane, diffuse[j], bounce[j]);
+                ++rays.secondary;
+                if (bounce[j].prim == kNoHit) {
+                    bounce_light[j] = shading::sky(dir, up_);
+                    continue;
+                }
+                Vec3f ny, albedo;
+                backend_.surface(bounce[j], ny, albedo);
+                if (dot(ny, dir) > 0) ny = -ny;  // the side the diffuse ray sees
+                const float lambert = dot(ny, sun_);
+                bounce_light[j] = albedo * (shading::kSunLight * std::max(0.0f, lambert));
+                if (lambert > 0) {
+                    facing[j / 32] |= 1u << (j % 32);
+                    shadow[j] = backend_.secondary_ray(diffuse[j].ray, bounce[j], ny, sun_, inf, SecondaryRay::Shadow);
+                }
+            }
+        }
+        // The bounce points' shadow rays share the sun's direction.
+        for (int g = 0; g < (P * D + 31) / 32; ++g) {
+            if (!facing[g]) continue;
+            rays.secondary += static_cast<std::uint64_t>(__builtin_popcount(facing[g]));
+            constexpr int G = P * D >= 32 ? 32 : P * D;
+            const std::uint32_t blocked = occluded<G>(lane, shadow + 32 * g, facing[g], RayGroup::SharedDirection);
+            for (int j = 0; j < G; ++j) {
+                if (blocked >> j & 1u) bounce_light[32 * g + j] = Vec3f(0, 0, 0);
+            }
+        }
+        for (int i = 0; i < P; ++i) {
+            if (!(b.lit >> i & 1u)) continue;
+            const std::size_t px = pixel(b.x[i], b.y[i]);
+            Vec3f sum(0, 0, 0);
+            for (int k = 0; k < D; ++k) sum += bounce_light[D * i + k];
+            const Vec3f mean = sum * (1.0f / static_cast<float>(D));
+            const float direct = (visible >> i & 1u) ? shading::kSunLight * dot(b.n[i], sun_) : 0.0f;
+            for (int c = 0; c < 3; ++c) {
+                indirect_->albedo[3 * px + c] = b.colour[i][c];
+                indirect_->light[3 * px + c] = mean[c];
+                indirect_->normal[3 * px + c] = b.n[i][c];
+            }
+            indirect_->direct[px] = direct;
+        }
     }
 
     static const Vec3f& direction(const vastray::Ray& r) { return r.dir; }
@@ -149,8 +322,29 @@ private:
     const RenderParams& params_;
     int packets_;
     Frame& frame_;
-    Vec3f sun_;
+    IndirectTerms* indirect_;
+    Vec3f sun_, up_;
 };
+
+// The indirect mode's pixels once every pixel is traced: the diffuse light filtered,
+// then albedo * (sun + filtered light).
+inline void compose_indirect(IndirectTerms& terms, const shading::CameraRays& camera, const RenderParams& params,
+                             Frame& frame) {
+    denoise::Guides guides;
+    guides.width = frame.width;
+    guides.height = frame.height;
+    guides.depth = frame.depth.data();
+    guides.normal = terms.normal.data();
+    guides.pixel_angle = static_cast<float>(camera.pixel_angle);
+    denoise::filter(guides, terms.light, params.threads);
+    const std::size_t pixels = frame.depth.size();
+    for (std::size_t p = 0; p < pixels; ++p) {
+        if (!(frame.depth[p] < std::numeric_limits<float>::infinity())) continue;
+        Vec3f c;
+        for (int k = 0; k < 3; ++k) c[k] = terms.albedo[3 * p + k] * (terms.direct[p] + terms.light[3 * p + k]);
+        shading::store_rgb(c, frame.rgb.data() + 3 * p);
+    }
+}
 
 // Renders every tile of `frame` (already sized and blank) with `backend`, one Lane per
 // pool lane, and adds the ray counts to frame.stats. `lanes` stays with the caller,
@@ -158,11 +352,14 @@ private:
 template <typename Backend>
 void trace_frame(const Backend& backend, const Camera& camera, const RenderParams& params, int packets,
                  std::vector<typename Backend::Lane>& lanes, Frame& frame) {
-    const FrameShader<Backend> shader(backend, params, packets, frame);
+    std::unique_ptr<IndirectTerms> terms;
+    if (params.shading == Shading::Indirect) terms = std::make_unique<IndirectTerms>(frame.depth.size());
+    const FrameShader<Backend> shader(backend, params, camera, packets, frame, terms.get());
     std::vector<LaneRays> rays(lanes.size());
     shading::for_each_tile(camera, params, [&](int x0, int y0, int x1, int y1, unsigned lane) {
         shader.render_tile(x0, y0, x1, y1, lanes[lane], rays[lane]);
     });
+    if (terms) compose_indirect(*terms, shading::CameraRays(camera), params, frame);
     for (std::size_t i = 0; i < lanes.size(); ++i) {
         frame.stats.primary_rays += rays[i].primary;
         frame.stats.secondary_rays += rays[i].secondary;
@@ -183,4 +380,4 @@ private:
     std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
 };
 
-}  // namespace vastray
+VASTRAY_KERNEL_END

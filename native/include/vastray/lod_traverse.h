@@ -17,9 +17,10 @@
 
 #include "vastray/block_cache.h"
 #include "vastray/format.h"
+#include "vastray/isa.h"
 #include "vastray/traverse.h"
 
-namespace vastray {
+VASTRAY_KERNEL_BEGIN
 
 constexpr std::uint32_t kVoxelPrim = 0xfffffffeu;  // LodHit::prim of a voxel hit
 
@@ -173,8 +174,9 @@ public:
 
     bool missing() const { return block_ == nullptr; }
 
-    // The next triangle; false at the end of the leaf or when a block is missing.
-    bool next(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& id, std::uint32_t& local) {
+    // The next triangle (its index in the current block); false at the end of the leaf
+    // or when a block is missing.
+    bool next(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& local) {
         while (block_ && left_ > 0) {
             --left_;
             while (block_ && entry_ >= entries_) {  // a big leaf continues in the next block
@@ -189,7 +191,6 @@ public:
             const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
                                 i2 = load<std::uint16_t>(corner + 4);
             if (i0 >= verts_ || i1 >= verts_ || i2 >= verts_) continue;
-            id = load<std::uint32_t>(block_ + layout_.ids + 4 * std::size_t{local});
             v0 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i0});
             v1 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i1});
             v2 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i2});
@@ -198,6 +199,11 @@ public:
         return false;
     }
     const std::uint8_t* block() const { return block_; }
+    // The input id of triangle `local` of the current block, read only when needed: the
+    // ids live in their own section, a cache line away from the vertices.
+    std::uint32_t id(std::uint32_t local) const {
+        return load<std::uint32_t>(block_ + layout_.ids + 4 * std::size_t{local});
+    }
 
 private:
     void open(std::uint32_t id) {
@@ -219,27 +225,25 @@ private:
 
 }  // namespace lod_detail
 
+// The walk of one ray through the subtree at `node`, entered with the segment
+// [tmin, tmax] by the face on `entry_axis`, below the voxel last passed (`voxel`).
 // Closest hit (AnyHit = false) or any hit (AnyHit = true); voxels count as hits.
+// Returns true when the ray is finished (its hit can no longer change: a voxel stood in,
+// a hit lies inside its cell, an any-hit ray hit, or a node is damaged), false when the
+// subtree is done and cells beyond it may still hold a nearer hit. lod_traverse() walks
+// from the root; the packets hand their last live ray to it mid-tree.
 template <bool AnyHit>
-inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lray, LodHit& hit,
-                         std::uint32_t skip = kNoHit) {
+inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, lod_detail::NodeRef node,
+                     float tmin, float tmax, int entry_axis, lod_detail::Voxel voxel, LodHit& hit,
+                     std::uint32_t skip) {
     using namespace format;
     using lod_detail::load;
+    using lod_detail::NodeRef;
     using lod_detail::Voxel;
     const Ray& ray = lray.ray;
-    float tmin, tmax;
-    int entry_axis;
-    hit.t = ray.tmax;
-    hit.prim = kNoHit;
-    if (!lod_detail::clip_with_axis(ray, root_cell, tmin, tmax, entry_axis)) return false;
-    const std::uint8_t* block = lane.lookup(lane.level_first[0], 0.0f);
-    if (!block) return false;
-
-    const ShearedRay sheared(ray.dir);
     const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
     const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
     const bool dir_negative[3] = {std::signbit(ray.dir.x), std::signbit(ray.dir.y), std::signbit(ray.dir.z)};
-    using lod_detail::NodeRef;
     struct Entry {
         NodeRef node;
         float tmin, tmax;
@@ -248,8 +252,6 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     };
     Entry stack[64];
     int top = 0;
-    NodeRef node{block, 0, 0};
-    Voxel voxel{nullptr, 0.0f};  // the last voxel passed on the way to `node`
     auto take_voxel = [&](const Voxel& v, float t) {
         if (t < hit.t) lod_detail::hit_voxel(v, entry_axis, ray, t, hit);
         ++lane.voxel_hits;
@@ -277,7 +279,7 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
                 voxel = here;
             }
             NodeRef left, right;
-            if (!lod_detail::children_of(node, w, child, left, right)) return hit.prim != kNoHit;  // damaged
+            if (!lod_detail::children_of(node, w, child, left, right)) return true;  // damaged: stop here
             const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
             const float abs_split = std::abs(t_split);
@@ -314,12 +316,12 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
             const float priority = voxel.samples ? voxel.radius / std::max(lray.cone_t0 + tmin, 1e-30f) : 0.0f;
             lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
             Vec3f v0, v1, v2;
-            std::uint32_t id, local;
-            while (triangles.next(v0, v1, v2, id, local)) {
-                if (id == skip) continue;
+            std::uint32_t local;
+            while (triangles.next(v0, v1, v2, local)) {
+                if (skip != kNoHit && triangles.id(local) == skip) continue;
                 ++lane.triangle_tests;
                 if (intersect_triangle(ray, sheared, v0, v1, v2, hit)) {
-                    hit.prim = id;
+                    hit.prim = triangles.id(local);
                     hit.tri_block = triangles.block();
                     hit.local = local;
                     if (AnyHit) return true;
@@ -333,7 +335,7 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
             }
         }
         for (;;) {
-            if (top == 0) return hit.prim != kNoHit;
+            if (top == 0) return false;
             const Entry& e = stack[--top];
             if (e.tmin > hit.t) continue;
             node = e.node;
@@ -346,4 +348,22 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     }
 }
 
-}  // namespace vastray
+// Closest hit (AnyHit = false) or any hit (AnyHit = true) of one ray; voxels count as
+// hits. `skip` is a triangle never reported (the surface a secondary ray leaves).
+template <bool AnyHit>
+inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lray, LodHit& hit,
+                         std::uint32_t skip = kNoHit) {
+    const Ray& ray = lray.ray;
+    float tmin, tmax;
+    int entry_axis;
+    hit.t = ray.tmax;
+    hit.prim = kNoHit;
+    if (!lod_detail::clip_with_axis(ray, root_cell, tmin, tmax, entry_axis)) return false;
+    const std::uint8_t* block = lane.lookup(lane.level_first[0], 0.0f);
+    if (!block) return false;
+    lod_walk<AnyHit>(lane, lray, ShearedRay(ray.dir), {block, 0, 0}, tmin, tmax, entry_axis, {nullptr, 0.0f}, hit,
+                     skip);
+    return hit.prim != kNoHit;
+}
+
+VASTRAY_KERNEL_END

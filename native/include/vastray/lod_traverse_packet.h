@@ -1,18 +1,37 @@
-// Packet version of lod_traverse for primary rays: N rays from one origin (a 4x4 pixel
-// block) walk the cached tree together. One node fetch, one block lookup and one
-// near/far decision serve the whole packet; each ray keeps its own segment, LOD test,
-// voxel hit and termination, computed with exactly the single-ray arithmetic, so a
-// packet changes speed, never answers (tests compare full-detail frames bit for bit).
+// Packet versions of lod_traverse: N rays walk the cached tree together, in N / W SIMD
+// vectors (packet.h). One node fetch, one block lookup and one decision serve the
+// packet; each ray keeps its own segment, LOD test, voxel hit and termination, computed
+// lane by lane with exactly the single-ray arithmetic, so a packet changes speed, never
+// answers (tests compare full-detail frames bit for bit).
 //
-// Preconditions (lod_packet_is_coherent): a shared origin, and every direction
-// component non-zero with the same sign across the packet, so that every ray orders
-// the children of every node alike.
+// Two kinds of packet (LodPacketOrder):
+//   SharedOrigin  rays from one point: the primary rays of a pixel block (closest hit,
+//                 and every direction sign alike), or the AO rays of one pixel (any hit,
+//                 any directions). The packet visits the child on the origin's side of
+//                 each plane first, which is every ray's own near child.
+//   SharedSigns   rays whose directions agree in sign on every axis, from any origins:
+//                 the shadow rays of a pixel block towards the sun (any hit). The packet
+//                 visits the child the directions point away from first; a ray whose
+//                 origin lies beyond the plane has only that one child to visit anyway.
+// Either way a lane's segments in the two children are the single-ray ones, mapped to
+// the packet's order. Any-hit packets retire a ray at its first triangle or voxel; their
+// answers do not depend on the order at all.
 #pragma once
 
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+#include "vastray/isa.h"
 #include "vastray/lod_traverse.h"
+#include "vastray/packet.h"
 
-namespace vastray {
+VASTRAY_KERNEL_BEGIN
 
+enum class LodPacketOrder { SharedOrigin, SharedSigns };
+
+// Primary packets: a shared origin and cone, every direction component non-zero with
+// the same sign across the packet.
 template <int N>
 inline bool lod_packet_is_coherent(const LodRay* rays) {
     for (int a = 0; a < 3; ++a) {
@@ -24,75 +43,176 @@ inline bool lod_packet_is_coherent(const LodRay* rays) {
                 rays[k].ray.org.y != rays[0].ray.org.y || rays[k].ray.org.z != rays[0].ray.org.z) return false;
         }
     }
-    return true;
+    return rays[0].cone == rays[N - 1].cone && rays[0].cone_t0 == rays[N - 1].cone_t0;
 }
 
-template <int N>
-inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits) {
+namespace lod_detail {
+
+// Lanes k of `ids` equal to `id`, as bits.
+template <int W>
+inline int equal_lanes(const std::uint32_t* ids, std::uint32_t id) {
+    int m = 0;
+    for (int k = 0; k < W; ++k) m |= (ids[k] == id ? 1 : 0) << k;
+    return m;
+}
+
+}  // namespace lod_detail
+
+// The packet walk. Rays (and skips, hits) are in lane order; `mask` selects the rays to
+// trace. Closest hit (AnyHit = false): hits[i] gets ray i's hit. Any hit: returns the
+// rays that hit something (a triangle other than skip[i], or a voxel); hits are scratch.
+// SharedOrigin needs a shared origin; SharedSigns non-zero direction components whose
+// signs agree across the packet; both a shared cone slope.
+template <int N, bool AnyHit, LodPacketOrder Order>
+inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
+                                     const std::uint32_t* skip, std::uint32_t mask) {
     static_assert(N <= 32, "ray masks are 32-bit");
+    constexpr int W = packet_width<N>();
+    constexpr int K = N / W;
+    constexpr bool kShared = Order == LodPacketOrder::SharedOrigin;
+    using vf = simd::vfloat<W>;
+    using vm = simd::vmask<W>;
     using namespace format;
     using lod_detail::load;
+    using lod_detail::NodeRef;
     using lod_detail::Voxel;
     constexpr float kInf = std::numeric_limits<float>::infinity();
 
-    float tmin[N], tmax[N], inv[3][N];
-    std::int8_t axis_in[N];  // entry axis per ray
-    ShearedRay sheared[N];
-    const float org[3] = {rays[0].ray.org.x, rays[0].ray.org.y, rays[0].ray.org.z};
-    const float cone = rays[0].cone, cone_t0 = rays[0].cone_t0;
-    std::uint32_t live = 0;  // rays that may still change their hit
+    alignas(32) float lo[N], hi[N], axis0[N], d[3][N], o[3][N], t0[N];
+    std::uint32_t clipped = 0, negative[3] = {0, 0, 0};
     for (int i = 0; i < N; ++i) {
         const Ray& r = rays[i].ray;
         hits[i].t = r.tmax;
         hits[i].prim = kNoHit;
-        for (int a = 0; a < 3; ++a) inv[a][i] = 1.0f / r.dir[a];
         int axis = 0;
-        if (lod_detail::clip_with_axis(r, root_cell, tmin[i], tmax[i], axis)) {
-            live |= 1u << i;
+        if ((mask >> i & 1u) && lod_detail::clip_with_axis(r, root_cell, lo[i], hi[i], axis)) {
+            clipped |= 1u << i;
         } else {
-            tmin[i] = kInf;
-            tmax[i] = -kInf;
+            lo[i] = kInf;
+            hi[i] = -kInf;
         }
-        axis_in[i] = static_cast<std::int8_t>(axis);
-        sheared[i] = ShearedRay(r.dir);
+        axis0[i] = static_cast<float>(axis);
+        for (int a = 0; a < 3; ++a) {
+            d[a][i] = r.dir[a];
+            o[a][i] = r.org[a];
+            negative[a] |= (std::signbit(r.dir[a]) ? 1u : 0u) << i;
+        }
+        t0[i] = rays[i].cone_t0;
     }
-    if (!live) return;
+    if (!clipped) return 0;
     const std::uint8_t* root = lane.lookup(lane.level_first[0], 0.0f);
-    if (!root) return;
+    if (!root) return 0;
 
-    // All rays share the origin, so they all order children alike.
-    bool dir_negative[3];
-    for (int a = 0; a < 3; ++a) dir_negative[a] = std::signbit(rays[0].ray.dir[a]);
+    ShearedRay sheared[N];
+    for (int i = 0; i < N; ++i) sheared[i] = ShearedRay(rays[i].ray.dir);
+    ShearedRayV<W> sheared_v[K];
+    vf inv[3][K], org[3][K], cone_t0[K], tmin[K], tmax[K], axis_in[K], hit_t[K];
+    vm live[K], dir_neg[3][K];  // live: rays that may still change their hit
+    for (int v = 0; v < K; ++v) {
+        sheared_v[v] = ShearedRayV<W>(rays + W * v, sheared + W * v);
+        for (int a = 0; a < 3; ++a) {
+            const vf dv = vf::load(d[a] + W * v);
+            inv[a][v] = vf::broadcast(1.0f) / dv;
+            org[a][v] = vf::load(o[a] + W * v);
+            dir_neg[a][v] = vm::from_bits(negative[a] >> (W * v));
+        }
+        cone_t0[v] = vf::load(t0 + W * v);
+        tmin[v] = vf::load(lo + W * v);
+        tmax[v] = vf::load(hi + W * v);
+        axis_in[v] = vf::load(axis0 + W * v);
+        hit_t[v] = HitV<W>::load(hits + W * v).t;
+        live[v] = vm::from_bits(clipped >> (W * v));
+    }
+    const float cone = rays[0].cone;
+    const vf v_cone = vf::broadcast(cone);
+    const vf v_inf = vf::broadcast(kInf), v_neg_inf = vf::broadcast(-kInf);
+    // SharedSigns: the packet's near child is the one its directions leave.
+    bool sign_negative[3];
+    for (int a = 0; a < 3; ++a) sign_negative[a] = std::signbit(rays[0].ray.dir[a]);
+    std::uint32_t occluded = 0;
 
-    using lod_detail::NodeRef;
     struct Entry {
         NodeRef node;
         Voxel voxel;
-        float tmin[N], tmax[N];
-        std::int8_t axis[N];
+        vf tmin[K], tmax[K], axis[K];
     };
     Entry stack[64];
     int top = 0;
     NodeRef node{root, 0, 0};
     Voxel voxel{nullptr, 0.0f};
 
-    // Ray i stops at voxel v, entered at its current tmin.
-    auto take_voxel = [&](const Voxel& v, int i) {
-        if (tmin[i] < hits[i].t) lod_detail::hit_voxel(v, axis_in[i], rays[i].ray, tmin[i], hits[i]);
-        ++lane.voxel_hits;
-        live &= ~(1u << i);
+    // The lanes `which` of vector v stop at voxel `vx`, entered at their current tmin.
+    auto take_voxels = [&](const Voxel& vx, int v, int which) {
+        if (AnyHit) {
+            // A voxel counts where it lies before the ray's end, as in lod_traverse().
+            const int before = (tmin[v] < hit_t[v]).bits() & which;
+            occluded |= static_cast<std::uint32_t>(before) << (W * v);
+            lane.voxel_hits += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(which)));
+        } else {
+            alignas(32) float tv[W], ax[W];
+            tmin[v].store(tv);
+            axis_in[v].store(ax);
+            for (int k = 0; k < W; ++k) {
+                if (!(which >> k & 1)) continue;
+                LodHit& h = hits[W * v + k];
+                if (tv[k] < h.t) lod_detail::hit_voxel(vx, static_cast<int>(ax[k]), rays[W * v + k].ray, tv[k], h);
+                ++lane.voxel_hits;
+            }
+            hit_t[v] = HitV<W>::load(hits + W * v).t;
+        }
+        live[v] = andnot(vm::from_bits(static_cast<unsigned>(which)), live[v]);
     };
-    auto active_mask = [&]() {
-        std::uint32_t m = 0;
-        for (int i = 0; i < N; ++i) m |= (tmin[i] <= tmax[i] ? 1u : 0u) << i;
-        return m & live;
+    // The one active lane of `act` finishes the subtree at `at` as a single ray.
+    auto hand_off = [&](const NodeRef& at, const Voxel& last, const vm* act) {
+        for (int v = 0; v < K; ++v) {
+            const int bits = act[v].bits();
+            if (!bits) continue;
+            const int k = __builtin_ctz(static_cast<unsigned>(bits));
+            const int i = W * v + k;
+            alignas(32) float t0v[W], t1v[W], axv[W];
+            tmin[v].store(t0v);
+            tmax[v].store(t1v);
+            axis_in[v].store(axv);
+            LodHit& h = hits[i];
+            const bool finished = lod_walk<AnyHit>(lane, rays[i], sheared[i], at, t0v[k], t1v[k],
+                                                   static_cast<int>(axv[k]), last, h, skip ? skip[i] : kNoHit);
+            if (AnyHit) {
+                if (h.prim != kNoHit) occluded |= 1u << i;
+            } else {
+                hit_t[v] = HitV<W>::load(hits + W * v).t;
+            }
+            if (finished || (AnyHit && h.prim != kNoHit)) live[v] = andnot(vm::from_bits(1u << k), live[v]);
+            return;
+        }
+    };
+    auto nearest_of = [&](const vm* act) {
+        vf nearest = v_inf;
+        for (int v = 0; v < K; ++v) nearest = min(select(act[v], tmin[v] + cone_t0[v], v_inf), nearest);
+        alignas(32) float near_t[W];
+        nearest.store(near_t);
+        float reach = kInf;
+        for (int k = 0; k < W; ++k) reach = std::min(reach, near_t[k]);
+        return reach;
     };
 
     for (;;) {
         bool leaf = false;
+        vm active[K];
         for (;;) {
-            const std::uint32_t active = active_mask();
-            if (!active) break;
+            int any = 0, count = 0;
+            for (int v = 0; v < K; ++v) {
+                active[v] = live[v] & (tmin[v] <= tmax[v]);
+                const int bits = active[v].bits();
+                any |= bits;
+                count += __builtin_popcount(static_cast<unsigned>(bits));
+            }
+            if (!any) break;
+            if (count == 1) {
+                // The rays have parted: the last one walks this subtree alone, which costs
+                // it a scalar step per node instead of a packet's K vectors.
+                hand_off(node, voxel, active);
+                break;
+            }
             const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
             if (!is_inner(w)) {
                 leaf = true;
@@ -104,131 +224,161 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
             const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
                 const Voxel here = lod_detail::voxel_of(node, w);
-                float nearest = kInf;
-                for (int i = 0; i < N; ++i) {
-                    if (!(active >> i & 1u)) continue;
-                    if (here.radius <= (cone_t0 + tmin[i]) * cone) take_voxel(here, i);
-                    else nearest = std::min(nearest, tmin[i]);
+                const vf radius = vf::broadcast(here.radius);
+                int rest = 0;
+                for (int v = 0; v < K; ++v) {
+                    const vm accept = active[v] & (radius <= (cone_t0[v] + tmin[v]) * v_cone);
+                    if (const int a = accept.bits(); a != 0) take_voxels(here, v, a);
+                    active[v] = andnot(accept, active[v]);
+                    rest |= active[v].bits();
                 }
-                if (!(active & live)) break;
-                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(cone_t0 + nearest, 1e-30f));
+                if (!rest) break;
+                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(nearest_of(active), 1e-30f));
                 if (!child) {
-                    for (int i = 0; i < N; ++i) {
-                        if (active >> i & live >> i & 1u) take_voxel(here, i);
+                    for (int v = 0; v < K; ++v) {
+                        if (const int a = active[v].bits(); a != 0) take_voxels(here, v, a);
                     }
                     break;
                 }
                 voxel = here;
             }
             NodeRef left, right;
-            if (!lod_detail::children_of(node, w, child, left, right)) return;  // damaged node
-            const float o = org[axis];
-            const bool below_first = o < split || (o == split && dir_negative[axis]);
-            const NodeRef first = below_first ? left : right;
-            const NodeRef second = below_first ? right : left;
-            // Per ray, the single-ray cases as segments: [near_lo, near_hi] in the first
-            // child, [far_lo, far_hi] in the second (empty when lo > hi).
-            float near_hi[N], far_lo[N], far_hi[N];
-            std::uint32_t any_near = 0, any_far = 0;
-            for (int i = 0; i < N; ++i) {
-                const float t_split = (split - o) * inv[axis][i];
-                const float abs_split = std::abs(t_split);
-                const float slack = abs_split < kInf ? abs_split * kSplitSlack : 0.0f;
-                const float ts_lo = t_split - slack, ts_hi = t_split + slack;
-                if (t_split != t_split) {
-                    near_hi[i] = tmax[i];
-                    far_lo[i] = tmin[i];
-                } else if (t_split <= 0.0f) {
-                    near_hi[i] = tmax[i];
-                    far_lo[i] = kInf;
-                } else {
-                    near_hi[i] = std::min(tmax[i], ts_hi);
-                    far_lo[i] = std::max(tmin[i], ts_lo);
-                }
-                far_hi[i] = tmax[i];
-                const std::uint32_t bit = active >> i & 1u;
-                any_near |= (tmin[i] <= near_hi[i] ? bit : 0u) << i;
-                any_far |= (far_lo[i] <= far_hi[i] ? bit : 0u) << i;
-            }
-            if (!first.block) any_near = 0;
-            if (!second.block) any_far = 0;
-            if (any_near && any_far && top < 64) {
-                Entry& e = stack[top++];
-                e.node = second;
-                e.voxel = voxel;
-                for (int i = 0; i < N; ++i) {
-                    const bool in = any_far >> i & 1u;
-                    e.tmin[i] = in ? far_lo[i] : kInf;
-                    e.tmax[i] = in ? far_hi[i] : -kInf;
-                    e.axis[i] = far_lo[i] > tmin[i] ? static_cast<std::int8_t>(axis) : axis_in[i];
-                }
-            }
-            if (any_near) {
-                for (int i = 0; i < N; ++i) {
-                    if (any_near >> i & 1u) {
-                        tmax[i] = near_hi[i];
-                    } else {
-                        tmin[i] = kInf;
-                        tmax[i] = -kInf;
-                    }
-                }
-                node = first;
-            } else if (any_far) {
-                for (int i = 0; i < N; ++i) {
-                    if (any_far >> i & 1u) {
-                        if (far_lo[i] > tmin[i]) axis_in[i] = static_cast<std::int8_t>(axis);
-                        tmin[i] = far_lo[i];
-                    } else {
-                        tmin[i] = kInf;
-                        tmax[i] = -kInf;
-                    }
-                }
-                node = second;
+            if (!lod_detail::children_of(node, w, child, left, right)) return occluded;  // damaged node
+            // The packet's near child: the origin's side (shared origin), else the side
+            // the directions leave.
+            bool near_is_left, may_flip = true;
+            if constexpr (kShared) {
+                const float o0 = rays[0].ray.org[axis];
+                near_is_left = o0 < split || (o0 == split && sign_negative[axis]);
+                may_flip = o0 == split;  // else the origin's side is every ray's near side
             } else {
-                break;
+                near_is_left = !sign_negative[axis];
             }
+            const NodeRef near_node = near_is_left ? left : right;
+            const NodeRef far_node = near_is_left ? right : left;
+            PacketSplit<W, K> seg(split, near_is_left, may_flip, org[axis], inv[axis], dir_neg[axis], tmin, tmax,
+                                  active);
+            int any_near = seg.any_near, any_far = seg.any_far;
+            if (!near_node.block) any_near = 0;
+            if (!far_node.block) any_far = 0;
+            const vf axis_v = vf::broadcast(static_cast<float>(axis));
+            if (any_near && any_far && top < 64) {
+                // The far child is needed later: start its load now, beside the near one's.
+                __builtin_prefetch(far_node.block + far_node.off);
+                Entry& e = stack[top++];
+                e.node = far_node;
+                e.voxel = voxel;
+                for (int v = 0; v < K; ++v) {
+                    e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
+                    e.tmax[v] = select(seg.far_in[v], seg.far_hi[v], v_neg_inf);
+                    e.axis[v] = select(seg.far_lo[v] > tmin[v], axis_v, axis_in[v]);
+                }
+            }
+            const vf* lo_v = any_near ? seg.near_lo : seg.far_lo;
+            const vf* hi_v = any_near ? seg.near_hi : seg.far_hi;
+            const vm* in_v = any_near ? seg.near_in : seg.far_in;
+            if (!any_near && !any_far) break;
+            for (int v = 0; v < K; ++v) {
+                axis_in[v] = select(lo_v[v] > tmin[v], axis_v, axis_in[v]);
+                tmin[v] = select(in_v[v], lo_v[v], v_inf);
+                tmax[v] = select(in_v[v], hi_v[v], v_neg_inf);
+            }
+            node = any_near ? near_node : far_node;
         }
         if (leaf) {
-            const std::uint32_t active = active_mask();
-            float nearest = kInf;
-            for (int i = 0; i < N; ++i) {
-                if (active >> i & 1u) nearest = std::min(nearest, tmin[i]);
-            }
-            const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + nearest, 1e-30f) : 0.0f;
+            const float priority = voxel.samples ? voxel.radius / std::max(nearest_of(active), 1e-30f) : 0.0f;
             lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
+            HitV<W> hv[K];
+            int act[K];
+            for (int v = 0; v < K; ++v) {
+                hv[v] = HitV<W>::load(hits + W * v);
+                act[v] = active[v].bits();
+            }
             Vec3f v0, v1, v2;
-            std::uint32_t id, local;
-            while (triangles.next(v0, v1, v2, id, local)) {
-                for (int i = 0; i < N; ++i) {
-                    if (!(active >> i & 1u)) continue;
-                    ++lane.triangle_tests;
-                    if (intersect_triangle(rays[i].ray, sheared[i], v0, v1, v2, hits[i])) {
-                        hits[i].prim = id;
-                        hits[i].tri_block = triangles.block();
-                        hits[i].local = local;
+            std::uint32_t local;
+            while (triangles.next(v0, v1, v2, local)) {
+                // The input id is read only when a lane needs it (a skip test or a hit).
+                std::uint32_t id = kNoHit;
+                for (int v = 0; v < K; ++v) {
+                    int lanes = act[v];
+                    if (skip && lanes) {
+                        if (id == kNoHit) id = triangles.id(local);
+                        lanes &= ~lod_detail::equal_lanes<W>(skip + W * v, id);
                     }
+                    if (!lanes) continue;
+                    lane.triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
+                    int changed = 0;
+                    if (sheared_v[v].uniform) {
+                        changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, v0, v1, v2, id,
+                                                          vm::from_bits(static_cast<unsigned>(lanes)), hv[v]);
+                    } else {
+                        hv[v].store(hits + W * v);
+                        for (int k = 0; k < W; ++k) {
+                            if ((lanes >> k & 1) &&
+                                intersect_triangle(rays[W * v + k].ray, sheared[W * v + k], v0, v1, v2, hits[W * v + k])) {
+                                changed |= 1 << k;
+                            }
+                        }
+                        hv[v] = HitV<W>::load(hits + W * v);
+                    }
+                    if (changed) {
+                        if (id == kNoHit) id = triangles.id(local);
+                        hv[v].prim = select(vm::from_bits(static_cast<unsigned>(changed)), vf::bits(id), hv[v].prim);
+                    }
+                    if (AnyHit) {
+                        // Retired at their first hit.
+                        occluded |= static_cast<std::uint32_t>(changed) << (W * v);
+                        act[v] &= ~changed;
+                        live[v] = andnot(vm::from_bits(static_cast<unsigned>(changed)), live[v]);
+                    } else {
+                        for (int k = 0; k < W; ++k) {
+                            if (!(changed >> k & 1)) continue;
+                            hits[W * v + k].tri_block = triangles.block();
+                            hits[W * v + k].local = local;
+                        }
+                    }
+                }
+                if constexpr (AnyHit) {
+                    int any = 0;
+                    for (int v = 0; v < K; ++v) any |= act[v];
+                    if (!any) break;
                 }
             }
             const bool missing = triangles.missing();
-            for (int i = 0; i < N; ++i) {
-                if (!(active >> i & 1u)) continue;
-                if (missing) {
-                    if (voxel.samples) take_voxel(voxel, i);
-                } else if (hits[i].prim != kNoHit && hits[i].t * (1.0f + kSplitSlack) < tmax[i]) {
-                    live &= ~(1u << i);
+            const vf end_scale = vf::broadcast(1.0f + kSplitSlack);
+            for (int v = 0; v < K; ++v) {
+                if (!act[v]) continue;
+                if (!AnyHit) {
+                    hv[v].store(hits + W * v);
+                    hit_t[v] = hv[v].t;
                 }
+                if (missing) {
+                    // Triangles not here yet: the last voxel passed stands in for them.
+                    if (voxel.samples) take_voxels(voxel, v, act[v]);
+                    continue;
+                }
+                if (AnyHit) continue;
+                // A lane with a hit of its own (this leaf's or an earlier one) that lies
+                // inside this cell is finished.
+                int has_hit = 0;
+                for (int k = 0; k < W; ++k) has_hit |= (hits[W * v + k].prim != kNoHit ? 1 : 0) << k;
+                const vm done = active[v] & vm::from_bits(static_cast<unsigned>(has_hit)) &
+                                (hv[v].t * end_scale < tmax[v]);
+                live[v] = andnot(done, live[v]);
             }
         }
         for (;;) {
-            if (top == 0 || !live) return;
+            int live_bits = 0;
+            for (int v = 0; v < K; ++v) live_bits |= live[v].bits();
+            if (top == 0 || !live_bits) return occluded;
             const Entry& e = stack[--top];
-            std::uint32_t any = 0;
-            for (int i = 0; i < N; ++i) {
-                const bool in = (live >> i & 1u) && e.tmin[i] <= e.tmax[i] && !(e.tmin[i] > hits[i].t);
-                tmin[i] = in ? e.tmin[i] : kInf;
-                tmax[i] = in ? e.tmax[i] : -kInf;
-                axis_in[i] = e.axis[i];
-                any |= in ? 1u : 0u;
+            int any = 0;
+            for (int v = 0; v < K; ++v) {
+                const vm in = live[v] & (e.tmin[v] <= e.tmax[v]) & andnot(e.tmin[v] > hit_t[v], live[v]);
+                tmin[v] = select(in, e.tmin[v], v_inf);
+                tmax[v] = select(in, e.tmax[v], v_neg_inf);
+                axis_in[v] = e.axis[v];
+                any |= in.bits();
             }
             if (!any) continue;
             node = e.node;
@@ -238,4 +388,17 @@ inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const Lod
     }
 }
 
-}  // namespace vastray
+// Closest hits of N coherent primary rays given in row order (lod_packet_is_coherent);
+// hits_out[i] gets ray i's result.
+template <int N>
+inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const LodRay* rays_in, LodHit* hits_out) {
+    constexpr int W = packet_width<N>();
+    LodRay rays[N];
+    for (int i = 0; i < N; ++i) rays[packet_lane<N, W>(i)] = rays_in[i];
+    LodHit hits[N];
+    lod_packet_walk<N, false, LodPacketOrder::SharedOrigin>(lane, root_cell, rays, hits, nullptr,
+                                                            N == 32 ? ~0u : (1u << N) - 1);
+    for (int i = 0; i < N; ++i) hits_out[i] = hits[packet_lane<N, W>(i)];
+}
+
+VASTRAY_KERNEL_END

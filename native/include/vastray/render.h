@@ -25,7 +25,11 @@ struct Camera {
 
 constexpr int kMaxImageSide = 16384;
 
-enum class Shading { Normal, Headlight, Sun, AmbientOcclusion };
+// normal: false colour of the normal; headlight: diffuse from the eye; sun: directional
+// light with shadow rays; ao: ambient occlusion; indirect: sun with shadows, one bounce
+// of indirect light and a hemispherical sky, two diffuse rays per pixel, denoised by an
+// edge-aware filter (paper 000 Fig. 1, Table 5).
+enum class Shading { Normal, Headlight, Sun, AmbientOcclusion, Indirect };
 Shading parse_shading(const std::string& name);
 const char* shading_name(Shading shading);
 
@@ -37,15 +41,26 @@ struct RenderParams {
     unsigned threads = 0;                  // 0: every lane of the pool
     int tile_size = 16;
     // Primary rays per packet: 16 (4x4 blocks), 4 (2x2 quads), 1 (single rays), or 0
-    // for each renderer's fastest: 4x4 SSE packets in core, single rays out of core
-    // (its packets are still scalar and slower; bench/results/tradeoff-size.md).
+    // for each renderer's fastest: 4x4 SIMD packets in core and out of core (out of core
+    // they pay since they are SIMD and hand their last ray to the single-ray walk where
+    // rays part; bench/results/tradeoff-size.md). Secondary rays go in packets whatever
+    // this says.
     int packets = 0;
     // Level of detail (out of core; an in-core scene always renders full detail).
     // Pixels of error: a voxel may stand in for its subtree once its projected
     // diameter is at most this many pixels. 0 is full detail.
     double pixels_of_error = 1;
-    // Solid-angle metric for AO rays, in steradians; negative: derived from the PoE.
+    // Solid-angle metric for AO and diffuse rays, in steradians; negative: derived from
+    // the PoE.
     double solid_angle = -1;
+    // Which pass of a still view this frame is: pass k draws other random numbers (AO
+    // and diffuse directions) than passes 0 .. k-1, so averaging the images of passes
+    // 0 .. K-1 gives K times the samples (see average_passes in vastray/renderer.py).
+    int sample_index = 0;
+    // Out of core: the most blocks this frame may add to the fetch queue; 0 is the
+    // cache's bound (max_requests_per_frame). Full-detail mode raises it, as it waits
+    // for the data anyway.
+    int request_limit = 0;
 
     // Throws std::invalid_argument naming the field and its allowed range.
     void validate() const;

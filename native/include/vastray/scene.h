@@ -6,7 +6,7 @@
 #include <vector>
 
 #include "vastray/kdtree.h"
-#include "vastray/traverse.h"
+#include "vastray/ray.h"
 
 namespace vastray {
 
@@ -44,11 +44,6 @@ public:
     // in double, so a model 1e7 units from the origin keeps float precision locally.
     Ray to_local(const WorldRay& r) const;
 
-    template <bool AnyHit>
-    bool trace(const Ray& ray, Hit& hit, TraversalCounters& counters, std::uint32_t skip = kNoHit) const {
-        return traverse<AnyHit>(tree_, tri_vertices_.data(), ray, hit, counters, skip);
-    }
-
     // Geometric normal (unnormalised orientation of the stored winding), local frame.
     Vec3f normal(std::uint32_t prim) const;
 
@@ -60,7 +55,8 @@ private:
     KdTree tree_;
 };
 
-// Batch queries in world coordinates (tools and tests). Outputs are arrays of n.
+// Batch queries in world coordinates (tools and tests). Outputs are arrays of n. They
+// run on the active ISA path (isa.h), like frames.
 struct BatchResult {
     std::vector<double> t;
     std::vector<std::int64_t> prim;  // input triangle id

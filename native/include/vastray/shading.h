@@ -7,10 +7,12 @@
 #include <cmath>
 #include <cstdint>
 
+#include "vastray/isa.h"
 #include "vastray/render.h"
 #include "vastray/thread_pool.h"
 
-namespace vastray::shading {
+VASTRAY_KERNEL_BEGIN
+namespace shading {
 
 // PCG-style integer hash: deterministic per (pixel, sample) random numbers, so AO images
 // are reproducible and independent of how tiles are scheduled over threads.
@@ -36,9 +38,12 @@ struct Basis {
     }
 };
 
-// Cosine-weighted hemisphere direction (Malley's method) for AO sample k of a pixel.
-inline Vec3f ao_direction(const Basis& basis, int x, int y, int k) {
-    const auto pixel_seed = static_cast<std::uint32_t>(y) * 0x9E3779B1u ^ static_cast<std::uint32_t>(x) * 0x85EBCA77u;
+// Cosine-weighted hemisphere direction (Malley's method) for sample k of a pixel: AO
+// samples are k = 0, 1, ... (pass p of a still view starts at p * samples); diffuse
+// rays of the indirect mode draw from another stream (salt).
+inline Vec3f ao_direction(const Basis& basis, int x, int y, int k, std::uint32_t salt = 0) {
+    const auto pixel_seed =
+        (static_cast<std::uint32_t>(y) * 0x9E3779B1u ^ static_cast<std::uint32_t>(x) * 0x85EBCA77u) ^ salt;
     const std::uint32_t h1 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k)));
     const std::uint32_t h2 = hash32(pixel_seed ^ hash32(static_cast<std::uint32_t>(2 * k + 1)));
     const float r = std::sqrt(unit_float(h1));
@@ -93,6 +98,18 @@ inline float ambient(int open, int samples) {
     return 0.08f + 0.92f * static_cast<float>(open) / static_cast<float>(samples);
 }
 
+// The indirect mode's light, as multiples of a surface's albedo: a sun of radiance
+// kSunLight (its irradiance over pi: what a white surface facing it reflects), and a sky
+// of kSky over the upper hemisphere (around the camera's up vector), none from below.
+// A diffuse ray that escapes brings the sky's radiance, one that hits a surface brings
+// what that surface reflects of the sun (one bounce). Both are chosen so that a white
+// surface lit by the sun under an open sky stays just below 1.
+constexpr float kSunLight = 0.62f;
+constexpr Vec3f kSky{0.36f, 0.39f, 0.44f};
+constexpr int kDiffuseRays = 2;                 // per pixel and pass (paper 000 Table 5)
+constexpr std::uint32_t kDiffuseSalt = 0x5bd1e995u;  // their random stream, apart from AO's
+inline Vec3f sky(const Vec3f& dir, const Vec3f& up) { return dot(dir, up) > 0 ? kSky : Vec3f(0, 0, 0); }
+
 // Where a secondary ray starts on a triangle: the barycentric point (more accurate than
 // o + t d) pushed off the surface by a bound on its float error.
 inline Vec3f offset_origin(const Vec3f* v, const Hit& hit, const Vec3f& n) {
@@ -131,4 +148,5 @@ inline unsigned lanes_used(const RenderParams& params) {
     return params.threads == 0 ? lanes : std::min(params.threads, lanes);
 }
 
-}  // namespace vastray::shading
+}  // namespace shading
+VASTRAY_KERNEL_END

@@ -9,19 +9,11 @@
 #include <cmath>
 #include <cstdint>
 
+#include "vastray/isa.h"
 #include "vastray/kdtree.h"
 #include "vastray/triangle.h"
 
-namespace vastray {
-
-// Relative slack on split and box distances (8 float ulps): cheap insurance that
-// traversal never skips a cell a ray touches, at the cost of rare extra visits.
-constexpr float kSplitSlack = 8.0f * std::numeric_limits<float>::epsilon();
-
-struct TraversalCounters {
-    std::uint64_t node_visits = 0;
-    std::uint64_t triangle_tests = 0;
-};
+VASTRAY_KERNEL_BEGIN
 
 // Clips the ray to a box; returns false on a miss. Zero direction components are
 // handled explicitly so 0 * inf never produces NaN.
@@ -155,4 +147,4 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
     }
 }
 
-}  // namespace vastray
+VASTRAY_KERNEL_END

@@ -11,22 +11,10 @@
 #include <limits>
 #include <utility>
 
-#include "vastray/vecmath.h"
+#include "vastray/isa.h"
+#include "vastray/ray.h"
 
-namespace vastray {
-
-constexpr std::uint32_t kNoHit = 0xffffffffu;
-
-struct Ray {
-    Vec3f org, dir;
-    float tmin = 0, tmax = std::numeric_limits<float>::infinity();
-};
-
-struct Hit {
-    float t = std::numeric_limits<float>::infinity();
-    std::uint32_t prim = kNoHit;
-    float u = 0, v = 0;  // barycentric weights of the second and third vertices
-};
+VASTRAY_KERNEL_BEGIN
 
 // Per-ray shear constants, computed once per ray.
 struct ShearedRay {
@@ -81,4 +69,4 @@ inline bool intersect_triangle(const Ray& ray, const ShearedRay& s, const Vec3f&
     return true;
 }
 
-}  // namespace vastray
+VASTRAY_KERNEL_END

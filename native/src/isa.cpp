@@ -1,0 +1,116 @@
+// Which ISA path runs (isa.h): what the CPU and OS support, what VASTRAY_ISA asks for.
+#include "vastray/isa.h"
+
+#include <cstdlib>
+#include <mutex>
+#include <stdexcept>
+
+#include "vastray/kernels.h"
+
+namespace vastray {
+
+const char* isa_name(Isa isa) {
+    switch (isa) {
+        case Isa::Sse2: return "sse2";
+        case Isa::Avx: return "avx";
+        case Isa::Avx2: return "avx2";
+    }
+    return "sse2";
+}
+
+namespace {
+
+bool cpu_runs(Isa isa) {
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+    // libgcc's checks include the OS's support for saving the AVX registers (XCR0).
+    __builtin_cpu_init();
+    switch (isa) {
+        case Isa::Sse2: return true;
+        case Isa::Avx: return __builtin_cpu_supports("avx") && __builtin_cpu_supports("popcnt");
+        case Isa::Avx2:
+            return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") &&
+                   __builtin_cpu_supports("bmi") && __builtin_cpu_supports("bmi2") && __builtin_cpu_supports("popcnt");
+    }
+#endif
+    return isa == Isa::Sse2;
+}
+
+bool compiled(Isa isa) {
+#if defined(VASTRAY_HAVE_AVX_KERNELS)
+    (void)isa;
+    return true;
+#else
+    return isa == Isa::Sse2;
+#endif
+}
+
+std::string names(const std::vector<Isa>& isas) {
+    std::string out;
+    for (const Isa isa : isas) out += (out.empty() ? "" : ", ") + std::string(isa_name(isa));
+    return out;
+}
+
+Isa choose() {
+    const std::vector<Isa> usable = supported_isas();
+    const char* forced = std::getenv("VASTRAY_ISA");
+    if (forced == nullptr || *forced == '\0') return usable.back();
+    const std::string name(forced);
+    for (const Isa isa : {Isa::Sse2, Isa::Avx, Isa::Avx2}) {
+        if (name != isa_name(isa)) continue;
+        for (const Isa ok : usable) {
+            if (ok == isa) return isa;
+        }
+        throw std::runtime_error("VASTRAY_ISA=" + name + ", but this " +
+                                 (compiled(isa) ? "CPU" : "build") + " runs only " + names(usable));
+    }
+    throw std::invalid_argument("VASTRAY_ISA must be one of sse2, avx, avx2 (got '" + name + "')");
+}
+
+}  // namespace
+
+std::vector<Isa> supported_isas() {
+    std::vector<Isa> out;
+    for (const Isa isa : {Isa::Sse2, Isa::Avx, Isa::Avx2}) {
+        if (compiled(isa) && cpu_runs(isa)) out.push_back(isa);
+    }
+    return out;
+}
+
+Isa active_isa() {
+    // Chosen once; a bad VASTRAY_ISA is reported on every call until the process restarts.
+    static std::once_flag once;
+    static Isa chosen = Isa::Sse2;
+    static std::string error;
+    static bool invalid_name = false;
+    std::call_once(once, [] {
+        try {
+            chosen = choose();
+        } catch (const std::invalid_argument& e) {
+            error = e.what();
+            invalid_name = true;
+        } catch (const std::runtime_error& e) {
+            error = e.what();
+        }
+    });
+    if (!error.empty()) {
+        if (invalid_name) throw std::invalid_argument(error);
+        throw std::runtime_error(error);
+    }
+    return chosen;
+}
+
+const KernelTable& kernels() {
+    switch (active_isa()) {
+#if defined(VASTRAY_HAVE_AVX_KERNELS)
+        case Isa::Avx2: return kernel_table_avx2();
+        case Isa::Avx: return kernel_table_avx();
+#else
+        case Isa::Avx2:
+        case Isa::Avx:
+#endif
+        case Isa::Sse2: break;
+    }
+    return kernel_table_sse2();
+}
+
+}  // namespace vastray

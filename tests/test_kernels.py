@@ -1,0 +1,320 @@
+"""The ray-tracing kernels' instruction-set paths, their packets and the indirect mode.
+
+* ISA dispatch: `native.supported_isas()` lists the paths this build and CPU run,
+  `native.isa()` the one that runs; `VASTRAY_ISA` forces one, and a name that is not a
+  path is an error. Every supported path renders bit-identical frames (in core and out of
+  core, every shading mode, packets of 1, 4 and 16, PoE 0 and 2) and answers batch
+  queries identically: the kernels use the same float operations in the same order on
+  every path. The renderer's own tests (test_render, test_extremes, test_watertight) run
+  again on every other path, in a subprocess with VASTRAY_ISA set.
+* Packets change speed, never answers: secondary rays (shadow and AO rays in packets
+  that share a direction or an origin) give the same images as single rays, in core and
+  out of core at full detail and with LOD; the batch occlusion query, which packs rays
+  from one origin, answers as it does for the same rays one by one.
+* The indirect mode: deterministic; identical in and out of core at full detail; an open
+  floor under the sky alone shows exactly albedo x sky (no noise: every diffuse ray
+  escapes), the side that faces away from the sky is black; sample_index draws other
+  samples (the noise changes, the geometry does not) and averaging passes converges
+  towards a many-sample image.
+* request_limit lets one frame queue more requests than the cache's per-frame bound.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from views import render_camera
+
+from vastray import native
+from vastray.build import build_model
+from vastray.camera import Camera, frame_bounds
+from vastray.modelfile import ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.renderer import average_passes
+
+REPO = Path(__file__).resolve().parents[1]
+SHADINGS = ("normal", "headlight", "sun", "ao", "indirect")
+
+
+@pytest.fixture(scope="module")
+def plant_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("kernels") / "plant.vast"
+    build_model("scene:plant:60000:3", path)
+    return path
+
+
+def run_python(code: str, *args: str, isa: str | None = None) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ)
+    env.pop("VASTRAY_ISA", None)
+    if isa is not None:
+        env["VASTRAY_ISA"] = isa
+    return subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=600
+    )
+
+
+# ---- dispatch ----------------------------------------------------------------------------
+
+
+def test_paths_are_listed_and_can_be_forced() -> None:
+    supported = native.supported_isas()
+    assert supported[0] == "sse2" and set(supported) <= {"sse2", "avx", "avx2"}
+    assert native.isa() in supported
+    if "VASTRAY_ISA" not in os.environ:
+        assert native.isa() == supported[-1], "the best supported path runs by default"
+    for isa in supported:
+        out = run_python("from vastray import native; print(native.isa())", isa=isa)
+        assert out.returncode == 0, out.stderr
+        assert out.stdout.strip() == isa
+    bad = run_python(
+        "from vastray import native\ntry:\n    native.isa()\nexcept ValueError as e:\n    print('error:', e)",
+        isa="avx1024",
+    )
+    assert "error: VASTRAY_ISA must be one of sse2, avx, avx2 (got 'avx1024')" in bad.stdout, (
+        bad.stdout + bad.stderr
+    )
+
+
+_FRAMES = r"""
+import hashlib, json, sys
+import numpy as np
+from vastray import native
+from vastray.camera import Camera, frame_bounds
+from vastray.modelfile import ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.renderer import trace
+
+def digest(*arrays):
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+path = sys.argv[1]
+out = {"isa": native.isa()}
+with ModelFile(path) as f:
+    scene = f.to_scene()
+with OutOfCoreModel(path, make_cache(64 << 20)) as model:
+    overview = frame_bounds(*model.bounds, width=96, height=64)
+    e, t = np.asarray(overview.eye), np.asarray(overview.target)
+    close = Camera(eye=tuple(t + (e - t) * 0.3), target=overview.target, width=96, height=64)
+    for view, cam in (("overview", overview), ("close", close)):
+        for shading in ("normal", "headlight", "sun", "ao", "indirect"):
+            for packets in (1, 4, 16):
+                kw = dict(shading=shading, packets=packets, ao_samples=6)
+                f = trace(scene, cam.to_native(), **kw)
+                out[f"in-core {view} {shading} {packets}"] = digest(f.image, f.depth, f.prim)
+                for poe in (0.0, 2.0):
+                    f = model.render_complete(cam, pixels_of_error=poe, **kw)
+                    key = f"out-of-core {view} {shading} {packets} PoE {poe:g}"
+                    out[key] = digest(f.image, f.depth, f.prim)
+    origins, directions = overview.primary_rays()
+    hits = scene.intersect(origins, directions)
+    ok = hits["prim"] >= 0
+    points = origins[ok] + directions[ok] * hits["t"][ok][:, None]
+    rng = np.random.default_rng(5)
+    ao_o = np.repeat(points + hits["normal"][ok] * 1e-3, 8, axis=0)
+    ao_d = rng.normal(size=(len(ao_o), 3))
+    out["intersect"] = digest(hits["t"], hits["prim"], hits["u"], hits["v"])
+    out["occluded"] = digest(scene.occluded(ao_o, ao_d, 0.0, 5.0))
+    picked = model.pick(origins[::7], directions[::7])
+    out["pick"] = digest(picked.t, picked.prim)
+print(json.dumps(out))
+"""
+
+
+def test_every_path_renders_identical_frames(plant_model: Path) -> None:
+    results = {}
+    for isa in native.supported_isas():
+        out = run_python(_FRAMES, str(plant_model), isa=isa)
+        assert out.returncode == 0, out.stderr[-3000:]
+        results[isa] = json.loads(out.stdout)
+        assert results[isa].pop("isa") == isa
+    first, *others = results
+    for isa in others:
+        differ = [k for k, v in results[first].items() if results[isa][k] != v]
+        assert not differ, f"{isa} differs from {first} in {differ}"
+
+
+@pytest.mark.parametrize("isa", [i for i in native.supported_isas() if i != native.isa()])
+def test_renderer_tests_pass_on_every_path(isa: str) -> None:
+    """The renderer's own tests, again on each path that is not the default one."""
+    env = dict(os.environ, VASTRAY_ISA=isa)
+    tests = ["tests/test_render.py", "tests/test_extremes.py", "tests/test_watertight.py"]
+    result = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests],
+        cwd=REPO, capture_output=True, text=True, env=env, timeout=1200,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+
+
+# ---- packets against single rays ------------------------------------------------------------
+
+
+def views_of(path: Path, width: int = 160, height: int = 96) -> list[Camera]:
+    with ModelFile(path) as f:
+        lo, hi = (np.asarray(v) for v in f.bounds)
+    overview = frame_bounds(lo, hi, width=width, height=height)
+    e, t = np.asarray(overview.eye), np.asarray(overview.target)
+    return [
+        overview,
+        Camera(eye=tuple(t + (e - t) * 0.25), target=overview.target, width=width, height=height),
+    ]
+
+
+@pytest.mark.parametrize("shading", ["sun", "ao", "indirect"])
+def test_secondary_packets_give_single_ray_answers(plant_model: Path, shading: str) -> None:
+    with ModelFile(plant_model) as f:
+        scene = f.to_scene()
+    with OutOfCoreModel(plant_model, make_cache(64 << 20)) as model:
+        for camera in views_of(plant_model):
+            kw = dict(shading=shading, ao_samples=12)
+            single = render_camera(scene, camera, packets=1, **kw)
+            for packets in (4, 16):
+                frame = render_camera(scene, camera, packets=packets, **kw)
+                np.testing.assert_array_equal(frame.image, single.image)
+            for poe in (0.0, 2.0):
+                single = model.render_complete(camera, pixels_of_error=poe, packets=1, **kw)
+                for packets in (4, 16):
+                    frame = model.render_complete(camera, pixels_of_error=poe, packets=packets, **kw)
+                    np.testing.assert_array_equal(frame.image, single.image)
+                    np.testing.assert_array_equal(frame.prim, single.prim)
+                    assert frame.stats.secondary_rays == single.stats.secondary_rays
+
+
+def test_batch_occlusion_packs_rays_without_changing_answers(plant_model: Path) -> None:
+    """Rays from one origin go as packets; the same rays with their runs broken up (so
+    every ray goes alone) give the same answers."""
+    with ModelFile(plant_model) as f:
+        scene = f.to_scene()
+    camera = views_of(plant_model)[1]
+    origins, directions = camera.primary_rays()
+    hits = scene.intersect(origins, directions)
+    ok = hits["prim"] >= 0
+    assert ok.mean() > 0.3
+    points = origins[ok] + directions[ok] * hits["t"][ok][:, None]
+    normals = (
+        hits["normal"][ok] * np.sign(-np.einsum("ij,ij->i", hits["normal"][ok], directions[ok]))[:, None]
+    )
+    rng = np.random.default_rng(1)
+    o = np.repeat(points + normals * 1e-4, 8, axis=0)
+    d = rng.normal(size=(len(o), 3))
+    d[::5] = np.repeat(normals, 8, axis=0)[::5]  # some rays straight up from the surface
+    d[::11, 1] = 0.0  # zero components
+    tmax = rng.uniform(0.01, 20.0, size=len(o))
+    packed = scene.occluded(o, d, 0.0, tmax)
+    order = rng.permutation(len(o))
+    alone = np.empty_like(packed)
+    alone[order] = scene.occluded(o[order], d[order], 0.0, tmax[order])
+    assert 0.05 < packed.mean() < 0.95
+    np.testing.assert_array_equal(packed, alone)
+
+
+# ---- indirect light ---------------------------------------------------------------------------
+
+
+def test_indirect_is_deterministic_and_the_same_out_of_core(plant_model: Path) -> None:
+    with ModelFile(plant_model) as f:
+        scene = f.to_scene()
+    camera = views_of(plant_model)[1]
+    a = render_camera(scene, camera, shading="indirect")
+    b = render_camera(scene, camera, shading="indirect", threads=1, tile_size=8)
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.stats.secondary_rays >= 3 * (a.prim >= 0).sum()  # two diffuse rays and a shadow ray a pixel
+    with OutOfCoreModel(plant_model, make_cache(64 << 20)) as model:
+        full = model.render_complete(camera, shading="indirect", pixels_of_error=0.0)
+    np.testing.assert_array_equal(full.prim, a.prim)
+    np.testing.assert_array_equal(full.image, a.image)
+
+
+def slab_scene(albedo: int) -> native.Scene:
+    mesh = trimesh.creation.box(extents=(40.0, 0.2, 40.0))  # y up: a thin floor, open sky above
+    faces = np.asarray(mesh.faces, dtype=np.uint32)
+    colours = np.full((len(faces), 3), albedo, dtype=np.uint8)
+    return native.Scene(np.asarray(mesh.vertices, dtype=np.float64), faces, colours)
+
+
+def test_open_floor_under_the_sky_shows_albedo_times_sky() -> None:
+    scene = slab_scene(200)
+    kw = dict(width=64, height=48)
+    # The sun on the far side of the slab: the top sees the sky alone, the bottom nothing.
+    top = render_camera(
+        scene,
+        Camera(eye=(0.0, 6.0, 9.0), target=(0.0, 0.0, 0.0), **kw),
+        shading="indirect",
+        sun_direction=[0.0, -1.0, 0.0],
+    )
+    seen = top.prim >= 0
+    assert seen.mean() > 0.5
+    sky = np.array([0.36, 0.39, 0.44])  # shading::kSky
+    expected = np.clip(np.round(200 / 255 * sky * 255), 0, 255)
+    assert np.abs(top.image[seen].astype(int) - expected).max() <= 1
+    below = render_camera(
+        scene,
+        Camera(eye=(0.0, -6.0, 9.0), target=(0.0, 0.0, 0.0), **kw),
+        shading="indirect",
+        sun_direction=[0.0, 1.0, 0.0],
+    )
+    assert (below.prim >= 0).mean() > 0.5
+    assert below.image[below.prim >= 0].max() == 0  # facing the ground: no sky, no sun, no bounce
+
+
+def test_passes_draw_other_samples_and_averages_converge(plant_model: Path) -> None:
+    with ModelFile(plant_model) as f:
+        scene = f.to_scene()
+    camera = views_of(plant_model, 128, 80)[1]
+    passes = [render_camera(scene, camera, shading="indirect", sample_index=k) for k in range(24)]
+    assert not np.array_equal(passes[0].image, passes[1].image)
+    for p in passes[1:]:
+        np.testing.assert_array_equal(p.prim, passes[0].prim)
+        np.testing.assert_array_equal(p.depth, passes[0].depth)
+    reference = average_passes([p.image for p in passes[8:]]).astype(np.float64)
+    seen = passes[0].prim >= 0
+
+    def error(images: list[np.ndarray]) -> float:
+        return float(np.abs(average_passes(images).astype(np.float64) - reference)[seen].mean())
+
+    one, four = error([passes[0].image]), error([p.image for p in passes[:4]])
+    assert four < 0.75 * one, (one, four)
+    ao = [render_camera(scene, camera, shading="ao", ao_samples=4, sample_index=k).image for k in range(2)]
+    assert not np.array_equal(ao[0], ao[1])
+
+
+def test_new_parameters_are_checked() -> None:
+    params = native.RenderParams()
+    assert params.sample_index == 0 and params.request_limit == 0
+    assert "indirect" in native.SHADING_MODES
+    params.shading = "indirect"
+    assert params.shading == "indirect"
+    for field, value in (("sample_index", -1), ("request_limit", -5)):
+        bad = native.RenderParams()
+        setattr(bad, field, value)
+        with pytest.raises(ValueError, match=field):
+            bad.validate()
+
+
+# ---- loading ------------------------------------------------------------------------------------
+
+
+def test_request_limit_raises_the_per_frame_bound(plant_model: Path) -> None:
+    """A frame may queue request_limit blocks instead of the cache's per-frame bound; a
+    full-detail render raises it, so it completes in fewer frames."""
+    camera = views_of(plant_model)[0]
+    frames, queued = {}, {}
+    for limit in (4, 0):
+        cache = native.BlockCache(32 << 20, 1, "count", 4, 256)  # 4 requests a frame by default
+        with OutOfCoreModel(plant_model, cache, preload_levels=1) as model:
+            first = model.render(camera, request_limit=limit)
+            queued[limit] = first.stats.pending
+            done = model.render_complete(camera, pixels_of_error=0.0, request_limit=limit)
+            assert done.complete
+            frames[limit] = done.frames
+    assert queued[4] <= 4
+    assert frames[0] < frames[4], frames
