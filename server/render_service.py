@@ -18,7 +18,15 @@ import numpy as np
 from vastray.camera import Camera, resolve_camera
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, RenderCancelledError
 from vastray.renderer import Frame, Renderer
-from vastray.schemas import CameraSpec, PickHit, PickRequest, PickResponse, RenderRequest
+from vastray.schemas import (
+    CameraSpec,
+    PickHit,
+    PickRequest,
+    PickResponse,
+    RenderRequest,
+    SectionPlane,
+    native_sections,
+)
 from vastray.server.encoders import MEDIA_TYPES, encode
 from vastray.server.errors import ApiError
 from vastray.server.metrics import Metrics
@@ -94,6 +102,7 @@ class RenderService:
                 f"timeout {request.timeout:g} s is longer than this server allows ({self.max_timeout:g} s)",
             )
         params = request.quality.to_native(threads=self.threads)
+        params.sections = native_sections(request.sections)
         return await self.run(self._render_image, model_id, request, params)
 
     def _render_image(self, model_id: str, request: RenderRequest, params: Any) -> RenderedImage:
@@ -141,14 +150,21 @@ class RenderService:
                 rays = np.asarray(request.rays, dtype=np.float64)
                 origins.append(rays[:, 0])
                 directions.append(rays[:, 1])
-            return self.pick_rays(model, np.concatenate(origins), np.concatenate(directions), request.timeout)
+            return self.pick_rays(
+                model, np.concatenate(origins), np.concatenate(directions), request.timeout, request.sections
+            )
 
     def pick_rays(
-        self, model: OutOfCoreModel, origins: np.ndarray, directions: np.ndarray, timeout: float
+        self,
+        model: OutOfCoreModel,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        timeout: float,
+        sections: list[SectionPlane] | None = None,
     ) -> PickResponse:
         """Full-detail hits of world rays, as the wire has them (on the render executor)."""
         start = time.perf_counter()
-        hits = model.pick(origins, directions, timeout=timeout)
+        hits = model.pick(origins, directions, timeout=timeout, sections=native_sections(sections or []))
         out = []
         for i in range(len(hits.t)):
             found = bool(hits.prim[i] >= 0)

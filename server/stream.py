@@ -643,7 +643,7 @@ class Connection:
 
         def run() -> Any:
             origins, directions = camera.image_rays(np.asarray(msg.points, dtype=np.float64))
-            return renders.pick_rays(view.model, origins, directions, 5.0)
+            return renders.pick_rays(view.model, origins, directions, 5.0, view.sections)
 
         try:
             result = await asyncio.get_running_loop().run_in_executor(renders.executor, run)

@@ -16,6 +16,7 @@ every subscriber gets the same encoded bytes.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -35,6 +36,7 @@ from vastray.protocol import (
     Viewport,
 )
 from vastray.renderer import Frame
+from vastray.schemas import native_sections
 from vastray.server.controller import QualityController
 from vastray.server.encoders import encode
 
@@ -251,6 +253,7 @@ class View:
         camera = jittered(Camera(c.eye, c.target, c.up, c.fov, width, height), *jitter)
         params = q.to_native(threads=self.render_threads)
         params.pixels_of_error = poe
+        params.sections = native_sections(self.sections)
         base, n = (self.accum, self.accum_n) if accumulate and pass_number > 1 else (None, 0)
         return RenderJob(
             self.version,
@@ -366,7 +369,8 @@ class View:
         c, vp = self.camera, self.viewport
         camera = Camera(c.eye, c.target, c.up, c.fov, vp.width, vp.height)
         chosen = self.quality.to_native(threads=self.render_threads)
-        exact = self.quality.to_native(threads=self.render_threads)
+        chosen.sections = native_sections(self.sections)
+        exact = copy.copy(chosen)
         exact.pixels_of_error = 0.0
         shown = self.model.render_complete(camera, chosen, timeout=timeout)
         full = self.model.render_complete(camera, exact, timeout=timeout)

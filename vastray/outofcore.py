@@ -23,7 +23,7 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.modelfile import ModelError
-from vastray.renderer import Frame, RayHits, render_params, trace
+from vastray.renderer import Frame, RayHits, Sections, render_params, trace
 from vastray.units import parse_bytes
 
 DEFAULT_CACHE_BUDGET = 1 << 30
@@ -43,7 +43,6 @@ class CacheTooSmallError(RuntimeError):
 
 class RenderCancelledError(RuntimeError):
     """render_complete was told to stop (its `cancelled` callback said so)."""
-
 
 
 _shared_lock = threading.Lock()
@@ -178,6 +177,7 @@ class OutOfCoreModel:
     def _wait_for_queue(self, seconds: float, deadline: float) -> bool:
         """Waits until the fetch queue is empty, `seconds` pass or `deadline` comes;
         True if some fetch finished meanwhile."""
+
         def fetched() -> tuple[int, int, int]:
             t = self.cache.totals()
             return t["bytes_read"], t["failed"], t["ready"]
@@ -188,19 +188,23 @@ class OutOfCoreModel:
         after = fetched()
         return after[:2] != before[:2] or after[2] > 0
 
-    def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
+    def pick(
+        self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0, sections: Sections = ()
+    ) -> RayHits:
         """Full-detail closest hits of world rays. Rays whose blocks are not cached are
         asked again as the fetchers bring them, until all are answered or `timeout`
-        seconds pass (those left have complete False)."""
+        seconds pass (those left have complete False). With section planes a ray sees
+        only the kept side, and the cap where it enters a cut solid."""
         o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
         d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
+        planes = list(sections)
         deadline = time.perf_counter() + timeout
-        out = self._model.intersect(o, d)
+        out = self._model.intersect(o, d, sections=planes)
         hits = RayHits(out["t"], out["position"], out["normal"], out["prim"], out["complete"])
         while not hits.complete.all() and time.perf_counter() < deadline:
             self.cache.wait_for_fetches(max(1.0, 1000.0 * min(0.25, deadline - time.perf_counter())))
             todo = np.flatnonzero(~hits.complete)
-            again = self._model.intersect(o[todo], d[todo])
+            again = self._model.intersect(o[todo], d[todo], sections=planes)
             for name in ("t", "position", "normal", "prim", "complete"):
                 getattr(hits, name)[todo] = again[name]
         return hits

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter
 
-from vastray.schemas import MAX_IMAGE_SIDE, Quality, ShadingName, Strict, Vec3
+from vastray.schemas import MAX_IMAGE_SIDE, Quality, SectionPlane, ShadingName, Strict, Vec3
 
 PROTOCOL_VERSION = 1
 FRAME_MAGIC = b"VRF1"
@@ -182,14 +182,6 @@ class QualityMessage(Strict):
     max_moving_poe: float | None = Field(None, ge=0.0, le=1e6)
     aa_passes: int | None = Field(None, ge=1, le=64)
     auto_accuracy: bool | None = None
-
-
-class SectionPlane(Strict):
-    """A clipping plane: geometry where dot(normal, p) + offset < 0 is cut away."""
-
-    normal: Vec3
-    offset: float = Field(allow_inf_nan=False)
-    enabled: bool = True
 
 
 class SectionsMessage(Strict):

@@ -15,7 +15,7 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.mesh import Mesh
-from vastray.renderer import Frame, RayHits, trace
+from vastray.renderer import Frame, RayHits, Sections, trace
 from vastray.sources import MODEL_SUFFIX, SOURCE_HELP, is_model_file, parse_scene
 
 
@@ -51,16 +51,19 @@ class SceneRenderer:
         # In core every frame is complete.
         return self.render(camera, params, **fields)
 
-    def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
+    def pick(
+        self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0, sections: Sections = ()
+    ) -> RayHits:
         o = np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 3)
         d = np.ascontiguousarray(directions, dtype=np.float64).reshape(-1, 3)
         length = np.linalg.norm(d, axis=1)
-        out = self.scene.intersect(o, d)
+        out = self.scene.intersect(o, d, sections=list(sections))
         hit = out["prim"] >= 0
         # t counts lengths of the float direction; report world distances as the
         # out-of-core renderer does.
         t = np.where(hit, out["t"] * length, np.inf)
-        position = np.where(hit[:, None], o + d * out["t"][:, None], np.nan)
+        position = np.full((len(o), 3), np.nan)
+        position[hit] = o[hit] + d[hit] * out["t"][hit, None]
         return RayHits(t, position, out["normal"], out["prim"], np.ones(len(o), dtype=bool))
 
     def close(self) -> None:

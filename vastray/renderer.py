@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import copy
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -44,7 +44,11 @@ RENDER_PARAM_FIELDS: tuple[str, ...] = (
     "solid_angle",
     "sample_index",
     "request_limit",
+    "sections",
 )
+
+# Section planes: (nx, ny, nz, offset) each; geometry where n . p + offset < 0 is cut away.
+Sections = Sequence[tuple[float, float, float, float]]
 
 
 def render_params(base: native.RenderParams | None = None, **fields: Any) -> native.RenderParams:
@@ -149,8 +153,11 @@ class Renderer(Protocol):
         detail). Raises TimeoutError after `timeout` seconds."""
         ...
 
-    def pick(self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0) -> RayHits:
-        """Full-detail closest hits of world rays, whatever level of detail frames use."""
+    def pick(
+        self, origins: np.ndarray, directions: np.ndarray, *, timeout: float = 10.0, sections: Sections = ()
+    ) -> RayHits:
+        """Full-detail closest hits of world rays, whatever level of detail frames use;
+        section planes cut as they do in frames."""
         ...
 
     def close(self) -> None: ...

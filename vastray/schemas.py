@@ -99,6 +99,28 @@ class Quality(Strict):
 assert set(Quality.model_fields) <= set(RENDER_PARAM_FIELDS)
 
 
+class SectionPlane(Strict):
+    """A clipping plane: geometry where dot(normal, p) + offset < 0 is cut away."""
+
+    normal: Vec3
+    offset: float = Field(allow_inf_nan=False)
+    enabled: bool = True
+
+    @model_validator(mode="after")
+    def _check(self) -> SectionPlane:
+        if not any(self.normal):
+            raise ValueError("a section plane's normal has zero length")
+        return self
+
+    def native(self) -> tuple[float, float, float, float]:
+        return (*self.normal, self.offset)
+
+
+def native_sections(planes: list[SectionPlane]) -> list[tuple[float, float, float, float]]:
+    """The enabled planes as the renderers take them."""
+    return [p.native() for p in planes if p.enabled]
+
+
 class FullDetailQuality(Quality):
     """Quality of one-shot renders: full detail unless the request says otherwise."""
 
@@ -108,6 +130,7 @@ class FullDetailQuality(Quality):
 class RenderRequest(Strict):
     camera: CameraSpec = CameraSpec()
     quality: FullDetailQuality = FullDetailQuality()
+    sections: list[SectionPlane] = Field(default_factory=list, max_length=6)
     format: Literal["png", "jpeg"] = "png"
     jpeg_quality: int = Field(90, ge=1, le=100)
     timeout: float = Field(60.0, gt=0.0, le=600.0, description="seconds to wait for the data the view needs")
@@ -124,6 +147,7 @@ class PickRequest(Strict):
         default_factory=list, max_length=4096, description="(origin, direction) in world coordinates"
     )
     timeout: float = Field(10.0, gt=0.0, le=120.0)
+    sections: list[SectionPlane] = Field(default_factory=list, max_length=6)
 
     @model_validator(mode="after")
     def _check(self) -> PickRequest:

@@ -103,12 +103,14 @@ RayArrays load_rays(DoubleArray origins, DoubleArray directions, const py::objec
 }
 
 py::dict intersect(const Scene& s, DoubleArray origins, DoubleArray directions, py::object tmin,
-                   py::object tmax, unsigned threads) {
+                   py::object tmax, unsigned threads, const bindings::PlaneTuples& sections) {
     RayArrays r = load_rays(origins, directions, tmin, tmax);
+    const std::vector<SectionPlane> planes = bindings::to_sections(sections);
     BatchResult res;
     {
         py::gil_scoped_release release;
-        res = intersect_batch(s, r.origins.data(), r.directions.data(), r.tmin.data(), r.tmax.data(), r.n, threads);
+        res = intersect_batch(s, r.origins.data(), r.directions.data(), r.tmin.data(), r.tmax.data(), r.n, threads,
+                              planes);
     }
     const auto n = static_cast<py::ssize_t>(r.n);
     py::dict d;
@@ -208,8 +210,10 @@ PYBIND11_MODULE(native, m) {
         .def_property_readonly("build_stats", &build_stats)
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
+             py::arg("sections") = bindings::PlaneTuples{},
              "Closest hits: dict of t (inf on a miss), prim (input triangle id, -1 on a miss), u, v "
-             "barycentrics, normal (unit geometric normal)")
+             "barycentrics, normal (unit geometric normal); section planes (nx, ny, nz, offset) cut as "
+             "in rendering")
         .def("occluded", &occluded, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
              "Any hit in [tmin, tmax]: bool per ray")

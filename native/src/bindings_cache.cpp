@@ -64,7 +64,8 @@ public:
     }
 
     py::dict intersect(DoubleArray origins, DoubleArray directions, const py::object& tmin, const py::object& tmax,
-                       unsigned threads) {
+                       unsigned threads, const bindings::PlaneTuples& sections) {
+        const std::vector<SectionPlane> planes = bindings::to_sections(sections);
         if (origins.ndim() != 2 || origins.shape(1) != 3 || directions.ndim() != 2 || directions.shape(1) != 3 ||
             origins.shape(0) != directions.shape(0)) {
             throw std::invalid_argument("origins and directions must both have shape (n, 3)");
@@ -75,7 +76,7 @@ public:
         LodRayHits r;
         {
             py::gil_scoped_release release;
-            r = intersect_lod(*cache_, m, origins.data(), directions.data(), lo.data(), hi.data(), n, threads);
+            r = intersect_lod(*cache_, m, origins.data(), directions.data(), lo.data(), hi.data(), n, threads, planes);
         }
         const auto rows = static_cast<py::ssize_t>(n);
         py::dict d;
@@ -179,6 +180,7 @@ void bind_cache(py::module_& m) {
              "(image, depth, prim, FrameStats)")
         .def("intersect", &PyCachedModel::intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
+             py::arg("sections") = bindings::PlaneTuples{},
              "Full-detail closest hits of world rays from what is cached; never waits. dict of t (world "
              "distance), position, normal, prim (input triangle id, -1 on a miss), u, v, complete (False: "
              "a block it needs was requested; ask again), stats")

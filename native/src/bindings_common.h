@@ -6,6 +6,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <array>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -32,6 +33,19 @@ inline std::vector<double> broadcast(const py::object& value, std::size_t n, con
         throw std::invalid_argument(std::string(name) + " must be a scalar or have one value per ray");
     }
     return std::vector<double>(arr.data(), arr.data() + n);
+}
+
+// Section planes as Python gives them: (nx, ny, nz, offset) each.
+using PlaneTuples = std::vector<std::array<double, 4>>;
+inline std::vector<SectionPlane> to_sections(const PlaneTuples& planes) {
+    std::vector<SectionPlane> out;
+    for (const auto& p : planes) out.push_back({{p[0], p[1], p[2]}, p[3]});
+    return out;
+}
+inline PlaneTuples from_sections(const std::vector<SectionPlane>& planes) {
+    PlaneTuples out;
+    for (const auto& p : planes) out.push_back({p.normal.x, p.normal.y, p.normal.z, p.offset});
+    return out;
 }
 
 // Hands a vector to numpy without a copy; the capsule frees it with the array.

@@ -115,12 +115,17 @@ void bind_render_types(py::module_& m) {
                        "pass of a still view: pass k draws other AO and diffuse directions than passes before it")
         .def_readwrite("request_limit", &RenderParams::request_limit,
                        "out of core: blocks this frame may add to the fetch queue; 0: the cache's bound")
+        .def_property(
+            "sections", [](const RenderParams& p) { return bindings::from_sections(p.sections); },
+            [](RenderParams& p, const bindings::PlaneTuples& planes) { p.sections = bindings::to_sections(planes); },
+            "section planes as (nx, ny, nz, offset): geometry where n . p + offset < 0 is cut away")
         .def("validate", &RenderParams::validate, "ValueError naming the field and its range")
         .def("__copy__", [](const RenderParams& p) { return p; })
         .def(py::pickle([](const RenderParams& p) {
                             return py::make_tuple(std::string(shading_name(p.shading)), p.ao_samples, p.ao_distance,
                                                   to_list(p.sun_direction), p.threads, p.tile_size, p.packets,
-                                                  p.pixels_of_error, p.solid_angle, p.sample_index, p.request_limit);
+                                                  p.pixels_of_error, p.solid_angle, p.sample_index, p.request_limit,
+                                                  bindings::from_sections(p.sections));
                         },
                         [](const py::tuple& t) {
                             RenderParams p;
@@ -135,6 +140,7 @@ void bind_render_types(py::module_& m) {
                             p.solid_angle = t[8].cast<double>();
                             p.sample_index = t[9].cast<int>();
                             p.request_limit = t[10].cast<int>();
+                            p.sections = bindings::to_sections(t[11].cast<bindings::PlaneTuples>());
                             return p;
                         }));
 

@@ -192,6 +192,7 @@ public:
     }
 
     float ao_distance() const { return ao_distance_; }
+    Vec3d centre() const { return centre_; }
 
 private:
     const ModelIndex& index_;
@@ -224,10 +225,12 @@ Frame render_model(BlockCache& cache, CachedModel& model, const Camera& camera, 
 }
 
 LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
-                         const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
+                           const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                           const std::vector<SectionPlane>& planes) {
     const FrameClock clock;
     const ModelIndex& index = model.index();
     const Vec3d centre = index.centre();
+    const LocalSections sections(planes, centre);
     const Box3f root = index.root_cell();
     LodRayHits out;
     out.t.assign(n, std::numeric_limits<double>::infinity());
@@ -255,6 +258,10 @@ LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* 
             r.ray.dir = Vec3f(unit);
             r.ray.tmin = static_cast<float>(tmin[i] * length(d));
             r.ray.tmax = static_cast<float>(std::min(tmax[i] * length(d), 3.4e38));
+            int entered = -1;
+            if (!sections.empty() && !sections.clip(r.ray.org, r.ray.dir, r.ray.tmin, r.ray.tmax, entered)) {
+                continue;  // all of it on the cut side: a miss
+            }
             const std::uint64_t missing_before = lane.missing;
             LodHit hit;
             lod_traverse<false>(lane, root, r, hit);
@@ -267,9 +274,14 @@ LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* 
             triangle_of(hit, index.has_colours(), v);
             // The hit point from barycentrics in the local float frame, then to world in
             // double: exact to the triangle's own float precision, far from the origin too.
-            const Vec3f local = v[0] * (1.0f - hit.u - hit.v) + v[1] * hit.u + v[2] * hit.v;
+            Vec3f local = v[0] * (1.0f - hit.u - hit.v) + v[1] * hit.u + v[2] * hit.v;
+            Vec3f nrm = normalize(cross(v[1] - v[0], v[2] - v[0]));
+            if (entered >= 0 && dot(nrm, r.ray.dir) > 0) {
+                // In a cut solid: its cap, on the plane.
+                local = r.ray.org + r.ray.dir * r.ray.tmin;
+                nrm = -sections.normal(entered);
+            }
             const Vec3d world = centre + Vec3d(local);
-            const Vec3f nrm = normalize(cross(v[1] - v[0], v[2] - v[0]));
             out.t[i] = length(world - o);
             out.prim[i] = static_cast<std::int64_t>(hit.prim);
             out.u[i] = hit.u;

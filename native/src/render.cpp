@@ -114,6 +114,7 @@ public:
     }
 
     float ao_distance() const { return ao_distance_; }
+    Vec3d centre() const { return scene_.centre(); }
 
 private:
     const Scene& scene_;
@@ -154,7 +155,9 @@ Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams&
 }
 
 BatchResult intersect_scene(const Scene& scene, const double* origins, const double* directions, const double* tmin,
-                            const double* tmax, std::size_t n, unsigned threads) {
+                            const double* tmax, std::size_t n, unsigned threads,
+                            const std::vector<SectionPlane>& planes) {
+    const LocalSections sections(planes, scene.centre());
     BatchResult out;
     out.t.assign(n, std::numeric_limits<double>::infinity());
     out.prim.assign(n, -1);
@@ -169,12 +172,20 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
             const WorldRay wr = load_ray(origins, directions, tmin, tmax, i);
             if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
             Hit hit;
-            if (traverse<false>(scene.tree(), scene.tri_vertices(), scene.to_local(wr), hit, c)) {
+            Ray ray = scene.to_local(wr);
+            int entered = -1;
+            if (!sections.empty() && !sections.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered)) continue;
+            if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) {
+                Vec3f nrm = normalize(scene.normal(hit.prim));
+                if (entered >= 0 && dot(nrm, ray.dir) > 0) {
+                    // In a cut solid: its cap, on the plane.
+                    hit.t = ray.tmin;
+                    nrm = -sections.normal(entered);
+                }
                 out.t[i] = hit.t;
                 out.prim[i] = scene.input_id(hit.prim);
                 out.u[i] = hit.u;
                 out.v[i] = hit.v;
-                const Vec3f nrm = normalize(scene.normal(hit.prim));
                 for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
             }
         }

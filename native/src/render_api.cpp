@@ -66,6 +66,18 @@ void RenderParams::validate() const {
     }
     if (sample_index < 0) throw std::invalid_argument("sample_index must be >= 0");
     if (request_limit < 0) throw std::invalid_argument("request_limit must be >= 0 (0: the cache's bound)");
+    validate_sections(sections);
+}
+
+void validate_sections(const std::vector<SectionPlane>& planes) {
+    if (planes.size() > kMaxSectionPlanes) {
+        throw std::invalid_argument("at most " + std::to_string(kMaxSectionPlanes) + " section planes");
+    }
+    for (const SectionPlane& p : planes) {
+        if (!all_finite(p.normal) || !(dot(p.normal, p.normal) > 0) || !std::isfinite(p.offset)) {
+            throw std::invalid_argument("a section plane needs a finite non-zero normal and a finite offset");
+        }
+    }
 }
 
 double solid_angle_cone(const RenderParams& params, double pixel_angle) {
@@ -85,13 +97,17 @@ Frame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, co
 }
 
 LodRayHits intersect_lod(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
-                         const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    return kernels().intersect_model(cache, model, origins, directions, tmin, tmax, n, threads);
+                         const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                         const std::vector<SectionPlane>& sections) {
+    validate_sections(sections);
+    return kernels().intersect_model(cache, model, origins, directions, tmin, tmax, n, threads, sections);
 }
 
 BatchResult intersect_batch(const Scene& scene, const double* origins, const double* directions,
-                            const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    return kernels().intersect_scene(scene, origins, directions, tmin, tmax, n, threads);
+                            const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                            const std::vector<SectionPlane>& sections) {
+    validate_sections(sections);
+    return kernels().intersect_scene(scene, origins, directions, tmin, tmax, n, threads, sections);
 }
 
 std::vector<std::uint8_t> occluded_batch(const Scene& scene, const double* origins, const double* directions,

@@ -160,7 +160,6 @@ def test_a_screenshot_downloads_the_finished_view(
     assert not_blank(np.asarray(image.convert("RGB"), dtype=int))
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="native section planes land separately")
 def test_a_section_plane_hides_geometry(
     open_viewer: Any, server: Any, api: Any, model: dict[str, Any]
 ) -> None:

@@ -47,6 +47,57 @@ enum class SecondaryRay { Shadow, AmbientOcclusion, Diffuse };
 // How the rays of one occlusion query relate.
 enum class RayGroup { SharedOrigin, SharedDirection };
 
+// Section planes in a renderer's local float frame (its model centre subtracted in
+// double, as rays are). A plane keeps the points q with dot(n, q) + d >= 0.
+class LocalSections {
+public:
+    LocalSections(const std::vector<SectionPlane>& planes, const Vec3d& centre) {
+        for (const SectionPlane& p : planes) {
+            const double len = length(p.normal);
+            const Vec3d n = p.normal * (1.0 / len);
+            planes_.push_back({Vec3f(n), static_cast<float>((p.offset + dot(p.normal, centre)) / len)});
+        }
+    }
+
+    bool empty() const { return planes_.empty(); }
+    const Vec3f& normal(int plane) const { return planes_[static_cast<std::size_t>(plane)].n; }
+
+    // Narrows [tmin, tmax] of the ray org + t dir to the part on the kept side of every
+    // plane; false when nothing is left. `entered` is the plane the ray crosses into
+    // the kept side at the new tmin, or -1 when tmin did not move.
+    bool clip(const Vec3f& org, const Vec3f& dir, float& tmin, float& tmax, int& entered) const {
+        entered = -1;
+        for (std::size_t i = 0; i < planes_.size(); ++i) {
+            const Plane& p = planes_[i];
+            const float f0 = dot(p.n, org) + p.d, dn = dot(p.n, dir);
+            if (dn == 0.0f) {
+                if (f0 < 0.0f) return false;  // parallel, on the cut side
+                continue;
+            }
+            const float t = -f0 / dn;
+            if (dn > 0.0f) {
+                if (t > tmin) {
+                    tmin = t;
+                    entered = static_cast<int>(i);
+                }
+            } else if (t < tmax) {
+                tmax = t;
+            }
+        }
+        return tmin <= tmax;
+    }
+
+private:
+    struct Plane {
+        Vec3f n;
+        float d;
+    };
+    std::vector<Plane> planes_;
+};
+
+// A cut solid's cap: flat, in a colour no model part has by default, lit from the eye.
+inline Vec3f cap_colour() { return {0.86f, 0.38f, 0.26f}; }
+
 // Rays traced by one lane; node and triangle counts live in the backend's lane.
 struct LaneRays {
     std::uint64_t primary = 0, secondary = 0;
@@ -70,9 +121,11 @@ public:
     using Secondary = typename Backend::Secondary;
 
     FrameShader(const Backend& backend, const RenderParams& params, const Camera& camera, int packets, Frame& frame,
-                IndirectTerms* indirect)
-        : backend_(backend), params_(params), packets_(packets), frame_(frame), indirect_(indirect),
-          sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)) {
+                IndirectTerms* indirect, const LocalSections& sections)
+        : backend_(backend), params_(params), packets_(sections.empty() ? packets : 1), frame_(frame),
+          indirect_(indirect), sections_(sections), sun_(Vec3f(normalize(params.sun_direction))),
+          up_(Vec3f(camera.up)) {
+        // (Sectioned rays go singly: each has its own segment, which packets do not expect.)
         up_ = normalize(up_);
     }
 
@@ -100,6 +153,7 @@ private:
         Ray ray[P];
         Hit hit[P];
         Vec3f n[P], colour[P];
+        int entered[P];         // the section plane a ray entered the kept side through, or -1
         std::uint32_t lit = 0;  // pixels that see the model
     };
 
@@ -111,6 +165,7 @@ private:
             b.x[i] = x + i % Side;
             b.y[i] = y + i / Side;
             b.ray[i] = backend_.primary_ray(b.x[i], b.y[i]);
+            b.entered[i] = -1;  // (no sections: packets are off when there are any)
         }
         if (!backend_.template trace_packet<Side>(lane, b.ray, b.hit)) return false;
         rays.primary += N;
@@ -123,9 +178,27 @@ private:
         b.x[0] = x;
         b.y[0] = y;
         b.ray[0] = backend_.primary_ray(x, y);
-        backend_.trace(lane, b.ray[0], b.hit[0]);
+        b.entered[0] = -1;
         ++rays.primary;
+        if (clip(b.ray[0], b.entered[0])) {
+            backend_.trace(lane, b.ray[0], b.hit[0]);
+        } else {
+            b.hit[0].prim = kNoHit;  // the whole ray lies on the cut side
+        }
         shade(b, lane, rays);
+    }
+
+    // Sections: narrows a ray to the kept side; false when nothing is left.
+    template <typename R>
+    bool clip(R& r, int& entered) const {
+        entered = -1;
+        if (sections_.empty()) return true;
+        vastray::Ray& ray = base(r);
+        return sections_.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered);
+    }
+    bool clip_secondary(Secondary& s) const {
+        int entered;
+        return clip(s.ray, entered);
     }
 
     std::size_t pixel(int x, int y) const { return static_cast<std::size_t>(y) * frame_.width + x; }
@@ -142,7 +215,20 @@ private:
             frame_.depth[px] = b.hit[i].t;
             frame_.prim[px] = backend_.prim_id(b.hit[i]);
             backend_.surface(b.hit[i], b.n[i], b.colour[i]);
-            if (params_.shading != Shading::Normal && dot(b.n[i], direction(b.ray[i])) > 0) {
+            const Vec3f& dir = direction(b.ray[i]);
+            if (!sections_.empty() && b.entered[i] >= 0 && dot(b.n[i], dir) > 0) {
+                // The ray came in through a plane and meets a surface from behind: it is
+                // inside a cut solid, and sees the cap on the plane.
+                const Vec3f cap_n = -sections_.normal(b.entered[i]);
+                frame_.depth[px] = base(b.ray[i]).tmin;
+                frame_.prim[px] = kPrimCap;
+                b.lit &= ~(1u << i);
+                const Vec3f c = params_.shading == Shading::Normal ? (cap_n + Vec3f(1, 1, 1)) * 0.5f
+                                                                   : cap_colour() * shading::headlight(cap_n, dir);
+                shading::store_rgb(c, frame_.rgb.data() + 3 * px);  // (compose_indirect leaves caps)
+                continue;
+            }
+            if (params_.shading != Shading::Normal && dot(b.n[i], dir) > 0) {
                 b.n[i] = -b.n[i];  // shade the side the viewer sees
             }
         }
@@ -221,7 +307,11 @@ private:
             shadow[i] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], sun_, inf, SecondaryRay::Shadow);
         }
         rays.secondary += static_cast<std::uint64_t>(__builtin_popcount(facing));
-        return facing & ~occluded<P>(lane, shadow, facing, RayGroup::SharedDirection);
+        std::uint32_t query = facing;
+        for (int i = 0; i < P; ++i) {
+            if ((query >> i & 1u) && !clip_secondary(shadow[i])) query &= ~(1u << i);  // all on the cut side
+        }
+        return facing & ~occluded<P>(lane, shadow, query, RayGroup::SharedDirection);
     }
 
     template <int P>
@@ -240,7 +330,10 @@ private:
                                                   SecondaryRay::AmbientOcclusion);
             }
             for (int k = count; k < kGroup; ++k) probe[k] = probe[0];
-            const std::uint32_t mask = (1u << count) - 1;
+            std::uint32_t mask = (1u << count) - 1;
+            for (int k = 0; k < count; ++k) {
+                if (!clip_secondary(probe[k])) mask &= ~(1u << k);  // cut away: open
+            }
             open += count - __builtin_popcount(occluded<kGroup>(lane, probe, mask, RayGroup::SharedOrigin));
         }
         rays.secondary += static_cast<std::uint64_t>(samples);
@@ -269,7 +362,11 @@ private:
                 const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], D * params_.sample_index + k,
                                                         shading::kDiffuseSalt);
                 diffuse[j] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, inf, SecondaryRay::Diffuse);
-                backend_.trace_secondary(lane, diffuse[j], bounce[j]);
+                if (clip_secondary(diffuse[j])) {
+                    backend_.trace_secondary(lane, diffuse[j], bounce[j]);
+                } else {
+                    bounce[j].prim = kNoHit;  // cut away: it sees the sky
+                }
                 ++rays.secondary;
                 if (bounce[j].prim == kNoHit) {
                     bounce_light[j] = shading::sky(dir, up_);
@@ -281,8 +378,8 @@ private:
                 const float lambert = dot(ny, sun_);
                 bounce_light[j] = albedo * (shading::kSunLight * std::max(0.0f, lambert));
                 if (lambert > 0) {
-                    facing[j / 32] |= 1u << (j % 32);
                     shadow[j] = backend_.secondary_ray(diffuse[j].ray, bounce[j], ny, sun_, inf, SecondaryRay::Shadow);
+                    if (clip_secondary(shadow[j])) facing[j / 32] |= 1u << (j % 32);
                 }
             }
         }
@@ -317,12 +414,18 @@ private:
     static const Vec3f& direction(const R& r) {
         return r.ray.dir;
     }
+    static vastray::Ray& base(vastray::Ray& r) { return r; }
+    template <typename R>
+    static vastray::Ray& base(R& r) {
+        return r.ray;
+    }
 
     const Backend& backend_;
     const RenderParams& params_;
     int packets_;
     Frame& frame_;
     IndirectTerms* indirect_;
+    const LocalSections& sections_;
     Vec3f sun_, up_;
 };
 
@@ -339,7 +442,7 @@ inline void compose_indirect(IndirectTerms& terms, const shading::CameraRays& ca
     denoise::filter(guides, terms.light, params.threads);
     const std::size_t pixels = frame.depth.size();
     for (std::size_t p = 0; p < pixels; ++p) {
-        if (!(frame.depth[p] < std::numeric_limits<float>::infinity())) continue;
+        if (!(frame.depth[p] < std::numeric_limits<float>::infinity()) || frame.prim[p] == kPrimCap) continue;
         Vec3f c;
         for (int k = 0; k < 3; ++k) c[k] = terms.albedo[3 * p + k] * (terms.direct[p] + terms.light[3 * p + k]);
         shading::store_rgb(c, frame.rgb.data() + 3 * p);
@@ -354,7 +457,8 @@ void trace_frame(const Backend& backend, const Camera& camera, const RenderParam
                  std::vector<typename Backend::Lane>& lanes, Frame& frame) {
     std::unique_ptr<IndirectTerms> terms;
     if (params.shading == Shading::Indirect) terms = std::make_unique<IndirectTerms>(frame.depth.size());
-    const FrameShader<Backend> shader(backend, params, camera, packets, frame, terms.get());
+    const LocalSections sections(params.sections, backend.centre());
+    const FrameShader<Backend> shader(backend, params, camera, packets, frame, terms.get(), sections);
     std::vector<LaneRays> rays(lanes.size());
     shading::for_each_tile(camera, params, [&](int x0, int y0, int x1, int y1, unsigned lane) {
         shader.render_tile(x0, y0, x1, y1, lanes[lane], rays[lane]);

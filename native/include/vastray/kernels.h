@@ -19,9 +19,11 @@ struct KernelTable {
     Frame (*render_scene)(const Scene&, const Camera&, const RenderParams&);
     Frame (*render_model)(BlockCache&, CachedModel&, const Camera&, const RenderParams&);
     LodRayHits (*intersect_model)(BlockCache&, CachedModel&, const double* origins, const double* directions,
-                                  const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+                                  const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                                  const std::vector<SectionPlane>& sections);
     BatchResult (*intersect_scene)(const Scene&, const double* origins, const double* directions, const double* tmin,
-                                   const double* tmax, std::size_t n, unsigned threads);
+                                   const double* tmax, std::size_t n, unsigned threads,
+                                   const std::vector<SectionPlane>& sections);
     std::vector<std::uint8_t> (*occluded_scene)(const Scene&, const double* origins, const double* directions,
                                                 const double* tmin, const double* tmax, std::size_t n,
                                                 unsigned threads);
@@ -43,9 +45,11 @@ VASTRAY_KERNEL_BEGIN
 Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams& params);
 Frame render_model(BlockCache& cache, CachedModel& model, const Camera& camera, const RenderParams& params);
 LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
-                           const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+                           const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                           const std::vector<SectionPlane>& sections);
 BatchResult intersect_scene(const Scene& scene, const double* origins, const double* directions, const double* tmin,
-                            const double* tmax, std::size_t n, unsigned threads);
+                            const double* tmax, std::size_t n, unsigned threads,
+                            const std::vector<SectionPlane>& sections);
 std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
                                          const double* tmin, const double* tmax, std::size_t n, unsigned threads);
 VASTRAY_KERNEL_END

@@ -18,13 +18,16 @@ Frame render_lod(BlockCache& cache, CachedModel& model, const Camera& camera, co
 struct LodRayHits {
     std::vector<double> t, position;  // position: 3 per ray, world frame (double)
     std::vector<float> normal;        // 3 per ray, unit geometric normal
-    std::vector<std::int64_t> prim;   // input triangle id; -1 on a miss
+    std::vector<std::int64_t> prim;   // input triangle id (of the cut solid, on a cap); -1 on a miss
     std::vector<float> u, v;
     std::vector<std::uint8_t> complete;
     FrameStats stats;
 };
+// With section planes, rays see only the kept side; a ray that enters a cut solid
+// through a plane hits its cap: the point on the plane, the plane's normal.
 LodRayHits intersect_lod(BlockCache& cache, CachedModel& model, const double* origins, const double* directions,
-                         const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+                         const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                         const std::vector<SectionPlane>& sections = {});
 
 // The cone slope of the solid-angle metric: a voxel of radius R at distance t subtends
 // about pi R^2 / t^2, so R <= t * sqrt(omega / pi).

@@ -33,6 +33,16 @@ enum class Shading { Normal, Headlight, Sun, AmbientOcclusion, Indirect };
 Shading parse_shading(const std::string& name);
 const char* shading_name(Shading shading);
 
+// A section (clipping) plane in world coordinates: geometry where dot(normal, p) +
+// offset < 0 is cut away. Where a ray enters a solid through the cut it sees a cap.
+struct SectionPlane {
+    Vec3d normal;
+    double offset = 0;
+};
+constexpr std::size_t kMaxSectionPlanes = 6;
+// Throws std::invalid_argument for a zero or non-finite normal or offset, or too many.
+void validate_sections(const std::vector<SectionPlane>& planes);
+
 struct RenderParams {
     Shading shading = Shading::Headlight;
     int ao_samples = 8;
@@ -61,6 +71,9 @@ struct RenderParams {
     // cache's bound (max_requests_per_frame). Full-detail mode raises it, as it waits
     // for the data anyway.
     int request_limit = 0;
+    // Section planes (at most kMaxSectionPlanes): rays, primary and secondary, see only
+    // what lies on the kept side of every plane.
+    std::vector<SectionPlane> sections;
 
     // Throws std::invalid_argument naming the field and its allowed range.
     void validate() const;
@@ -75,7 +88,8 @@ struct Frame {
     FrameStats stats;
 };
 
-constexpr std::int32_t kPrimBackground = -1, kPrimVoxel = -2;
+// Frame::prim where a pixel sees nothing, a LOD voxel, or the cap of a cut solid.
+constexpr std::int32_t kPrimBackground = -1, kPrimVoxel = -2, kPrimCap = -3;
 
 Frame render(const Scene& scene, const Camera& camera, const RenderParams& params);
 

@@ -64,8 +64,12 @@ struct BatchResult {
     std::vector<float> normal;  // 3 per ray: unit geometric normal (0 on a miss)
     TraversalCounters counters;
 };
+struct SectionPlane;
+// Section planes cut as in rendering (render.h): a ray entering a cut solid through a
+// plane hits its cap (t on the plane, the plane's normal, the solid's triangle).
 BatchResult intersect_batch(const Scene& scene, const double* origins, const double* directions,
-                            const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+                            const double* tmin, const double* tmax, std::size_t n, unsigned threads,
+                            const std::vector<SectionPlane>& sections = {});
 std::vector<std::uint8_t> occluded_batch(const Scene& scene, const double* origins,
                                          const double* directions, const double* tmin,
                                          const double* tmax, std::size_t n, unsigned threads);
