@@ -254,6 +254,9 @@ class View:
         params = q.to_native(threads=self.render_threads)
         params.pixels_of_error = poe
         params.sections = native_sections(self.sections)
+        # Each refinement pass draws new AO and diffuse directions, so the average of the
+        # passes has their samples together, not the same noise again.
+        params.sample_index = max(0, pass_number - 1)
         base, n = (self.accum, self.accum_n) if accumulate and pass_number > 1 else (None, 0)
         return RenderJob(
             self.version,

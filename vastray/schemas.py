@@ -27,7 +27,8 @@ def _finite(v: tuple[float, float, float]) -> tuple[float, float, float]:
 
 
 Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite)]
-ShadingName = Literal["normal", "headlight", "sun", "ao"]
+ShadingName = Literal["normal", "headlight", "sun", "ao", "indirect"]
+assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of modes
 
 
 def describe_errors(errors: list[Any]) -> str:
