@@ -28,6 +28,7 @@ import argparse
 import csv
 import gc
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -58,6 +59,9 @@ from common import (  # bench/ is a folder of scripts, not a package
     timed,
 )
 
+# The kernels' ISA path is chosen when the first ray is traced: --isa sets VASTRAY_ISA.
+if "--isa" in sys.argv[:-1]:
+    os.environ["VASTRAY_ISA"] = sys.argv[sys.argv.index("--isa") + 1]
 # Pin one build of the extension for the whole run (others may rebuild it meanwhile).
 NATIVE_BUILD = pin_native() if "--no-pin" not in sys.argv else "as installed (--no-pin)"
 
@@ -399,6 +403,11 @@ def bench_model(
 # ----------------------------------------------------------------------------- report
 
 
+def isa_path() -> str:
+    """The ISA path the kernels run on ('sse2', 'avx', 'avx2'; 'sse2 only' before issue 12)."""
+    return native.isa() if hasattr(native, "isa") else "sse2 (no dispatch)"
+
+
 def ratio(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{x:.2f}x"
 
@@ -408,6 +417,7 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
     parts = [
         "# vastray vs Embree: rays per second",
         "",
+        f"vastray kernels on the **{isa_path()}** path. "
         "Same rays through both engines in one process, interleaved, best of at least "
         f"{args.reps} (primary) / {args.ao_reps} (AO) runs (cheap ones repeated for "
         f"{args.min_time:g} s). Mrays/s = million rays per second. "
@@ -426,7 +436,7 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
     if ok:
         parts += [
             markdown_table(
-                ["ratio vastray / Embree (geometric mean over models)", "1T", f"{nt}T"],
+                [f"ratio vastray ({isa_path()}) / Embree (geometric mean over models)", "1T", f"{nt}T"],
                 [
                     [
                         "primary rays, batch intersect vs rtcIntersect1",
@@ -578,7 +588,10 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
         "shading, not timed). *agree prim %* = rays where both engines report the "
         "same triangle (or both miss). *peak RSS +MB* = growth of the process's peak resident "
         "memory during the build (small builds reuse heap freed by earlier models and can show 0; "
-        "Embree's includes the float32 triangle copy embreex hands it).",
+        "Embree's includes the float32 triangle copy embreex hands it). The renderer traces 4x4 "
+        "SIMD packets and `Scene.occluded` traces the rays of each point (consecutive rays from "
+        "one origin, as the renderer's AO makes them) as one any-hit packet, with the single-ray "
+        "answers; Embree traces every ray alone (embreex has no packet API).",
         "",
     ]
     return "\n".join(parts)
@@ -662,6 +675,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--threads", type=int, default=0, help="'all threads' count (default: hardware threads)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-embree", action="store_true", help="vastray only")
+    ap.add_argument("--isa", default=None, help="force the kernels' ISA path (sse2, avx, avx2): VASTRAY_ISA")
     ap.add_argument("--no-pin", action="store_true", help="import vastray.native in place (no private copy)")
     ap.add_argument("--quick", action="store_true", help="smoke run: two small models, 320x240, 2 runs")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR, help="output folder (default bench/results)")
@@ -696,6 +710,9 @@ def main(argv: list[str] | None = None) -> int:
     info = machine_info(
         {
             "vastray native": NATIVE_BUILD,
+            "vastray ISA path": f"{isa_path()} (supported here: "
+            + (", ".join(native.supported_isas()) if hasattr(native, "supported_isas") else "sse2")
+            + ")",
             "vastray hardware threads": str(native.hardware_threads()),
             "all-threads setting": str(nt),
             "embreex": embree_version() or "not installed",
@@ -718,7 +735,7 @@ def main(argv: list[str] | None = None) -> int:
     (args.out / f"{args.name}.md").write_text(text)
     write_csv(rows, args.out / f"{args.name}.csv")
     if pool is not None or rows:
-        title = f"vastray vs Embree, {args.width}x{args.height}, {info['cpu']}"
+        title = f"vastray ({isa_path()}) vs Embree, {args.width}x{args.height}, {info['cpu']}"
         plot(rows, args.out / f"{args.name}.png", title)
     print(f"\nwrote {args.out / args.name}.md, .csv, .png")
     return 0

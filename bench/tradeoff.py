@@ -1,16 +1,21 @@
 """Speed against accuracy of out-of-core LOD rendering (paper 000 §6, Fig. 7).
 
-Four studies, each printed as a table and written to bench/results/tradeoff-*.{md,csv}
-with plots (tradeoff-*.png):
+Five studies, each printed as a table and written to bench/results/tradeoff-*.{md,csv}
+with plots (tradeoff-*.png); every table names the kernels' ISA path (native.isa()):
 
   poe      For fixed views of one model: pixels of error (PoE) in {0, .5, 1, 2, 3, 8, 32}
-           x shading (headlight, sun, ao) -> frame time, rays/s, working set, and the
+           x shading (headlight, sun, ao, indirect) -> frame time, rays/s, working set, and the
            image error against the PoE 0 complete image: PSNR, SSIM and the share of
            pixels whose hit differs. Every frame is rendered once its view is complete at
            that PoE, so the numbers measure the LOD, not data still loading.
   size     Frame time against model size (10^5 ... 10^8 triangles) with LOD (PoE 2) and
-           without (PoE 0, full detail), single rays against 2x2 and 4x4 packets, and
-           the instant-on time (open + first frame, page cache dropped).
+           without (PoE 0, full detail), single rays against 2x2 and 4x4 packets, sun and
+           indirect beside headlight, the instant-on time (open + first frame, page cache
+           dropped), and up to 10^7 the in-core renderer on the same model decoded whole
+           (ModelFile.to_scene), side by side: the out-of-core / in-core ratio.
+  pixels   Working set and time to complete of one view against its pixel count (320x180
+           ... 1920x1080) at PoE 2: with level of detail the pixels, not the triangles,
+           should set the working set.
   loading  Time until a view is complete against cache budget, fetcher count and fetch
            priority (paper 000 request counts against paper 003 projected size).
   ooc      Out of core for real: a model file several times the cache budget along a
@@ -34,6 +39,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import statistics
 import subprocess
 import sys
@@ -47,13 +53,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, machine_info, markdown_table, save_figure
 
 from build import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
+from vastray import native
 from vastray.camera import Camera, frame_bounds
+from vastray.modelfile import ModelFile
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
+from vastray.renderer import RENDER_PARAM_FIELDS, trace
 from vastray.units import parse_bytes
 
 CACHE = Path(__file__).resolve().parent / ".cache"
 POES = (0.0, 0.5, 1.0, 2.0, 3.0, 8.0, 32.0)
-SHADINGS = ("headlight", "sun", "ao")
+# The modes this build has (the script also measures builds from before issue 12).
+SHADINGS = tuple(m for m in ("headlight", "sun", "ao", "indirect") if m in native.SHADING_MODES)
+
+
+def isa_path() -> str:
+    return native.isa() if hasattr(native, "isa") else "sse2 (no dispatch)"
+
+
+def optional(**fields: Any) -> dict[str, Any]:
+    """The render parameters of `fields` that this build knows."""
+    return {k: v for k, v in fields.items() if k in RENDER_PARAM_FIELDS}
 
 
 # ----------------------------------------------------------------------------- models
@@ -192,14 +211,76 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
                 row[f"{tag}_ms"] = math.nan
                 continue
             row[f"{tag}_complete_s"] = done.seconds
+            row[f"{tag}_frames"] = done.frames
             row[f"{tag}_working_set_mib"] = done.stats.working_set_bytes / 2**20
+            row[f"{tag}_voxel_pct"] = 100 * done.stats.voxel_hits / done.stats.primary_rays
             for packets in (1, 4, 16):
                 ms, _ = frame_ms(model, camera, args.repeats, pixels_of_error=poe, packets=packets)
                 key = f"{tag}_ms" if packets == 1 else f"{tag}_packets{packets}_ms"
                 row[key] = ms
+            row[f"{tag}_fastest_ms"] = min(
+                row[f"{tag}_ms"], row[f"{tag}_packets4_ms"], row[f"{tag}_packets16_ms"]
+            )
+            if tag == "lod":
+                for shading in ("sun", "indirect"):
+                    if shading not in SHADINGS:
+                        continue
+                    model.render_complete(camera, pixels_of_error=poe, shading=shading)
+                    row[f"lod_{shading}_ms"], _ = frame_ms(model, camera, args.repeats, pixels_of_error=poe,
+                                                           shading=shading)  # fmt: skip
+                row["lod_sun_over_headlight"] = row.get("lod_sun_ms", math.nan) / row["lod_fastest_ms"]
         model.close()
+        if size <= args.incore_max:
+            # The in-core renderer on the same tree (the model decoded whole), same camera,
+            # same threads, in this process: the out-of-core full-detail ratio.
+            with ModelFile(path) as f:
+                scene = f.to_scene()
+            cam = camera.to_native()
+            for packets in (1, 16):
+                frames = [trace(scene, cam, packets=packets) for _ in range(args.repeats)]
+                row[f"incore_p{packets}_ms"] = statistics.median(f.stats.milliseconds for f in frames)
+            del scene
+            for tag in ("p1", "p16"):
+                ooc = row.get("full_ms" if tag == "p1" else "full_packets16_ms", math.nan)
+                row[f"full_{tag}_over_incore"] = row[f"incore_{tag}_ms"] / ooc
+            row["full_fastest_over_incore_fastest"] = (
+                min(row["incore_p1_ms"], row["incore_p16_ms"]) / row.get("full_fastest_ms", math.nan)
+            )
         rows.append(row)
         print(f"  {size:.0e}: {json.dumps(row)}", file=sys.stderr, flush=True)
+    return rows
+
+
+def study_pixels(args: argparse.Namespace) -> list[dict[str, Any]]:
+    """Working set and time to complete of the overview against its pixel count."""
+    path = built_model(args.pixels_size)
+    rows = []
+    for width, height in ((320, 180), (640, 360), (1280, 720), (1920, 1080)):
+        drop_page_cache(path)
+        cache = make_cache(args.cache, 2)
+        with OutOfCoreModel(path, cache) as model:
+            camera = frame_bounds(*model.bounds, width=width, height=height)
+            try:
+                done = model.render_complete(camera, pixels_of_error=2.0)
+            except CacheTooSmallError:
+                rows.append({"width": width, "height": height, "complete_s": math.nan})
+                continue
+            s = done.stats
+            rows.append(
+                {
+                    "width": width,
+                    "height": height,
+                    "pixels": width * height,
+                    "complete_s": done.seconds,
+                    "frames": done.frames,
+                    "working_set_mib": s.working_set_bytes / 2**20,
+                    "working_set_bytes_per_pixel": s.working_set_bytes / (width * height),
+                    "read_mib": cache.totals()["bytes_read"] / 2**20,
+                    "voxel_hits_pct": 100 * s.voxel_hits / s.primary_rays,
+                    "frame_ms": frame_ms(model, camera, args.repeats, pixels_of_error=2.0)[0],
+                }
+            )
+        print(f"  {width}x{height}: {json.dumps(rows[-1])}", file=sys.stderr, flush=True)
     return rows
 
 
@@ -377,7 +458,10 @@ def plot_ooc(rows: list[dict[str, Any]], summary: dict[str, Any], out: Path) -> 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--studies", default="poe,size,loading,ooc")
+    p.add_argument("--studies", default="poe,size,pixels,loading,ooc")
+    p.add_argument("--isa", default=None, help="force the kernels' ISA path (VASTRAY_ISA)")
+    p.add_argument("--incore-max", type=float, default=1e7, help="largest model also rendered in core")
+    p.add_argument("--pixels-size", type=float, default=1e8, help="model of the pixels study")
     p.add_argument("--image", default="1280x720", help="frame size WxH")
     p.add_argument("--poe-image", default="640x360", help="frame size of the PoE study (AO is slow)")
     p.add_argument("--study-size", type=float, default=1e6, help="model size of the PoE study")
@@ -392,18 +476,21 @@ def main() -> int:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--out", type=Path, default=RESULTS_DIR)
     args = p.parse_args()
+    if args.isa:
+        os.environ["VASTRAY_ISA"] = args.isa  # read when the first ray is traced
     args.sizes = [int(float(s)) for s in args.sizes.split(",")]
     args.study_size, args.loading_size, args.ooc_size = (
         int(args.study_size),
         int(args.loading_size),
         int(args.ooc_size),
     )
+    args.incore_max, args.pixels_size = int(args.incore_max), int(args.pixels_size)
     args.budgets = [parse_bytes(b) for b in args.budgets.split(",")]
     args.ooc_cache, args.cache = parse_bytes(args.ooc_cache), parse_bytes(args.cache)
     size_image = tuple(int(v) for v in args.image.split("x"))
     studies = args.studies.split(",")
     info = machine_info()
-    header = f"{info['cpu']}, {info['logical cores']} cores, revision {info['git']}"
+    header = f"{info['cpu']}, {info['logical cores']} cores, ISA path {isa_path()}, revision {info['git']}"
 
     if "poe" in studies:
         args.image = tuple(int(v) for v in args.poe_image.split("x"))
@@ -427,10 +514,23 @@ def main() -> int:
                 rows,
                 args.out,
                 f"{header}; plant, {args.image[0]}x{args.image[1]} headlight, "
-                "overview, single rays unless packets are named; page cache dropped before opening",
+                "overview, single rays unless packets are named; page cache dropped before opening; "
+                "incore_*: the in-core renderer on the same model decoded whole, *_over_incore: its "
+                "frame time over the out-of-core full-detail one (above 1: out of core is faster)",
             )
         )
         plot_size(rows, args.out)
+    if "pixels" in studies:
+        rows = study_pixels(args)
+        print(
+            write(
+                "tradeoff-pixels",
+                rows,
+                args.out,
+                f"{header}; plant 1e{round(math.log10(args.pixels_size))}, overview at PoE 2, headlight, "
+                "cold (page cache dropped), each size in a fresh cache: working set against pixels",
+            )
+        )
     if "loading" in studies:
         rows = study_loading(args)
         print(

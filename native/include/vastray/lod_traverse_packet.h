@@ -307,20 +307,9 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
                     }
                     if (!lanes) continue;
                     lane.triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
-                    int changed = 0;
-                    if (sheared_v[v].uniform) {
-                        changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, v0, v1, v2, id,
-                                                          vm::from_bits(static_cast<unsigned>(lanes)), hv[v]);
-                    } else {
-                        hv[v].store(hits + W * v);
-                        for (int k = 0; k < W; ++k) {
-                            if ((lanes >> k & 1) &&
-                                intersect_triangle(rays[W * v + k].ray, sheared[W * v + k], v0, v1, v2, hits[W * v + k])) {
-                                changed |= 1 << k;
-                            }
-                        }
-                        hv[v] = HitV<W>::load(hits + W * v);
-                    }
+                    const int changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, v0, v1,
+                                                                v2, id, vm::from_bits(static_cast<unsigned>(lanes)),
+                                                                hv[v]);
                     if (changed) {
                         if (id == kNoHit) id = triangles.id(local);
                         hv[v].prim = select(vm::from_bits(static_cast<unsigned>(changed)), vf::bits(id), hv[v].prim);

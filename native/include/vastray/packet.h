@@ -79,21 +79,23 @@ struct HitV {
     }
 };
 
-// W rays sharing one shear permutation (kx, ky, kz), for testing one triangle against
-// them at once. Built once per packet.
+// W rays in the shear frames of the watertight test, for testing one triangle against
+// them at once. Each lane keeps its own permutation (kx, ky, kz): the AO rays of a point
+// point every way. Built once per packet.
 template <int W>
 struct ShearedRayV {
     using vf = simd::vfloat<W>;
-    int kx = 0, ky = 1, kz = 2;
-    vf ox, oy, oz;  // origins, permuted into the shear frame
+    using vm = simd::vmask<W>;
+    int kx = 0, ky = 1, kz = 2;  // the permutation, when every lane has the same
+    bool uniform = true;
+    vm x_is[2], y_is[2], z_is[2];  // else: lanes whose kx (ky, kz) is axis 0, axis 1
+    vf ox, oy, oz;                 // origins, permuted into each lane's shear frame
     vf sx, sy, sz;
     vf tmin;
-    bool uniform = false;  // all W rays share the permutation (else: test them singly)
 
     ShearedRayV() = default;
     template <typename RayT>
     ShearedRayV(const RayT* rays, const ShearedRay* sheared) {
-        uniform = true;
         for (int k = 1; k < W; ++k) {
             uniform = uniform && sheared[k].kx == sheared[0].kx && sheared[k].ky == sheared[0].ky &&
                       sheared[k].kz == sheared[0].kz;
@@ -102,15 +104,23 @@ struct ShearedRayV {
         ky = sheared[0].ky;
         kz = sheared[0].kz;
         alignas(32) float a[7][W];
+        unsigned is[3][2] = {{0, 0}, {0, 0}, {0, 0}};
         for (int k = 0; k < W; ++k) {
             const Ray& ray = ray_of(rays[k]);
-            a[0][k] = ray.org[kx];
-            a[1][k] = ray.org[ky];
-            a[2][k] = ray.org[kz];
+            const int perm[3] = {sheared[k].kx, sheared[k].ky, sheared[k].kz};
+            for (int c = 0; c < 3; ++c) {
+                a[c][k] = ray.org[perm[c]];
+                for (int axis = 0; axis < 2; ++axis) is[c][axis] |= (perm[c] == axis ? 1u : 0u) << k;
+            }
             a[3][k] = sheared[k].sx;
             a[4][k] = sheared[k].sy;
             a[5][k] = sheared[k].sz;
             a[6][k] = ray.tmin;
+        }
+        for (int axis = 0; axis < 2; ++axis) {
+            x_is[axis] = vm::from_bits(is[0][axis]);
+            y_is[axis] = vm::from_bits(is[1][axis]);
+            z_is[axis] = vm::from_bits(is[2][axis]);
         }
         ox = vf::load(a[0]);
         oy = vf::load(a[1]);
@@ -119,6 +129,13 @@ struct ShearedRayV {
         sy = vf::load(a[4]);
         sz = vf::load(a[5]);
         tmin = vf::load(a[6]);
+    }
+
+    // Component c (0: kx, 1: ky, 2: kz) of point p in each lane's frame.
+    vf coord(const Vec3f& p, int c) const {
+        if (uniform) return vf::broadcast(p[c == 0 ? kx : c == 1 ? ky : kz]);
+        const vm* is = c == 0 ? x_is : c == 1 ? y_is : z_is;
+        return select(is[0], vf::broadcast(p.x), select(is[1], vf::broadcast(p.y), vf::broadcast(p.z)));
     }
 };
 
@@ -131,12 +148,9 @@ inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays, const
     using vf = simd::vfloat<W>;
     using vm = simd::vmask<W>;
     const vf zero = vf::broadcast(0.0f);
-    const vf ax0 = vf::broadcast(p0[r.kx]) - r.ox, ay0 = vf::broadcast(p0[r.ky]) - r.oy;
-    const vf az0 = vf::broadcast(p0[r.kz]) - r.oz;
-    const vf bx0 = vf::broadcast(p1[r.kx]) - r.ox, by0 = vf::broadcast(p1[r.ky]) - r.oy;
-    const vf bz0 = vf::broadcast(p1[r.kz]) - r.oz;
-    const vf cx0 = vf::broadcast(p2[r.kx]) - r.ox, cy0 = vf::broadcast(p2[r.ky]) - r.oy;
-    const vf cz0 = vf::broadcast(p2[r.kz]) - r.oz;
+    const vf ax0 = r.coord(p0, 0) - r.ox, ay0 = r.coord(p0, 1) - r.oy, az0 = r.coord(p0, 2) - r.oz;
+    const vf bx0 = r.coord(p1, 0) - r.ox, by0 = r.coord(p1, 1) - r.oy, bz0 = r.coord(p1, 2) - r.oz;
+    const vf cx0 = r.coord(p2, 0) - r.ox, cy0 = r.coord(p2, 1) - r.oy, cz0 = r.coord(p2, 2) - r.oz;
     const vf ax = ax0 - r.sx * az0, ay = ay0 - r.sy * az0;
     const vf bx = bx0 - r.sx * bz0, by = by0 - r.sy * bz0;
     const vf cx = cx0 - r.sx * cz0, cy = cy0 - r.sy * cz0;

@@ -40,17 +40,16 @@ inline bool clip_ray_to_box(const Ray& ray, const Box3f& box, float& t0, float& 
     return true;
 }
 
-// Closest hit (AnyHit = false) or any hit in [tmin, tmax] (AnyHit = true). `skip` is a
-// triangle never reported (the surface a secondary ray starts on).
+// The walk of one ray through the subtree at node `index`, entered with the segment
+// [tmin, tmax]. Closest hit (AnyHit = false) or any hit in [ray.tmin, hit.t) (AnyHit =
+// true); `skip` is a triangle never reported (the surface a secondary ray starts on).
+// Returns true when the ray is finished (an any-hit ray hit, or a hit lies inside its
+// cell), false when the subtree is done and cells beyond it may still hold a nearer hit.
+// traverse() walks from the root; packets hand their last live ray to it mid-tree.
 template <bool AnyHit>
-inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& ray, Hit& hit,
-                     TraversalCounters& counters, std::uint32_t skip = kNoHit) {
-    float tmin, tmax;
-    if (tree.nodes.empty() || !clip_ray_to_box(ray, tree.bounds, tmin, tmax)) return false;
-    hit.t = ray.tmax;
-    hit.prim = kNoHit;
-
-    const ShearedRay sheared(ray.dir);
+inline bool traverse_from(const KdTree& tree, const Vec3f* tri_vertices, const Ray& ray, const ShearedRay& sheared,
+                          std::uint32_t index, float tmin, float tmax, Hit& hit, TraversalCounters& counters,
+                          std::uint32_t skip = kNoHit) {
     // Plain arrays indexed by axis: Vec3's operator[] would branch on every step.
     const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
     const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
@@ -72,7 +71,6 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
         }
     } publish{counters, node_visits, triangle_tests};
     const KdNode* nodes = tree.nodes.data();
-    std::uint32_t index = 0;
     for (;;) {
         const KdNode* node = nodes + index;
         while (!node->is_leaf()) {
@@ -136,7 +134,7 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
             if (hit.prim != kNoHit && hit.t * (1.0f + kSplitSlack) < tmax) return true;
         }
         for (;;) {
-            if (top == 0) return hit.prim != kNoHit;
+            if (top == 0) return false;
             const Entry& e = stack[--top];
             if (e.tmin > hit.t) continue;
             index = e.node;
@@ -145,6 +143,19 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
             break;
         }
     }
+}
+
+// Closest hit (AnyHit = false) or any hit in [tmin, tmax] (AnyHit = true). `skip` is a
+// triangle never reported (the surface a secondary ray starts on).
+template <bool AnyHit>
+inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& ray, Hit& hit,
+                     TraversalCounters& counters, std::uint32_t skip = kNoHit) {
+    float tmin, tmax;
+    if (tree.nodes.empty() || !clip_ray_to_box(ray, tree.bounds, tmin, tmax)) return false;
+    hit.t = ray.tmax;
+    hit.prim = kNoHit;
+    traverse_from<AnyHit>(tree, tri_vertices, ray, ShearedRay(ray.dir), 0, tmin, tmax, hit, counters, skip);
+    return hit.prim != kNoHit;
 }
 
 VASTRAY_KERNEL_END

@@ -157,32 +157,17 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
                 const int active_mask = active.bits();
                 if (active_mask == 0) continue;
                 Hit* h = hits + W * v;
-                if (sheared_v[v].uniform) {
-                    HitV<W> hv = HitV<W>::load(h);
-                    for (std::uint32_t i = 0; i < count; ++i) {
-                        const std::uint32_t id = ids[i];
-                        const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                        intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0], p[1], p[2], id,
-                                                active, hv);
-                    }
-                    triangle_tests += static_cast<std::uint64_t>(count) *
-                                      static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
-                    hv.store(h);
-                    hit_t[v] = hv.t;
-                    continue;
+                HitV<W> hv = HitV<W>::load(h);
+                for (std::uint32_t i = 0; i < count; ++i) {
+                    const std::uint32_t id = ids[i];
+                    const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
+                    intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0], p[1], p[2], id, active,
+                                            hv);
                 }
-                for (int k = 0; k < W; ++k) {
-                    if (!(active_mask & (1 << k))) continue;
-                    for (std::uint32_t i = 0; i < count; ++i) {
-                        const std::uint32_t id = ids[i];
-                        ++triangle_tests;
-                        const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                        if (intersect_triangle(rays[W * v + k], sheared[W * v + k], p[0], p[1], p[2], h[k])) h[k].prim = id;
-                    }
-                }
-                alignas(32) float t[W];
-                for (int k = 0; k < W; ++k) t[k] = h[k].t;
-                hit_t[v] = vf::load(t);
+                triangle_tests += static_cast<std::uint64_t>(count) *
+                                  static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
+                hv.store(h);
+                hit_t[v] = hv.t;
             }
         }
         // Pop the next subtree in which some ray still has a segment before its hit.
@@ -210,12 +195,14 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
 }
 
 // Any-hit queries of N rays in lane order (shadow and AO rays): returns the rays of
-// `mask` that hit a triangle in [tmin, tmax) other than skip[i]. Any rays may share a
-// packet: each lane walks exactly the single ray's segments (the child on its origin's
-// side first, as traverse() does), and as the answer does not depend on the order of
-// the walk, the packet is free to take the children in the order of lane 0. Packets pay
-// where the rays' paths agree: a shared origin (the AO rays of a pixel) or a shared
-// direction (the shadow rays of a pixel block).
+// `mask` that hit a triangle in [tmin, tmax) other than skip[i]. Each lane walks exactly
+// the single ray's segments (PacketSplit: the child on its origin's side first, as
+// traverse() does), and as the answer does not depend on the order of the walk, any
+// rays may share a packet, which takes the children in lane 0's order. Packets pay where
+// the rays' paths agree: a shared origin (the AO rays of a point) or a shared direction
+// (the shadow rays of a pixel block). (Unlike the primary packets they do not hand a
+// lone ray to traverse_from(): their subtrees are small, and the hand-over cost more
+// than it saved.)
 template <int N>
 inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertices, const Ray* rays,
                                      const std::uint32_t* skip, std::uint32_t mask, TraversalCounters& counters) {
@@ -227,10 +214,11 @@ inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertic
     constexpr float kInf = std::numeric_limits<float>::infinity();
     if (tree.nodes.empty()) return 0;
 
-    alignas(32) float lo[N], hi[N], d[3][N], o[3][N];
+    alignas(32) float lo[N], hi[N], d[3][N], o[3][N], t1[N];
     std::uint32_t clipped = 0, negative[3] = {0, 0, 0};
     for (int i = 0; i < N; ++i) {
         const Ray& r = rays[i];
+        t1[i] = r.tmax;
         if ((mask >> i & 1u) && clip_ray_to_box(r, tree.bounds, lo[i], hi[i])) {
             clipped |= 1u << i;
         } else {
@@ -247,7 +235,7 @@ inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertic
     ShearedRay sheared[N];
     for (int i = 0; i < N; ++i) sheared[i] = ShearedRay(rays[i].dir);
     ShearedRayV<W> sheared_v[K];
-    vf inv[3][K], org[3][K], tmin[K], tmax[K];
+    vf inv[3][K], org[3][K], tmin[K], tmax[K], ray_tmax[K];
     vm live[K], dir_neg[3][K];
     for (int v = 0; v < K; ++v) {
         sheared_v[v] = ShearedRayV<W>(rays + W * v, sheared + W * v);
@@ -258,6 +246,7 @@ inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertic
         }
         tmin[v] = vf::load(lo + W * v);
         tmax[v] = vf::load(hi + W * v);
+        ray_tmax[v] = vf::load(t1 + W * v);
         live[v] = vm::from_bits(clipped >> (W * v));
     }
     const vf zero = vf::broadcast(0.0f), v_inf = vf::broadcast(kInf), v_neg_inf = vf::broadcast(-kInf);
@@ -292,7 +281,7 @@ inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertic
             const float split = node->split();
             const std::uint32_t left = node->left_empty() ? 0u : index + 1;
             const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
-            // The packet's order: lane 0's own (origin side first).
+            // The packet's order: lane 0's own (its origin's side first).
             const float o0 = rays[0].org[axis];
             const bool near_is_left = o0 < split || (o0 == split && std::signbit(rays[0].dir[axis]));
             const std::uint32_t near_child = near_is_left ? left : right;
@@ -338,29 +327,14 @@ inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertic
                     }
                     if (!lanes) continue;
                     triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
-                    int hit_lanes = 0;
-                    if (sheared_v[v].uniform) {
-                        HitV<W> hv;
-                        alignas(32) float t_[W];
-                        for (int k = 0; k < W; ++k) t_[k] = rays[W * v + k].tmax;
-                        hv.t = vf::load(t_);
-                        hv.u = hv.v = zero;
-                        hv.prim = vf::bits(kNoHit);
-                        hit_lanes = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0], p[1],
-                                                            p[2], id, vm::from_bits(static_cast<unsigned>(lanes)), hv);
-                    } else {
-                        for (int k = 0; k < W; ++k) {
-                            Hit h;
-                            h.t = rays[W * v + k].tmax;
-                            if ((lanes >> k & 1) &&
-                                intersect_triangle(rays[W * v + k], sheared[W * v + k], p[0], p[1], p[2], h)) {
-                                hit_lanes |= 1 << k;
-                            }
-                        }
-                    }
-                    occluded |= static_cast<std::uint32_t>(hit_lanes) << (W * v);
-                    act[v] &= ~hit_lanes;
-                    live[v] = andnot(vm::from_bits(static_cast<unsigned>(hit_lanes)), live[v]);
+                    // No hit yet (a lane retires at its first): test against [tmin, tmax).
+                    HitV<W> hv{ray_tmax[v], zero, zero, vf::bits(kNoHit)};
+                    const int changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0],
+                                                                p[1], p[2], id,
+                                                                vm::from_bits(static_cast<unsigned>(lanes)), hv);
+                    occluded |= static_cast<std::uint32_t>(changed) << (W * v);
+                    act[v] &= ~changed;
+                    live[v] = andnot(vm::from_bits(static_cast<unsigned>(changed)), live[v]);
                 }
                 int any = 0;
                 for (int v = 0; v < K; ++v) any |= act[v];
