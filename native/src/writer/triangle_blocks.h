@@ -1,0 +1,117 @@
+// Triangle blocks (docs/FORMAT.md §11): leaf triangle lists packed into 64 KB blocks of
+// list entries, triangle records and vertices shared within the block (paper 000 §4.6).
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <stdexcept>
+#include <utility>
+#include <vector>
+
+#include "vastray/format.h"
+#include "vastray/model_writer.h"
+#include "writer/block_stream.h"
+
+namespace vastray::writer {
+
+// Open addressing for the per-block dedup tables (at most a few thousand entries, so
+// a fixed table cleared through its used-slot list beats a node-based map).
+template <typename Key, typename Hash>
+class SmallMap {
+public:
+    explicit SmallMap(std::size_t capacity_log2 = 15)
+        : mask_((std::size_t{1} << capacity_log2) - 1), keys_(mask_ + 1), values_(mask_ + 1, kFree) {}
+    // Returns the value for key, inserting `fresh` if absent.
+    std::uint32_t find_or_insert(const Key& key, std::uint32_t fresh, bool& inserted) {
+        std::size_t i = Hash{}(key) & mask_;
+        for (;;) {
+            if (values_[i] == kFree) {
+                // Callers bound what a block can hold well below this; never loop forever.
+                if (4 * (used_.size() + 1) > 3 * (mask_ + 1)) throw std::length_error("block dedup table full");
+                keys_[i] = key;
+                values_[i] = fresh;
+                used_.push_back(i);
+                inserted = true;
+                return fresh;
+            }
+            if (keys_[i] == key) {
+                inserted = false;
+                return values_[i];
+            }
+            i = (i + 1) & mask_;
+        }
+    }
+    void clear() {
+        for (std::size_t i : used_) values_[i] = kFree;
+        used_.clear();
+    }
+
+private:
+    static constexpr std::uint32_t kFree = 0xffffffffu;
+    std::size_t mask_;
+    std::vector<Key> keys_;
+    std::vector<std::uint32_t> values_;
+    std::vector<std::size_t> used_;
+};
+
+struct IdHash {
+    std::size_t operator()(std::uint32_t v) const { return static_cast<std::size_t>(v * 0x9E3779B1u) >> 7; }
+};
+using VertexKey = std::array<std::uint32_t, 3>;
+struct VertexHash {
+    std::size_t operator()(const VertexKey& k) const {
+        std::uint64_t h = k[0] * 0x9E3779B97F4A7C15ull;
+        h ^= (h >> 29) + k[1] * 0xBF58476D1CE4E5B9ull;
+        h ^= (h >> 31) + k[2] * 0x94D049BB133111EBull;
+        return static_cast<std::size_t>(h ^ (h >> 32));
+    }
+};
+
+// The triangles a part's leaves refer to: soup corners (3 per triangle, model-local),
+// input ids and colours (0x00BBGGRR, or null), indexed by the kd-tree's triangle ids.
+struct TriangleSource {
+    const Vec3f* corners = nullptr;
+    const std::uint32_t* ids = nullptr;
+    const std::uint32_t* colours = nullptr;
+};
+
+class TriangleBlocks {
+public:
+    TriangleBlocks(bool has_colours, BlockStream& out, ModelWriterStats& stats)
+        : has_colours_(has_colours), out_(out), stats_(stats) {}
+
+    // Blocks closed so far: the id the next block gets.
+    std::uint32_t blocks() const { return blocks_; }
+    // A triangle block emitted elsewhere took the next id (parallel merge).
+    void skip_block() { ++blocks_; }
+
+    // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
+    // A leaf's list normally lies in one block. A leaf too big for one (a fan of
+    // thousands of triangles around a vertex, which no split can separate) continues
+    // at entry 0 of the following triangle blocks.
+    std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
+                                                     const TriangleSource& src);
+
+    // Closes the current block (if it holds anything) and emits it.
+    void flush();
+
+private:
+    format::TriangleBlockLayout layout() const {
+        return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_);
+    }
+    void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
+    void insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+
+    bool has_colours_;
+    BlockStream& out_;
+    ModelWriterStats& stats_;
+    std::uint32_t blocks_ = 0;
+    std::vector<std::uint16_t> list_, tri_verts_;
+    std::vector<std::uint32_t> ids_, colours_;
+    std::vector<Vec3f> verts_;
+    SmallMap<std::uint32_t, IdHash> id_map_;
+    SmallMap<VertexKey, VertexHash> vertex_map_;
+};
+
+}  // namespace vastray::writer
