@@ -10,8 +10,14 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
+#include <cstring>
+#include <new>
+#include <type_traits>
 #include <thread>
 #include <utility>
+
+#include <emmintrin.h>
 
 #include "vastray/kdtree.h"
 #include "vastray/thread_pool.h"
@@ -126,28 +132,65 @@ bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, co
     return true;
 }
 
+// The references of the nodes on the current path, in one growable buffer per thread.
+// A node's references are a range [first, first + n) with free space above it: its
+// partition writes the left child's references above the range, compacts the right
+// child's in place (each reference read gives at most one to the right, so writes never
+// overtake reads) and moves the left child's down behind them. The left subtree is then
+// built above the right child's range, which it never touches. No node allocates.
+class RefStack {
+public:
+    RefStack() = default;
+    RefStack(const RefStack&) = delete;
+    RefStack& operator=(const RefStack&) = delete;
+    ~RefStack() { std::free(refs_); }
+
+    PrimRef* data() { return refs_; }
+    // Makes room for references up to index `top`; may move the buffer. The memory is
+    // not initialised: untouched room costs address space, not resident pages, and a
+    // large block grows by remapping rather than copying.
+    void reserve(std::size_t top) {
+        if (top <= capacity_) return;
+        const std::size_t want = std::max(top, capacity_ + capacity_ / 2);
+        void* grown = std::realloc(static_cast<void*>(refs_), want * sizeof(PrimRef));
+        if (grown == nullptr) throw std::bad_alloc();
+        refs_ = static_cast<PrimRef*>(grown);
+        capacity_ = want;
+    }
+
+private:
+    PrimRef* refs_ = nullptr;  // PrimRef is trivially copyable: realloc may move it
+    std::size_t capacity_ = 0;
+};
+static_assert(std::is_trivially_copyable_v<PrimRef>, "references are moved by realloc and memmove");
+
 class Builder {
 public:
     Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
         : soup_(soup), p_(params), max_depth_(max_depth),
           spare_threads_(static_cast<int>(threads) - 1) {}
 
+    // The node whose references are rs.refs[first, first + n).
     // used: the union of the references' boxes (computed by the caller's partition pass,
     // so no node spends an extra pass over its references on it).
     // bad: splits on the path from the root that duplicated most of their references.
-    void build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad, Output& out);
+    void build(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used, int depth,
+               int bad, Output& out);
 
 private:
-    void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    struct Side {
+        std::size_t first, n;
+        Box3f cell, used;
+    };
+    void emit_leaf(const PrimRef* refs, std::size_t n, const Box3f& cell, int depth, Output& out);
     void count_empty(int depth, Output& out);
-    void build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
-                        std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused, int depth,
-                        int bad, int axis, float split, Output& out);
-    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
-                       Output& out);
-    void partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
-                   const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right,
-                   Box3f& lused, Box3f& rused) const;
+    void build_children(RefStack& rs, const Side& left, const Side& right, int depth, int bad, int axis,
+                        float split, Output& out);
+    bool try_empty_cut(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used,
+                       int depth, int bad, Output& out);
+    // Returns the children: the right one at [first, first + nr), the left one after it.
+    std::pair<Side, Side> partition(RefStack& rs, std::size_t first, std::size_t n, int axis, float split,
+                                    const Box3f& lcell, const Box3f& rcell) const;
 
     const TriangleSoup& soup_;
     const KdBuildParams& p_;
@@ -161,7 +204,7 @@ void Builder::count_empty(int depth, Output& out) {
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
 }
 
-void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+void Builder::emit_leaf(const PrimRef* refs, std::size_t n, const Box3f& cell, int depth, Output& out) {
     // Reference boxes are conservative (a clipped box can touch a cell the triangle
     // misses): keep exactly the triangles that touch the cell, grown by a few ulps so
     // that nothing a ray could hit inside it is dropped.
@@ -173,10 +216,14 @@ void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int
         hi[a] += eps;
     }
     const std::size_t first = out.tri_ids.size();
-    for (const PrimRef& r : refs) {
-        if (triangle_overlaps_box(soup_.v(r.id, 0), soup_.v(r.id, 1), soup_.v(r.id, 2), lo, hi)) {
-            out.tri_ids.push_back(r.id);
-        }
+    auto inside = [&](const Vec3f& v) {
+        return lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z;
+    };
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t id = refs[i].id;
+        const Vec3f &a = soup_.v(id, 0), &b = soup_.v(id, 1), &c = soup_.v(id, 2);
+        // A corner inside the cell settles it without the separating-axis test.
+        if (inside(a) || inside(b) || inside(c) || triangle_overlaps_box(a, b, c, lo, hi)) out.tri_ids.push_back(id);
     }
     const std::size_t kept = out.tri_ids.size() - first;
     out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(kept)));
@@ -188,12 +235,16 @@ void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int
                         static_cast<double>(kept);
 }
 
-void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
-                        const Box3f& rcell, std::vector<PrimRef>& left,
-                        std::vector<PrimRef>& right, Box3f& lused, Box3f& rused) const {
-    if (left.capacity() == 0) left.reserve(refs.size() / 2 + 16);
-    if (right.capacity() == 0) right.reserve(refs.size() / 2 + 16);
-    for (const PrimRef& r : refs) {
+std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::size_t first, std::size_t n, int axis,
+                                                          float split, const Box3f& lcell, const Box3f& rcell) const {
+    const std::size_t top = first + n;
+    rs.reserve(top + n);  // the left child holds at most n
+    PrimRef* const refs = rs.data();
+    PrimRef* const left = refs + top;
+    std::size_t nl = 0, nr = 0;
+    Box3f lused, rused;
+    for (std::size_t i = first; i < top; ++i) {
+        const PrimRef r = refs[i];
         const float lo = r.box.lo[axis], hi = r.box.hi[axis];
         const bool planar = lo == split && hi == split;
         const bool in_left = lo < split || planar;
@@ -207,65 +258,73 @@ void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const
                 Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
-                (side == 0 ? lused : rused).extend(clipped);
-                (side == 0 ? left : right).push_back({clipped, r.id});
+                if (side == 0) {
+                    lused.extend(clipped);
+                    left[nl++] = {clipped, r.id};
+                } else {
+                    rused.extend(clipped);
+                    refs[first + nr++] = {clipped, r.id};
+                }
             }
         } else {
             if (in_left) {
                 const Box3f b = Box3f::intersection(r.box, lcell);
                 lused.extend(b);
-                left.push_back({b, r.id});
+                left[nl++] = {b, r.id};
             }
             if (in_right) {
                 const Box3f b = Box3f::intersection(r.box, rcell);
                 rused.extend(b);
-                right.push_back({b, r.id});
+                refs[first + nr++] = {b, r.id};
             }
         }
     }
-    std::vector<PrimRef>().swap(refs);  // release the parent's list before recursing
+    std::memmove(refs + first + nr, left, nl * sizeof(PrimRef));
+    return {Side{first + nr, nl, lcell, lused}, Side{first, nr, rcell, rused}};
 }
 
-void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
-                             std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused,
-                             int depth, int bad, int axis, float split, Output& out) {
+void Builder::build_children(RefStack& rs, const Side& left, const Side& right, int depth, int bad, int axis,
+                             float split, Output& out) {
     const std::size_t self = out.nodes.size();
-    const std::uint32_t empty_flags = (left.empty() ? KdNode::kLeftEmpty : 0u) |
-                                      (right.empty() ? KdNode::kRightEmpty : 0u);
+    const std::uint32_t empty_flags = (left.n == 0 ? KdNode::kLeftEmpty : 0u) | (right.n == 0 ? KdNode::kRightEmpty : 0u);
     out.nodes.push_back(KdNode::inner(axis, split, 0, empty_flags));
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
-    if (left.empty() || right.empty()) {
+    if (left.n == 0 || right.n == 0) {
         // One child is empty: it costs nothing but a flag; the other follows directly.
         count_empty(depth + 1, out);
-        if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
-        build(left.empty() ? right : left, left.empty() ? rcell : lcell, left.empty() ? rused : lused,
-              depth + 1, bad, out);
+        if (left.n == 0) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
+        const Side& only = left.n == 0 ? right : left;
+        build(rs, only.first, only.n, only.cell, only.used, depth + 1, bad, out);
         return;
     }
 
     // Large subtrees build on spare threads; the right one is spliced in afterwards.
     constexpr std::size_t kParallelThreshold = 4096;
     bool spawn = false;
-    if (right.size() >= kParallelThreshold && left.size() >= kParallelThreshold) {
+    if (right.n >= kParallelThreshold && left.n >= kParallelThreshold) {
         int spare = spare_threads_.load();
         while (spare > 0 && !spare_threads_.compare_exchange_weak(spare, spare - 1)) {
         }
         spawn = spare > 0;
     }
     Output right_out;
+    RefStack right_rs;
     std::thread worker;
     if (spawn) {
+        // The worker gets its own copy: building the left child may move this buffer.
+        right_rs.reserve(2 * right.n);
+        std::memcpy(right_rs.data(), rs.data() + right.first, right.n * sizeof(PrimRef));
         worker = std::thread([&] {
-            build(right, rcell, rused, depth + 1, bad, right_out);
+            build(right_rs, 0, right.n, right.cell, right.used, depth + 1, bad, right_out);
             spare_threads_.fetch_add(1);
         });
     }
-    build(left, lcell, lused, depth + 1, bad, out);
+    build(rs, left.first, left.n, left.cell, left.used, depth + 1, bad, out);
     const std::size_t right_offset = out.nodes.size() - self;
     if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
     out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
     if (!spawn) {
-        build(right, rcell, rused, depth + 1, bad, out);
+        build(rs, right.first, right.n, right.cell, right.used, depth + 1, bad, out);
         return;
     }
     worker.join();
@@ -284,8 +343,8 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, con
 
 // Paper 000 §4.1: before any other split, cut off an empty slab holding a large share
 // of the cell. Tight cells make tight LOD voxels and let rays skip empty space early.
-bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& refs_used, int depth,
-                            int bad, Output& out) {
+bool Builder::try_empty_cut(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell,
+                            const Box3f& refs_used, int depth, int bad, Output& out) {
     const Box3f used = Box3f::intersection(refs_used, cell);
     if (used.empty()) return false;
     int best_axis = -1, best_side = 0;
@@ -305,27 +364,67 @@ bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const
     rcell.lo[best_axis] = split;
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * cell.half_area();
     // Every reference lies on the occupied side of the cut (touching the plane included).
-    std::vector<PrimRef> none;
+    const Side occupied_l{first, n, lcell, refs_used}, occupied_r{first, n, rcell, refs_used};
+    const Side none_l{first, 0, lcell, Box3f{}}, none_r{first, 0, rcell, Box3f{}};
     if (best_side == 0) {
-        build_children(none, lcell, Box3f{}, refs, rcell, refs_used, depth, bad, best_axis, split, out);
+        build_children(rs, none_l, occupied_r, depth, bad, best_axis, split, out);
     } else {
-        build_children(refs, lcell, refs_used, none, rcell, Box3f{}, depth, bad, best_axis, split, out);
+        build_children(rs, occupied_l, none_r, depth, bad, best_axis, split, out);
     }
     return true;
 }
 
-void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
-                    Output& out) {
-    const std::size_t n = refs.size();
+namespace {
+
+constexpr int kStackBins = 64;
+
+// Counts, per axis, the references whose box starts (ends) in each bin. The six bin
+// indices of a reference come from two SSE vectors: (lo.x lo.y lo.z hi.x) and
+// (_ _ hi.y hi.z), clamped in float before the conversion, which truncates exactly as
+// the scalar static_cast of the same float would.
+void bin_references(const PrimRef* refs, std::size_t n, const Box3f& cell, const float scale[3], int bins,
+                    std::uint32_t* starts, std::uint32_t* ends) {
+    const int nb = bins;
+    const __m128 off_a = _mm_setr_ps(cell.lo.x, cell.lo.y, cell.lo.z, cell.lo.x);
+    const __m128 scale_a = _mm_setr_ps(scale[0], scale[1], scale[2], scale[0]);
+    const __m128 off_b = _mm_setr_ps(0.0f, 0.0f, cell.lo.y, cell.lo.z);
+    const __m128 scale_b = _mm_setr_ps(0.0f, 0.0f, scale[1], scale[2]);
+    const __m128 zero = _mm_setzero_ps();
+    const __m128 top = _mm_set1_ps(static_cast<float>(bins - 1));
+    const __m128i base_a = _mm_setr_epi32(0, nb, 2 * nb, 0);
+    const __m128i base_b = _mm_setr_epi32(0, 0, nb, 2 * nb);
+    alignas(16) std::int32_t ia[4], ib[4];
+    for (std::size_t i = 0; i < n; ++i) {
+        const float* box = &refs[i].box.lo.x;
+        const __m128 a = _mm_loadu_ps(box);      // lo.x lo.y lo.z hi.x
+        const __m128 b = _mm_loadu_ps(box + 2);  // lo.z hi.x hi.y hi.z
+        const __m128 ta = _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(a, off_a), scale_a), zero), top);
+        const __m128 tb = _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(b, off_b), scale_b), zero), top);
+        _mm_store_si128(reinterpret_cast<__m128i*>(ia), _mm_add_epi32(_mm_cvttps_epi32(ta), base_a));
+        _mm_store_si128(reinterpret_cast<__m128i*>(ib), _mm_add_epi32(_mm_cvttps_epi32(tb), base_b));
+        starts[ia[0]]++;
+        starts[ia[1]]++;
+        starts[ia[2]]++;
+        ends[ia[3]]++;
+        ends[ib[2]]++;
+        ends[ib[3]]++;
+    }
+}
+
+}  // namespace
+
+void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used, int depth,
+                    int bad, Output& out) {
     if (n == 0 || depth >= max_depth_) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(rs.data() + first, n, cell, depth, out);
         return;
     }
-    if (try_empty_cut(refs, cell, used, depth, bad, out)) return;
+    if (try_empty_cut(rs, first, n, cell, used, depth, bad, out)) return;
     if (n <= static_cast<std::size_t>(p_.leaf_size)) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(rs.data() + first, n, cell, depth, out);
         return;
     }
+    const PrimRef* refs = rs.data() + first;
 
     // Binned SAH over the three axes, binned in one pass over the references. Small
     // nodes get fewer bins: past ~n candidates per axis the sweep costs more than the
@@ -338,27 +437,26 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     int best_axis = -1;
     float best_split = 0;
     std::size_t best_left = 0, best_right = 0;
-    std::vector<std::uint32_t> starts(3 * nb, 0u), ends(3 * nb, 0u);
+    std::uint32_t stack_bins[2 * 3 * kStackBins];
+    std::vector<std::uint32_t> heap_bins;
+    std::uint32_t* starts = stack_bins;
+    if (bins > kStackBins) {
+        heap_bins.resize(2 * 3 * nb);
+        starts = heap_bins.data();
+    }
+    std::uint32_t* ends = starts + 3 * nb;
+    std::fill(starts, starts + 2 * 3 * nb, 0u);
     float scale[3];
     for (int a = 0; a < 3; ++a) {
         const float ext = cell.hi[a] - cell.lo[a];
         scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
     }
-    auto bin_of = [&](int a, float x) {
-        const int b = static_cast<int>((x - cell.lo[a]) * scale[a]);
-        return static_cast<std::size_t>(a) * nb + static_cast<std::size_t>(std::clamp(b, 0, bins - 1));
-    };
-    for (const PrimRef& r : refs) {
-        for (int a = 0; a < 3; ++a) {
-            starts[bin_of(a, r.box.lo[a])]++;
-            ends[bin_of(a, r.box.hi[a])]++;
-        }
-    }
+    bin_references(refs, n, cell, scale, bins, starts, ends);
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
-        const std::uint32_t* st = starts.data() + static_cast<std::size_t>(a) * nb;
-        const std::uint32_t* en = ends.data() + static_cast<std::size_t>(a) * nb;
+        const std::uint32_t* st = starts + static_cast<std::size_t>(a) * nb;
+        const std::uint32_t* en = ends + static_cast<std::size_t>(a) * nb;
         std::size_t n_left = 0, n_right = n;
         const Vec3f e = cell.extent();
         const float o1 = e[(a + 1) % 3], o2 = e[(a + 2) % 3];
@@ -382,7 +480,7 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     }
     if (best_axis < 0) {
         if (n <= static_cast<std::size_t>(p_.median_fallback)) {
-            emit_leaf(refs, cell, depth, out);
+            emit_leaf(refs, n, cell, depth, out);
             return;
         }
         // SAH sees no gain but the leaf would be huge: split the longest axis in the middle.
@@ -390,20 +488,13 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
         best_axis = e.x >= e.y && e.x >= e.z ? 0 : (e.y >= e.z ? 1 : 2);
         best_split = 0.5f * (cell.lo[best_axis] + cell.hi[best_axis]);
         best_left = best_right = 0;
-        for (const PrimRef& r : refs) {
-            const float lo = r.box.lo[best_axis], hi = r.box.hi[best_axis];
+        for (std::size_t i = 0; i < n; ++i) {
+            const float lo = refs[i].box.lo[best_axis], hi = refs[i].box.hi[best_axis];
             best_left += lo < best_split || (lo == best_split && hi == best_split) ? 1 : 0;
             best_right += hi > best_split || (lo == best_split && hi == best_split) ? 1 : 0;
         }
     }
 
-    Box3f lcell = cell, rcell = cell;
-    lcell.hi[best_axis] = best_split;
-    rcell.lo[best_axis] = best_split;
-    std::vector<PrimRef> left, right;
-    // The bin counts give the child sizes (planar references aside): no regrowth.
-    left.reserve(best_left + 16);
-    right.reserve(best_right + 16);
     // The SAH cannot see duplication: where triangles meet at a vertex (fans) or run
     // through many cells, a split can copy most references to both sides and still
     // score a gain on flat cells. A path may take a few such splits, then the node
@@ -411,14 +502,15 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     constexpr int kMaxBadSplits = 3;
     const bool duplicating = 2 * (best_left + best_right) > 3 * n;
     if (duplicating && bad >= kMaxBadSplits) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(refs, n, cell, depth, out);
         return;
     }
-    Box3f lused, rused;
-    partition(refs, best_axis, best_split, lcell, rcell, left, right, lused, rused);
+    Box3f lcell = cell, rcell = cell;
+    lcell.hi[best_axis] = best_split;
+    rcell.lo[best_axis] = best_split;
+    const auto [left, right] = partition(rs, first, n, best_axis, best_split, lcell, rcell);
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
-    build_children(left, lcell, lused, right, rcell, rused, depth, bad + (duplicating ? 1 : 0), best_axis,
-                   best_split, out);
+    build_children(rs, left, right, depth, bad + (duplicating ? 1 : 0), best_axis, best_split, out);
 }
 
 }  // namespace
@@ -429,7 +521,10 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     if (soup.count >= KdNode::kMaxCount) throw std::length_error("too many triangles for an in-core kd-tree");
 
     // Reference creation is embarrassingly parallel; the pool is shared with rendering.
-    std::vector<PrimRef> refs(soup.count);
+    // Room for the path's references: measured peaks are 2.3x the triangles.
+    RefStack rs;
+    rs.reserve(std::max<std::size_t>(3 * soup.count, 16));
+    PrimRef* const refs = rs.data();
     ThreadPool& pool = ThreadPool::global();
     const std::size_t chunk = 1 << 16;
     const std::size_t chunks = (soup.count + chunk - 1) / chunk;
@@ -471,9 +566,9 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
         chunk_bounds[c] = bounds;
     }, params.threads);
     const std::size_t degenerate = static_cast<std::size_t>(
-        std::count_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }));
-    refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id >= kOutside; }),
-               refs.end());
+        std::count_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id == kDropped; }));
+    const std::size_t root_refs = static_cast<std::size_t>(
+        std::remove_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id >= kOutside; }) - refs);
     Box3f used;
     for (const Box3f& b : chunk_bounds) used.extend(b);
     tree.bounds = cell != nullptr ? *cell : used;
@@ -487,9 +582,10 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
     Builder builder(soup, params, max_depth, threads);
     Output out;
-    out.nodes.reserve(soup.count * 2);
-    out.tri_ids.reserve(soup.count * 2);
-    builder.build(refs, tree.bounds, used, 0, 0, out);
+    // Measured: about one node and three leaf references per triangle.
+    out.nodes.reserve(soup.count + soup.count / 4 + 16);
+    out.tri_ids.reserve(3 * soup.count + 16);
+    builder.build(rs, 0, root_refs, tree.bounds, used, 0, 0, out);
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);

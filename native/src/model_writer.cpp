@@ -72,7 +72,14 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     if (tree.nodes.empty() || (tree.nodes[0].is_leaf() && tree.nodes[0].count() == 0)) {
         throw std::invalid_argument("no triangle of this subtree lies inside its cell");
     }
-    const writer::TriangleSource src{verts, ids, impl_->p.has_colours ? colours : nullptr};
+    const unsigned lanes = impl_->p.kd.threads == 0 ? hardware_threads() : impl_->p.kd.threads;
+    std::vector<writer::Facet> facets(n);
+    constexpr std::size_t kFacetChunk = 1 << 16;
+    ThreadPool::global().parallel_for((n + kFacetChunk - 1) / kFacetChunk, [&](std::size_t c, unsigned) {
+        const std::size_t end = std::min(n, (c + 1) * kFacetChunk);
+        for (std::size_t i = c * kFacetChunk; i < end; ++i) facets[i] = writer::facet_of(verts + 3 * i);
+    }, lanes);
+    const writer::TriangleSource src{verts, ids, impl_->p.has_colours ? colours : nullptr, facets.data()};
     SubtreeEmitter& m = impl_->main;
     m.bind(&tree, src);
     const auto lvl = static_cast<std::size_t>(level);
@@ -93,7 +100,6 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
         if ((t.empty & kRightEmpty) == 0) jobs.push_back({t.kd_right, writer::child_cell(t.cell, t.axis, t.split, 1)});
     }
     Pending root;
-    const unsigned lanes = impl_->p.kd.threads == 0 ? hardware_threads() : impl_->p.kd.threads;
     if (jobs.size() >= 2) {
         // Parts buffer only triangle blocks: their treelets go out as placement units.
         std::vector<std::vector<std::vector<std::uint8_t>>> buffers(jobs.size());

@@ -8,17 +8,14 @@ using format::kBlockSize;
 
 std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                                  const TriangleSource& src) {
-    // Bounded so the dedup tables (32768 slots) never fill: 3 vertices per triangle.
     constexpr std::uint32_t kWhole = 4096;
     if (count <= kWhole) {
         const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
-        insert(tris, count, src);
-        if (layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
+        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
         // Too full: close the block as it was before this leaf and try a fresh one.
         truncate(list0, tri0, vert0);
         flush();
-        insert(tris, count, src);
-        if (layout().end <= kBlockSize) return {blocks_, 0};
+        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, 0};
         truncate(0, 0, 0);
         id_map_.clear();
         vertex_map_.clear();
@@ -30,7 +27,7 @@ std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint
     const std::uint32_t start = blocks_;
     for (std::uint32_t i = 0; i < count; ++i) {
         if (layout().end + kWorst > kBlockSize) flush();
-        insert(tris + i, 1, src);
+        if (!insert(tris + i, 1, src)) throw std::logic_error("a triangle does not fit in an empty triangle block");
     }
     return {start, 0};
 }
@@ -70,8 +67,11 @@ void TriangleBlocks::flush() {
     vertex_map_.clear();
 }
 
-void TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src) {
+bool TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src) {
     for (std::uint32_t i = 0; i < count; ++i) {
+        // Past these counts no block can hold what is inserted (a vertex takes 12 bytes,
+        // a triangle at least 12): stop before the dedup tables fill.
+        if (verts_.size() > kMaxVertices || ids_.size() > kMaxTriangles) return false;
         const std::uint32_t t = tris[i];
         bool fresh = false;
         const std::uint32_t local = id_map_.find_or_insert(src.ids[t], static_cast<std::uint32_t>(ids_.size()), fresh);
@@ -80,7 +80,7 @@ void TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, cons
             if (has_colours_) colours_.push_back(src.colours[t]);
             for (int k = 0; k < 3; ++k) {
                 const Vec3f& p = src.corners[3 * static_cast<std::size_t>(t) + static_cast<std::size_t>(k)];
-                const VertexKey key{format::float_bits(p.x), format::float_bits(p.y), format::float_bits(p.z)};
+                const VertexKey key{{format::float_bits(p.x), format::float_bits(p.y), format::float_bits(p.z)}};
                 bool new_vertex = false;
                 const std::uint32_t v = vertex_map_.find_or_insert(key, static_cast<std::uint32_t>(verts_.size()), new_vertex);
                 if (new_vertex) verts_.push_back(p);
@@ -89,6 +89,7 @@ void TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, cons
         }
         list_.push_back(static_cast<std::uint16_t>(local));
     }
+    return true;
 }
 
 }  // namespace vastray::writer

@@ -12,6 +12,7 @@
 #include "vastray/format.h"
 #include "vastray/model_writer.h"
 #include "writer/block_stream.h"
+#include "writer/voxel_sampling.h"
 
 namespace vastray::writer {
 
@@ -20,7 +21,7 @@ namespace vastray::writer {
 template <typename Key, typename Hash>
 class SmallMap {
 public:
-    explicit SmallMap(std::size_t capacity_log2 = 15)
+    explicit SmallMap(std::size_t capacity_log2)
         : mask_((std::size_t{1} << capacity_log2) - 1), keys_(mask_ + 1), values_(mask_ + 1, kFree) {}
     // Returns the value for key, inserting `fresh` if absent.
     std::uint32_t find_or_insert(const Key& key, std::uint32_t fresh, bool& inserted) {
@@ -58,22 +59,27 @@ private:
 struct IdHash {
     std::size_t operator()(std::uint32_t v) const { return static_cast<std::size_t>(v * 0x9E3779B1u) >> 7; }
 };
-using VertexKey = std::array<std::uint32_t, 3>;
+struct VertexKey {
+    std::uint32_t bits[3];  // the exact float bits of x, y, z
+    bool operator==(const VertexKey& o) const { return bits[0] == o.bits[0] && bits[1] == o.bits[1] && bits[2] == o.bits[2]; }
+};
 struct VertexHash {
     std::size_t operator()(const VertexKey& k) const {
-        std::uint64_t h = k[0] * 0x9E3779B97F4A7C15ull;
-        h ^= (h >> 29) + k[1] * 0xBF58476D1CE4E5B9ull;
-        h ^= (h >> 31) + k[2] * 0x94D049BB133111EBull;
+        std::uint64_t h = k.bits[0] * 0x9E3779B97F4A7C15ull;
+        h ^= (h >> 29) + k.bits[1] * 0xBF58476D1CE4E5B9ull;
+        h ^= (h >> 31) + k.bits[2] * 0x94D049BB133111EBull;
         return static_cast<std::size_t>(h ^ (h >> 32));
     }
 };
 
 // The triangles a part's leaves refer to: soup corners (3 per triangle, model-local),
-// input ids and colours (0x00BBGGRR, or null), indexed by the kd-tree's triangle ids.
+// input ids, colours (0x00BBGGRR, or null) and facets, indexed by the kd-tree's
+// triangle ids.
 struct TriangleSource {
     const Vec3f* corners = nullptr;
     const std::uint32_t* ids = nullptr;
     const std::uint32_t* colours = nullptr;
+    const Facet* facets = nullptr;
 };
 
 class TriangleBlocks {
@@ -101,7 +107,12 @@ private:
         return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_);
     }
     void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
-    void insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+    // Inserts triangles into the current block; false when it stopped because the block
+    // certainly cannot hold them.
+    bool insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+
+    static constexpr std::size_t kMaxVertices = (format::kBlockSize - 16) / 12;
+    static constexpr std::size_t kMaxTriangles = (format::kBlockSize - 16) / 12;
 
     bool has_colours_;
     BlockStream& out_;
@@ -110,8 +121,9 @@ private:
     std::vector<std::uint16_t> list_, tri_verts_;
     std::vector<std::uint32_t> ids_, colours_;
     std::vector<Vec3f> verts_;
-    SmallMap<std::uint32_t, IdHash> id_map_;
-    SmallMap<VertexKey, VertexHash> vertex_map_;
+    // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
+    SmallMap<std::uint32_t, IdHash> id_map_{13};
+    SmallMap<VertexKey, VertexHash> vertex_map_{13};
 };
 
 }  // namespace vastray::writer

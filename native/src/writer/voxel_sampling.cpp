@@ -8,19 +8,29 @@
 
 namespace vastray::writer {
 
-Proxy leaf_proxy(const Vec3f* corners, const std::uint32_t* colours, const std::uint32_t* tris,
+Facet facet_of(const Vec3f* v) {
+    Facet f;
+    const Vec3f n = cross(v[1] - v[0], v[2] - v[0]);
+    f.area = 0.5f * length(n);
+    if (f.area > 0) f.normal = n / (2.0f * f.area);
+    return f;
+}
+
+Proxy leaf_proxy(const Vec3f* corners, const Facet* facets, const std::uint32_t* colours, const std::uint32_t* tris,
                  std::uint32_t count, const Box3f& cell) {
     Proxy q;
-    Vec3f csum[6], nsum[6];
-    float wsum[6] = {}, area_sum = 0;
+    // Per axis: the two faces see the same projected area, so they share the colour
+    // and weight sums, and their normal sums are exact negatives of each other.
+    Vec3f csum[3], nsum[3];
+    float wsum[3] = {}, area_sum = 0;
     Vec3f cflat, nflat, first_normal;
     for (std::uint32_t i = 0; i < count; ++i) {
         const Vec3f* v = corners + 3 * static_cast<std::size_t>(tris[i]);
         for (int k = 0; k < 3; ++k) q.box.extend(v[k]);
-        Vec3f n = cross(v[1] - v[0], v[2] - v[0]);
-        const float area = 0.5f * length(n);
+        const Facet& t = facets[tris[i]];
+        const float area = t.area;
         if (!(area > 0)) continue;
-        n = n / (2.0f * area);
+        const Vec3f n = t.normal;
         Vec3f c(0.75f, 0.75f, 0.75f);
         if (colours != nullptr) {
             const std::uint32_t rgb = colours[tris[i]];
@@ -33,22 +43,24 @@ Proxy leaf_proxy(const Vec3f* corners, const std::uint32_t* colours, const std::
         // see the leaf edge-on.
         if (dot(first_normal, first_normal) == 0) first_normal = n;
         nflat += n * (dot(n, first_normal) < 0 ? -area : area);
-        for (int f = 0; f < 6; ++f) {
-            // Weighted by the area seen from face f, oriented towards that viewer.
-            const float proj = dot(n, outward(f));
+        for (int a = 0; a < 3; ++a) {
+            // Weighted by the area seen from the face, oriented towards the viewer on
+            // the + side (the - side's viewer sees the opposite orientation).
+            const float proj = n[a];
             const float w = area * std::abs(proj);
-            csum[f] += c * w;
-            nsum[f] += n * (proj < 0 ? -w : w);
-            wsum[f] += w;
+            csum[a] += c * w;
+            nsum[a] += n * (proj < 0 ? -w : w);
+            wsum[a] += w;
         }
     }
     q.box = Box3f::intersection(q.box, cell);
     if (q.box.empty()) q.box = cell;
     const Vec3f grey(0.75f, 0.75f, 0.75f);
     for (int f = 0; f < 6; ++f) {
-        if (wsum[f] > 0 && dot(nsum[f], nsum[f]) > 0) {
-            q.s.colour[f] = csum[f] / wsum[f];
-            q.s.normal[f] = normalize(nsum[f]);
+        const int a = f / 2;
+        if (wsum[a] > 0 && dot(nsum[a], nsum[a]) > 0) {
+            q.s.colour[f] = csum[a] / wsum[a];
+            q.s.normal[f] = normalize(f % 2 != 0 ? nsum[a] : -nsum[a]);
         } else {
             // Edge-on (every triangle parallel to the view): the surface normal still
             // says how the leaf shades from nearby directions.
@@ -65,43 +77,62 @@ FaceSamples sample_voxel(const Box3f& cell, const std::vector<Proxy>* a, const s
     FaceSamples out;
     bool have[6] = {};
     const int k = std::clamp(rays, 1, 8);
+    // Ray (i, j) of a face passes through (lo + (i + 0.5) du, lo + (j + 0.5) dv) on the
+    // face's two other axes: each proxy covers a rectangle of rays, found by arithmetic
+    // instead of testing each ray. The rows a proxy covers along an axis do not depend
+    // on the face, so they are found once per proxy and axis.
+    struct Span {
+        const Proxy* q;
+        int first[3], last[3];
+    };
+    Span spans[64];
+    std::vector<Span> more;
+    Span* span = spans;
+    std::size_t count = 0;
+    for (const std::vector<Proxy>* t : {a, b}) count += t == nullptr ? 0 : t->size();
+    if (count > 64) {
+        more.resize(count);
+        span = more.data();
+    }
+    float step[3];
+    for (int c = 0; c < 3; ++c) step[c] = (cell.hi[c] - cell.lo[c]) / static_cast<float>(k);
+    std::size_t m = 0;
+    for (const std::vector<Proxy>* t : {a, b}) {
+        if (t == nullptr) continue;
+        for (const Proxy& q : *t) {
+            Span& sp = span[m++];
+            sp.q = &q;
+            for (int c = 0; c < 3; ++c) {
+                const float lo = q.box.lo[c], hi = q.box.hi[c], origin = cell.lo[c], d = step[c];
+                if (!(d > 0)) {
+                    sp.first[c] = 0;
+                    sp.last[c] = lo <= origin && origin <= hi ? k - 1 : -1;
+                    continue;
+                }
+                sp.first[c] = std::max(0, static_cast<int>(std::ceil((lo - origin) / d - 0.5f)));
+                sp.last[c] = std::min(k - 1, static_cast<int>(std::floor((hi - origin) / d - 0.5f)));
+            }
+        }
+    }
     const Proxy* hit[64];
     float depth[64];
     for (int f = 0; f < 6; ++f) {
         const int axis = f / 2, side = f % 2, u = (axis + 1) % 3, v = (axis + 2) % 3;
-        const float du = (cell.hi[u] - cell.lo[u]) / static_cast<float>(k);
-        const float dv = (cell.hi[v] - cell.lo[v]) / static_cast<float>(k);
         std::fill(hit, hit + k * k, nullptr);
         std::fill(depth, depth + k * k, std::numeric_limits<float>::infinity());
-        // Ray (i, j) passes through (lo + (i + 0.5) du, lo + (j + 0.5) dv): each proxy
-        // covers a rectangle of rays, found by arithmetic instead of testing each ray.
-        auto range = [k](float lo, float hi, float origin, float step, int& first, int& last) {
-            if (!(step > 0)) {
-                first = 0;
-                last = lo <= origin && origin <= hi ? k - 1 : -1;
-                return;
-            }
-            first = std::max(0, static_cast<int>(std::ceil((lo - origin) / step - 0.5f)));
-            last = std::min(k - 1, static_cast<int>(std::floor((hi - origin) / step - 0.5f)));
-        };
-        for (const std::vector<Proxy>* t : {a, b}) {
-            if (t == nullptr) continue;
-            for (const Proxy& q : *t) {
-                int i0, i1, j0, j1;
-                range(q.box.lo[u], q.box.hi[u], cell.lo[u], du, i0, i1);
-                range(q.box.lo[v], q.box.hi[v], cell.lo[v], dv, j0, j1);
-                const float d = side == 0 ? q.box.lo[axis] : -q.box.hi[axis];
-                for (int i = i0; i <= i1; ++i) {
-                    for (int j = j0; j <= j1; ++j) {
-                        if (d < depth[i * k + j]) {
-                            depth[i * k + j] = d;
-                            hit[i * k + j] = &q;
-                        }
+        for (std::size_t p = 0; p < m; ++p) {
+            const Span& sp = span[p];
+            const float d = side == 0 ? sp.q->box.lo[axis] : -sp.q->box.hi[axis];
+            for (int i = sp.first[u]; i <= sp.last[u]; ++i) {
+                for (int j = sp.first[v]; j <= sp.last[v]; ++j) {
+                    if (d < depth[i * k + j]) {
+                        depth[i * k + j] = d;
+                        hit[i * k + j] = sp.q;
                     }
                 }
             }
         }
-        Vec3f colour, normal;
+    Vec3f colour, normal;
         int hits = 0;
         for (int r = 0; r < k * k; ++r) {
             if (hit[r] == nullptr) continue;

@@ -33,9 +33,18 @@ struct Proxy {
     FaceSamples s;
 };
 
+// A triangle's unit normal and area. A triangle is referenced by several leaves, so a
+// part computes these once per triangle for all its leaf proxies.
+struct Facet {
+    Vec3f normal;  // undefined unless area > 0
+    float area = 0;
+};
+Facet facet_of(const Vec3f* corners);
+
 // The proxy of a leaf: its triangles' box (clipped to the cell) with area-weighted
-// colours and normals per face. corners: 3 per triangle; colours 0x00BBGGRR or null.
-Proxy leaf_proxy(const Vec3f* corners, const std::uint32_t* colours, const std::uint32_t* tris,
+// colours and normals per face. corners: 3 per triangle; facets: one per triangle;
+// colours 0x00BBGGRR or null.
+Proxy leaf_proxy(const Vec3f* corners, const Facet* facets, const std::uint32_t* colours, const std::uint32_t* tris,
                  std::uint32_t count, const Box3f& cell);
 
 // Samples a voxel filling `cell` from the proxies of its (at most two) child treelets;
