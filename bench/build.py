@@ -988,15 +988,7 @@ def report(
         "The machine is shared and noisy: absolute seconds move from run to run; the thread-scaling "
         "ratios are measured side by side.",
         "",
-        "## Command",
-        "",
-        "```sh",
-        info["command"],
-        "```",
-        "",
-        "## Machine",
-        "",
-        *[f"- {k}: {v}" for k, v in info.items() if k != "command"],
+        *command_and_machine(info),
         "",
         "## Targets",
         "",
@@ -1086,6 +1078,12 @@ def report(
             parts.append(f"- {r['model']} {setting}: {r['error']}")
         parts.append("")
     return "\n".join(parts)
+
+
+def command_and_machine(info: dict[str, str]) -> list[str]:
+    """The report sections that say how a benchmark was run and on what."""
+    machine = [f"- {k}: {v}" for k, v in info.items() if k != "command"]
+    return ["## Command", "", "```sh", info["command"], "```", "", "## Machine", "", *machine]
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:

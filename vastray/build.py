@@ -28,15 +28,11 @@ import shutil
 import tempfile
 import threading
 import time
-import zlib
-from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lz4.block
 import numpy as np
 
 from vastray import modelfile, native
@@ -56,7 +52,6 @@ CHUNK_BYTES_PER_TRIANGLE = 300
 MAX_CHUNK = 1 << 19
 MIN_INCORE_TRIANGLES = 20_000
 MAX_OUT_OF_CORE_LEVELS = 16
-MAX_INFLIGHT_BLOCKS = 64  # blocks being compressed at once (4 MiB of raw data)
 DEFAULT_MEMORY = 2 << 30
 
 
@@ -222,10 +217,6 @@ class _Builder:
             staged.append(("rgb", "u1", (3,)))
         self.staged_dtype = np.dtype(staged)
         self.phase_seconds: dict[str, float] = {}
-        self.level_files: dict[int, Any] = {}
-        self.level_entries: dict[int, list[tuple[int, int, int, int]]] = {}
-        self.compressor = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1))
-        self.inflight: deque[tuple[int, Future[tuple[bytes, int, int, int]]]] = deque()
         self.warnings: list[str] = []
 
     # -- plumbing ---------------------------------------------------------------------------
@@ -391,23 +382,6 @@ class _Builder:
 
     # -- phase 3: build ---------------------------------------------------------------------
 
-    def sink(self, level: int, raw: bytes) -> None:
-        # Compression runs on worker threads (lz4 and crc32 release the GIL) while the
-        # native writer goes on; blocks are written in the order they were made.
-        self.inflight.append((level, self.compressor.submit(_compress, raw)))
-        while self.inflight and (self.inflight[0][1].done() or len(self.inflight) > MAX_INFLIGHT_BLOCKS):
-            self.write_block()
-
-    def write_block(self) -> None:
-        level, future = self.inflight.popleft()
-        stored, raw_size, crc, codec = future.result()
-        f = self.level_files.get(level)
-        if f is None:
-            f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")
-            self.level_entries[level] = []
-        f.write(stored)
-        self.level_entries[level].append((len(stored), raw_size, crc, codec))
-
     def emit(self, node: _Part | _Split, writer: native.ModelWriter) -> int:
         if isinstance(node, _Split):
             handles = [self.emit(k, writer) if k is not None else -1 for k in node.children]
@@ -462,9 +436,11 @@ class _Builder:
         self.refs_seen = 0
         self.part_base = self.part_refs0 = self.part_count = 0
         self.dup = 1.5
+        blocks_dir = scratch / "blocks"
+        blocks_dir.mkdir()
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
-            sink=self.sink,
+            scratch_dir=str(blocks_dir),
             progress=self.on_refs,
             leaf_size=self.opt.leaf_size,
             traversal_cost=self.opt.traversal_cost,
@@ -476,11 +452,8 @@ class _Builder:
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
-        while self.inflight:
-            self.write_block()
         stats = writer.stats
-        for f in self.level_files.values():
-            f.close()
+        level_files = writer.levels  # {level: (path, (n, 4) stored size, raw size, crc32, codec)}
         t = self.timed("build", t)
 
         node_levels = len(stats["level_blocks"])
@@ -488,7 +461,7 @@ class _Builder:
         levels: list[tuple[int, int, int, int]] = []
         entries: list[tuple[int, int, int, int]] = []
         for level in order:
-            es = self.level_entries.get(level, [])
+            es = [tuple(int(x) for x in e) for e in level_files[level][1]] if level in level_files else []
             if level >= 0:
                 contents = (stats["level_nodes"][level], stats["level_voxels"][level])
             else:
@@ -516,9 +489,9 @@ class _Builder:
         def blocks() -> Iterator[bytes]:
             nonlocal written
             for level in order:
-                path = scratch / f"level{level}.blk"
-                if not path.exists():
+                if level not in level_files:
                     continue
+                path = Path(level_files[level][0])
                 with open(path, "rb") as f:
                     while chunk := f.read(8 << 20):
                         written += len(chunk)
@@ -571,15 +544,6 @@ def peak_rss_bytes() -> int:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _compress(raw: bytes) -> tuple[bytes, int, int, int]:
-    """(stored bytes, raw size, crc32 of the stored bytes, codec) for one block."""
-    stored = lz4.block.compress(raw, mode="default", store_size=False)
-    codec = modelfile.CODEC_LZ4
-    if len(stored) >= len(raw):
-        stored, codec = raw, modelfile.CODEC_STORED
-    return stored, len(raw), zlib.crc32(stored), codec
 
 
 def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarray]:
@@ -669,8 +633,5 @@ def build_model(
         os.replace(partial, out)
         return report
     finally:
-        builder.compressor.shutdown(wait=True, cancel_futures=True)
-        for f in builder.level_files.values():
-            f.close()
         partial.unlink(missing_ok=True)
         shutil.rmtree(scratch, ignore_errors=True)

@@ -11,6 +11,7 @@
 
 #include "vastray/model_decode.h"
 #include "vastray/model_writer.h"
+#include "writer/level_files.h"
 
 namespace py = pybind11;
 using namespace vastray;
@@ -34,8 +35,10 @@ Box3f to_box(const std::vector<double>& lo, const std::vector<double>& hi) {
 
 class PyModelWriter {
 public:
-    PyModelWriter(bool has_colours, py::function sink, py::object progress, int leaf_size, float traversal_cost,
-                  float intersection_cost, float empty_space_ratio, int bins, int voxel_rays, unsigned threads) {
+    PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
+                  float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
+                  unsigned threads)
+        : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
         p.kd.leaf_size = leaf_size;
@@ -48,11 +51,8 @@ public:
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
         }
-        // The writer runs with the GIL released; these take it back for each call.
-        BlockSink block_sink = [sink](int level, const std::uint8_t* data, std::size_t size) {
-            py::gil_scoped_acquire gil;
-            sink(level, py::bytes(reinterpret_cast<const char*>(data), size));
-        };
+        // Blocks go straight to the level files, without the GIL.
+        BlockSink block_sink = [this](int level, StoredBlock&& block) { files_.write(level, block); };
         ProgressSink progress_sink;
         if (!progress.is_none()) {
             progress_sink = [progress](std::uint64_t refs) {
@@ -94,6 +94,19 @@ public:
     void finish(int root) {
         py::gil_scoped_release release;
         writer_->finish(root);
+        files_.close();
+    }
+
+    // {level: (file path, (n, 4) uint32 of stored size, raw size, crc32, codec)}; level
+    // -1 is the triangle level.
+    py::dict levels() const {
+        py::dict d;
+        for (const auto& [level, entries] : files_.entries()) {
+            py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{4}});
+            std::memcpy(a.mutable_data(), entries.data(), entries.size() * sizeof entries[0]);
+            d[py::int_(level)] = py::make_tuple(files_.path(level), a);
+        }
+        return d;
     }
 
     py::dict stats() const {
@@ -123,6 +136,7 @@ public:
     }
 
 private:
+    writer::LevelFiles files_;  // declared first: the writer's sink writes into it
     std::unique_ptr<ModelWriter> writer_;
 };
 
@@ -286,9 +300,10 @@ py::tuple make_records(DoubleArray corners, py::object colours, std::uint64_t fi
 }  // namespace
 
 void bind_model(py::module_& m) {
-    py::class_<PyModelWriter>(m, "ModelWriter", "Writes kd-subtrees as treelets, voxels and triangle blocks")
-        .def(py::init<bool, py::function, py::object, int, float, float, float, int, int, unsigned>(),
-             py::arg("has_colours"), py::arg("sink"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
+    py::class_<PyModelWriter>(m, "ModelWriter",
+                              "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned>(),
+             py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u)
@@ -297,6 +312,7 @@ void bind_model(py::module_& m) {
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
              py::arg("axes"), py::arg("splits"), py::arg("children"))
         .def("finish", &PyModelWriter::finish, py::arg("root"))
+        .def_property_readonly("levels", &PyModelWriter::levels)
         .def_property_readonly("stats", &PyModelWriter::stats);
     m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("first_id"),
           py::arg("centre"), "Builder records for a chunk of triangles, zero-area ones left out");

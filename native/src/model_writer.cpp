@@ -14,6 +14,8 @@
 #include <unordered_map>
 #include <utility>
 
+#include "vastray/crc32.h"
+#include "vastray/lz4.h"
 #include "vastray/thread_pool.h"
 #include "writer/subtree_emitter.h"
 
@@ -23,6 +25,22 @@ using namespace format;
 using writer::Pending;
 using writer::SubtreeEmitter;
 using writer::TreeletNode;
+
+StoredBlock store_block(const std::vector<std::uint8_t>& raw) {
+    StoredBlock b;
+    b.raw_size = static_cast<std::uint32_t>(raw.size());
+    b.bytes.resize(lz4_compress_bound(raw.size()));
+    const std::size_t n = lz4_compress_block(raw.data(), raw.size(), b.bytes.data(), b.bytes.size());
+    if (n < raw.size()) {
+        b.bytes.resize(n);
+        b.codec = kCodecLz4;
+    } else {
+        b.bytes = raw;  // LZ4 would not shrink it: stored as it is
+        b.codec = kCodecStored;
+    }
+    b.crc32 = crc32(b.bytes.data(), b.bytes.size());
+    return b;
+}
 
 struct ModelWriter::Impl {
     ModelWriterParams p;
@@ -34,8 +52,7 @@ struct ModelWriter::Impl {
 
     Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
         : p(params), sink(std::move(s)),
-          main(p, counter, [this](int level, std::vector<std::uint8_t>&& bytes) { sink(level, bytes.data(), bytes.size()); },
-               false) {
+          main(p, counter, [this](int level, StoredBlock&& block) { sink(level, std::move(block)); }, false) {
         counter.sink = std::move(pr);
     }
 
@@ -102,12 +119,12 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     Pending root;
     if (jobs.size() >= 2) {
         // Parts buffer only triangle blocks: their treelets go out as placement units.
-        std::vector<std::vector<std::vector<std::uint8_t>>> buffers(jobs.size());
+        std::vector<std::vector<StoredBlock>> buffers(jobs.size());
         std::vector<std::unique_ptr<SubtreeEmitter>> parts;
         for (auto& buffer : buffers) {
             parts.push_back(std::make_unique<SubtreeEmitter>(
                 impl_->p, impl_->counter,
-                [&buffer](int, std::vector<std::uint8_t>&& bytes) { buffer.push_back(std::move(bytes)); }, true));
+                [&buffer](int, StoredBlock&& block) { buffer.push_back(std::move(block)); }, true));
             parts.back()->bind(&tree, src);
         }
         std::vector<Pending> roots(jobs.size());

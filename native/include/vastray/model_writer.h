@@ -41,15 +41,26 @@ struct ModelWriterStats {
     std::uint64_t stored_vertices = 0;
     std::uint64_t degenerate = 0;           // zero-area triangles left out
     std::uint64_t triangle_blocks = 0;
-    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels
+    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels (raw bytes)
     std::vector<std::uint64_t> level_nodes, level_voxels;  // nodes and LOD voxels per node level
-    std::uint64_t triangle_bytes = 0;
+    std::uint64_t triangle_bytes = 0;       // raw bytes of the triangle blocks
     double kd_build_ms = 0, emit_ms = 0;
     int max_depth = 0;
 };
 
-// Receives each finished raw block: level >= 0 is a node level, -1 the triangle level.
-using BlockSink = std::function<void(int level, const std::uint8_t* data, std::size_t size)>;
+// A finished block as the file stores it (docs/FORMAT.md §6): LZ4-compressed unless
+// that does not make it smaller, with the CRC-32 of the stored bytes.
+struct StoredBlock {
+    std::vector<std::uint8_t> bytes;
+    std::uint32_t raw_size = 0, crc32 = 0, codec = 0;
+};
+// Compresses and checksums one raw block.
+StoredBlock store_block(const std::vector<std::uint8_t>& raw);
+
+// Receives each finished block, in the order of its level: level >= 0 is a node level,
+// -1 the triangle level. Blocks of parts emitted in parallel are compressed on the
+// threads that made them; the sink is called from one thread at a time.
+using BlockSink = std::function<void(int level, StoredBlock&& block)>;
 // Reports leaf triangle references written so far (for progress bars).
 using ProgressSink = std::function<void(std::uint64_t references)>;
 

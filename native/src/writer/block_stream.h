@@ -2,13 +2,14 @@
 // buffer that a parallel part's merge hands on later.
 #pragma once
 
-#include <cstdint>
 #include <functional>
-#include <vector>
+
+#include "vastray/model_writer.h"
 
 namespace vastray::writer {
 
-// level >= 0: a node level; -1: the triangle level.
-using BlockStream = std::function<void(int level, std::vector<std::uint8_t>&& bytes)>;
+// level >= 0: a node level; -1: the triangle level. Blocks arrive compressed
+// (store_block), on the thread that finished them.
+using BlockStream = std::function<void(int level, StoredBlock&& block)>;
 
 }  // namespace vastray::writer

@@ -18,7 +18,7 @@ void NodeBlocks::flush(std::size_t level) {
     if (buf.empty()) return;
     stats_.level_blocks[level]++;
     stats_.level_bytes[level] += buf.size();
-    out_(static_cast<int>(level), std::move(buf));
+    out_(static_cast<int>(level), store_block(buf));
     buf.clear();
 }
 

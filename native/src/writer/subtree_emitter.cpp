@@ -88,14 +88,14 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
     return self;
 }
 
-void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<std::vector<std::uint8_t>>& triangle_blocks, Pending& root) {
+void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& triangle_blocks, Pending& root) {
     triangles.flush();
     const std::uint32_t tri_base = triangles.blocks();
-    for (auto& bytes : triangle_blocks) {
+    for (StoredBlock& block : triangle_blocks) {
         stats.triangle_blocks++;
-        stats.triangle_bytes += bytes.size();
+        stats.triangle_bytes += block.raw_size;
         triangles.skip_block();
-        out_(-1, std::move(bytes));
+        out_(-1, std::move(block));
     }
     triangle_blocks.clear();
     std::vector<std::pair<std::uint32_t, std::size_t>> placed(part.units_.size());

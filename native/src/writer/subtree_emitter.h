@@ -67,7 +67,7 @@ public:
     // node blocks in the order the part made them, children before parents, so each
     // LOD node learns its children's block and offset before it is placed itself.
     // `root` is the part's root treelet, whose ids are resolved too.
-    void merge(SubtreeEmitter& part, std::vector<std::vector<std::uint8_t>>& triangle_blocks, Pending& root);
+    void merge(SubtreeEmitter& part, std::vector<StoredBlock>& triangle_blocks, Pending& root);
 
 private:
     const ModelWriterParams& p_;

@@ -56,7 +56,7 @@ void TriangleBlocks::flush() {
     stats_.stored_vertices += verts_.size();
     stats_.triangle_blocks++;
     stats_.triangle_bytes += bytes.size();
-    out_(-1, std::move(bytes));
+    out_(-1, store_block(bytes));
     ++blocks_;
     list_.clear();
     ids_.clear();
