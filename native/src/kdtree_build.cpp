@@ -138,6 +138,22 @@ bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, co
 // child's in place (each reference read gives at most one to the right, so writes never
 // overtake reads) and moves the left child's down behind them. The left subtree is then
 // built above the right child's range, which it never touches. No node allocates.
+// A box's corners in SSE registers; lane 3 is whatever follows the corner in memory.
+inline __m128 load_lo(const Box3f& b) { return _mm_loadu_ps(&b.lo.x); }
+inline __m128 load_hi(const Box3f& b) {
+    alignas(16) float hi[4] = {b.hi.x, b.hi.y, b.hi.z, 0.0f};  // a Box3f ends with hi.z
+    return _mm_load_ps(hi);
+}
+inline Box3f to_box(__m128 lo, __m128 hi) {
+    alignas(16) float l[4], h[4];
+    _mm_store_ps(l, lo);
+    _mm_store_ps(h, hi);
+    Box3f b;
+    b.lo = {l[0], l[1], l[2]};
+    b.hi = {h[0], h[1], h[2]};
+    return b;
+}
+
 class RefStack {
 public:
     RefStack() = default;
@@ -242,7 +258,17 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
     PrimRef* const refs = rs.data();
     PrimRef* const left = refs + top;
     std::size_t nl = 0, nr = 0;
-    Box3f lused, rused;
+    // Boxes in SSE registers (lane 3 unused): Box3f::intersection and extend are
+    // std::max / std::min per component, which _mm_max_ps / _mm_min_ps compute exactly
+    // with the operands swapped (std::max(a, b) == maxps(b, a), also for -0 and +0).
+    const __m128 lcell_lo = load_lo(lcell), lcell_hi = load_hi(lcell), rcell_lo = load_lo(rcell), rcell_hi = load_hi(rcell);
+    const __m128 inf = _mm_set1_ps(std::numeric_limits<float>::infinity());
+    __m128 lused_lo = inf, lused_hi = _mm_sub_ps(_mm_setzero_ps(), inf), rused_lo = inf, rused_hi = lused_hi;
+    auto put = [](PrimRef& out, __m128 lo, __m128 hi, std::uint32_t id) {
+        _mm_storeu_ps(&out.box.lo.x, lo);  // its lane 3 lands on hi.x, written next
+        _mm_storeu_ps(&out.box.hi.x, hi);  // its lane 3 lands on the id, written next
+        out.id = id;
+    };
     for (std::size_t i = first; i < top; ++i) {
         const PrimRef r = refs[i];
         const float lo = r.box.lo[axis], hi = r.box.hi[axis];
@@ -258,27 +284,34 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
                 Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
+                const __m128 clo = load_lo(clipped), chi = load_hi(clipped);
                 if (side == 0) {
-                    lused.extend(clipped);
-                    left[nl++] = {clipped, r.id};
+                    lused_lo = _mm_min_ps(clo, lused_lo);
+                    lused_hi = _mm_max_ps(chi, lused_hi);
+                    put(left[nl++], clo, chi, r.id);
                 } else {
-                    rused.extend(clipped);
-                    refs[first + nr++] = {clipped, r.id};
+                    rused_lo = _mm_min_ps(clo, rused_lo);
+                    rused_hi = _mm_max_ps(chi, rused_hi);
+                    put(refs[first + nr++], clo, chi, r.id);
                 }
             }
         } else {
+            const __m128 blo = _mm_loadu_ps(&r.box.lo.x), bhi = _mm_loadu_ps(&r.box.hi.x);
             if (in_left) {
-                const Box3f b = Box3f::intersection(r.box, lcell);
-                lused.extend(b);
-                left[nl++] = {b, r.id};
+                const __m128 clo = _mm_max_ps(lcell_lo, blo), chi = _mm_min_ps(lcell_hi, bhi);
+                lused_lo = _mm_min_ps(clo, lused_lo);
+                lused_hi = _mm_max_ps(chi, lused_hi);
+                put(left[nl++], clo, chi, r.id);
             }
             if (in_right) {
-                const Box3f b = Box3f::intersection(r.box, rcell);
-                rused.extend(b);
-                refs[first + nr++] = {b, r.id};
+                const __m128 clo = _mm_max_ps(rcell_lo, blo), chi = _mm_min_ps(rcell_hi, bhi);
+                rused_lo = _mm_min_ps(clo, rused_lo);
+                rused_hi = _mm_max_ps(chi, rused_hi);
+                put(refs[first + nr++], clo, chi, r.id);
             }
         }
     }
+    const Box3f lused = to_box(lused_lo, lused_hi), rused = to_box(rused_lo, rused_hi);
     std::memmove(refs + first + nr, left, nl * sizeof(PrimRef));
     return {Side{first + nr, nl, lcell, lused}, Side{first, nr, rcell, rused}};
 }
@@ -411,6 +444,31 @@ void bin_references(const PrimRef* refs, std::size_t n, const Box3f& cell, const
     }
 }
 
+// SAH costs of the candidate planes 1 ... bins - 1 of one axis, four at a time: the
+// child areas in float and the cost in double, each operation the one the scalar
+//   Ct + ci * (double(wl * perimeter + cap) * nl + double(wr * perimeter + cap) * nr)
+// with wl = step * i, wr = ext - wl does, so the costs are bit for bit the same.
+void sah_costs(int bins, float step, float ext, float perimeter, float cap, float traversal_cost, double ci_per_area,
+               const std::uint32_t* counts_left, const std::uint32_t* counts_right, double* costs) {
+    const __m128 step4 = _mm_set1_ps(step), ext4 = _mm_set1_ps(ext), per4 = _mm_set1_ps(perimeter), cap4 = _mm_set1_ps(cap);
+    const __m128d ct = _mm_set1_pd(static_cast<double>(traversal_cost)), ci = _mm_set1_pd(ci_per_area);
+    for (int i = 1; i < bins; i += 4) {
+        const __m128 wl = _mm_mul_ps(step4, _mm_cvtepi32_ps(_mm_setr_epi32(i, i + 1, i + 2, i + 3)));
+        const __m128 wr = _mm_sub_ps(ext4, wl);
+        const __m128 al = _mm_add_ps(_mm_mul_ps(wl, per4), cap4), ar = _mm_add_ps(_mm_mul_ps(wr, per4), cap4);
+        // Counts stay below 2^31 (a part has fewer triangles), so the signed conversion holds.
+        const __m128i nl = _mm_loadu_si128(reinterpret_cast<const __m128i*>(counts_left + i));
+        const __m128i nr = _mm_loadu_si128(reinterpret_cast<const __m128i*>(counts_right + i));
+        for (int half = 0; half < 2; ++half) {
+            const __m128 al2 = half == 0 ? al : _mm_movehl_ps(al, al), ar2 = half == 0 ? ar : _mm_movehl_ps(ar, ar);
+            const __m128i nl2 = half == 0 ? nl : _mm_shuffle_epi32(nl, 0xEE), nr2 = half == 0 ? nr : _mm_shuffle_epi32(nr, 0xEE);
+            const __m128d sum = _mm_add_pd(_mm_mul_pd(_mm_cvtps_pd(al2), _mm_cvtepi32_pd(nl2)),
+                                           _mm_mul_pd(_mm_cvtps_pd(ar2), _mm_cvtepi32_pd(nr2)));
+            _mm_storeu_pd(costs + i + 2 * half, _mm_add_pd(ct, _mm_mul_pd(ci, sum)));
+        }
+    }
+}
+
 }  // namespace
 
 void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used, int depth,
@@ -446,6 +504,21 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     }
     std::uint32_t* ends = starts + 3 * nb;
     std::fill(starts, starts + 2 * 3 * nb, 0u);
+    // Padded: sah_costs works four candidates at a time.
+    alignas(16) double stack_costs[kStackBins + 4];
+    alignas(16) std::uint32_t stack_counts[2 * (kStackBins + 4)];
+    std::vector<double> heap_costs;
+    std::vector<std::uint32_t> heap_counts;
+    double* costs = stack_costs;
+    std::uint32_t* counts_left = stack_counts;
+    if (bins > kStackBins) {
+        heap_costs.resize(nb + 4);
+        heap_counts.resize(2 * (nb + 4));
+        costs = heap_costs.data();
+        counts_left = heap_counts.data();
+    }
+    std::uint32_t* counts_right = counts_left + nb + 4;
+    std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
     float scale[3];
     for (int a = 0; a < 3; ++a) {
         const float ext = cell.hi[a] - cell.lo[a];
@@ -457,24 +530,27 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
         if (!(ext > 0) || area <= 0) continue;
         const std::uint32_t* st = starts + static_cast<std::size_t>(a) * nb;
         const std::uint32_t* en = ends + static_cast<std::size_t>(a) * nb;
-        std::size_t n_left = 0, n_right = n;
         const Vec3f e = cell.extent();
         const float o1 = e[(a + 1) % 3], o2 = e[(a + 2) % 3];
-        // Child half-areas are linear in the split position: w * perimeter + cap.
+        // Child half-areas are linear in the split position: w * perimeter + cap. The
+        // counts come first (a prefix sum), so the cost loop has no dependency between
+        // candidates and vectorises; the scan then keeps the first lowest, as one loop would.
         const float perimeter = o1 + o2, cap = o1 * o2, step = ext / static_cast<float>(bins);
+        std::uint32_t n_left = 0, n_right = static_cast<std::uint32_t>(n);
         for (int i = 1; i < bins; ++i) {
             n_left += st[i - 1];
             n_right -= en[i - 1];
-            const float wl = step * static_cast<float>(i), wr = ext - wl;
-            const double cost = p_.traversal_cost +
-                                ci_per_area * (static_cast<double>(wl * perimeter + cap) * static_cast<double>(n_left) +
-                                               static_cast<double>(wr * perimeter + cap) * static_cast<double>(n_right));
-            if (cost < best_cost) {
-                best_cost = cost;
+            counts_left[i] = n_left;
+            counts_right[i] = n_right;
+        }
+        sah_costs(bins, step, ext, perimeter, cap, p_.traversal_cost, ci_per_area, counts_left, counts_right, costs);
+        for (int i = 1; i < bins; ++i) {
+            if (costs[i] < best_cost) {
+                best_cost = costs[i];
                 best_axis = a;
-                best_split = lo + wl;
-                best_left = n_left;
-                best_right = n_right;
+                best_split = lo + step * static_cast<float>(i);
+                best_left = counts_left[i];
+                best_right = counts_right[i];
             }
         }
     }

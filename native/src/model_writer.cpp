@@ -5,7 +5,9 @@
 //   voxel_sampling   leaf proxies, voxel samples and their quantisation
 //   node_blocks      packing treelets into the blocks of their LOD level
 //   triangle_blocks  packing leaf triangles into triangle blocks
-//   subtree_emitter  emitting a kd-subtree, in parallel parts merged in tree order
+//   subtree_emitter  emitting a kd-subtree; parallel parts merged in tree order
+//   parallel_emission  cutting a part into jobs for all lanes, merging them as they finish
+//   level_files      the level scratch files the blocks go to
 #include "vastray/model_writer.h"
 
 #include <chrono>
@@ -17,6 +19,7 @@
 #include "vastray/crc32.h"
 #include "vastray/lz4.h"
 #include "vastray/thread_pool.h"
+#include "writer/parallel_emission.h"
 #include "writer/subtree_emitter.h"
 
 namespace vastray {
@@ -101,43 +104,7 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     m.bind(&tree, src);
     const auto lvl = static_cast<std::size_t>(level);
 
-    // The subtrees below the root treelet's LOD nodes are independent: emit them in
-    // parallel into buffered streams, then merge them in order, so the file does not
-    // depend on the thread count.
-    std::vector<TreeletNode> top;
-    writer::collect_kd_treelet(tree, 0, cell, top);
-    struct Job {
-        std::uint32_t node;
-        Box3f cell;
-    };
-    std::vector<Job> jobs;
-    for (const TreeletNode& t : top) {
-        if (t.kind != TreeletNode::Lod) continue;
-        if ((t.empty & kLeftEmpty) == 0) jobs.push_back({t.kd_left, writer::child_cell(t.cell, t.axis, t.split, 0)});
-        if ((t.empty & kRightEmpty) == 0) jobs.push_back({t.kd_right, writer::child_cell(t.cell, t.axis, t.split, 1)});
-    }
-    Pending root;
-    if (jobs.size() >= 2) {
-        // Parts buffer only triangle blocks: their treelets go out as placement units.
-        std::vector<std::vector<StoredBlock>> buffers(jobs.size());
-        std::vector<std::unique_ptr<SubtreeEmitter>> parts;
-        for (auto& buffer : buffers) {
-            parts.push_back(std::make_unique<SubtreeEmitter>(
-                impl_->p, impl_->counter,
-                [&buffer](int, StoredBlock&& block) { buffer.push_back(std::move(block)); }, true));
-            parts.back()->bind(&tree, src);
-        }
-        std::vector<Pending> roots(jobs.size());
-        ThreadPool::global().parallel_for(jobs.size(), [&](std::size_t i, unsigned) {
-            SubtreeEmitter& e = *parts[i];
-            roots[i] = e.emit_kd_treelet(jobs[i].node, jobs[i].cell, lvl + 1);
-            e.triangles.flush();
-        }, lanes);
-        for (std::size_t i = 0; i < jobs.size(); ++i) m.merge(*parts[i], buffers[i], roots[i]);
-        root = m.emit_kd_treelet(0, cell, lvl, &roots);
-    } else {
-        root = m.emit_kd_treelet(0, cell, lvl);
-    }
+    Pending root = writer::emit_part(m, tree, src, cell, lvl, impl_->p, impl_->counter, lanes);
     m.bind(nullptr, {});
     stats_.emit_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count();
     return impl_->keep(std::move(root));

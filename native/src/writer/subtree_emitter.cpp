@@ -52,24 +52,22 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     node.radius = 0.5f * length(e);
 }
 
-Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level,
-                                        std::vector<Pending>* children) {
+Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs) {
     std::vector<TreeletNode> treelet;
     treelet.reserve(7);
     collect_kd_treelet(*tree_, root, cell, treelet);
     Pending self;
-    std::size_t next_child = 0;
+    auto child = [&](std::uint32_t kd_node, const Box3f& child_cell) {
+        Pending t;
+        if (jobs == nullptr || !(*jobs)(kd_node, t)) t = emit_kd_treelet(kd_node, child_cell, level + 1, jobs);
+        return t;
+    };
     for (TreeletNode& n : treelet) {
         if (n.kind == TreeletNode::Lod) {
             const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
             Pending l, r;
-            if (children != nullptr) {
-                if (has_l) l = std::move((*children)[next_child++]);
-                if (has_r) r = std::move((*children)[next_child++]);
-            } else {
-                if (has_l) l = emit_kd_treelet(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), level + 1);
-                if (has_r) r = emit_kd_treelet(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), level + 1);
-            }
+            if (has_l) l = child(n.kd_left, child_cell(n.cell, n.axis, n.split, 0));
+            if (has_r) r = child(n.kd_right, child_cell(n.cell, n.axis, n.split, 1));
             finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
         } else if (n.kind == TreeletNode::Leaf) {
             const KdNode& k = tree_->nodes[n.kd_node];

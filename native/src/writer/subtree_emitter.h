@@ -10,6 +10,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <mutex>
 #include <vector>
 
@@ -47,10 +48,11 @@ public:
         src_ = source;
     }
 
-    // Emits the treelet rooted at kd node `root` and everything below it. `children`,
-    // when given, holds its LOD nodes' child treelets already emitted (in order).
-    Pending emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level,
-                            std::vector<Pending>* children = nullptr);
+    // Emits the treelet rooted at kd node `root` and everything below it. `jobs`, when
+    // given, is asked for each child treelet first: it returns true (and the child's root
+    // treelet) when that subtree was emitted elsewhere and is now merged into this one.
+    using JobLookup = std::function<bool(std::uint32_t kd_node, Pending& root)>;
+    Pending emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs = nullptr);
 
     // Finishes a LOD node whose children are finished: samples its voxel, places the
     // children side by side one level down (or records them as a unit when deferring),
