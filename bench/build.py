@@ -158,7 +158,7 @@ class MemorySampler:
 
     def __init__(self, interval: float = 0.02) -> None:
         self.interval = interval
-        self.phase = "open"  # before the first progress event: opening (OBJ: loading) the input
+        self.phase = "open"  # before the first progress event: opening the input
         self.peaks: dict[str, dict[str, int]] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -209,13 +209,10 @@ def child_main(spec_text: str) -> int:
 
     if spec.get("baseline"):
         # The RSS of a child that has imported what a build imports, and built nothing:
-        # streamed inputs (binary PLY/STL) need vastray.triangle_readers, whole-file ones (OBJ) trimesh.
-        from vastray.triangle_readers import open_triangles  # noqa: F401
-
-        if spec["baseline"] == "whole":
-            from vastray.ingest import load_mesh  # noqa: F401
-
+        # every input streams through vastray.triangle_readers.
         import vastray.native
+
+        from vastray.triangle_readers import open_triangles  # noqa: F401
 
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         where = {"build": sys.modules["vastray.build"].__file__, "native": vastray.native.__file__}
@@ -238,7 +235,7 @@ def child_main(spec_text: str) -> int:
 
     options = BuildOptions(memory=int(spec["memory"]), threads=int(spec["threads"]), overwrite=True)
     # CPU of this (main) thread against the whole process's: the main thread runs all the
-    # Python (reading, splitting, compressing) and its share of the native work, so
+    # Python (reading, splitting) and its share of the native work, so
     # total / main bounds the speedup more threads could give, however busy the machine.
     main0, all0 = _cpu(resource.RUSAGE_THREAD), _cpu(resource.RUSAGE_SELF)
     with sampler:
@@ -456,9 +453,6 @@ def ensure_generated(name: str, size: int, seed: int, cache: Path, snapshot: str
 # ----------------------------------------------------------------------------- builds
 
 
-def baseline_kind(path: str) -> str:
-    """'streamed' for inputs the builder streams (binary PLY/STL), else 'whole' (trimesh)."""
-    return "streamed" if Path(path).suffix.lower() in (".ply", ".stl") else "whole"
 
 
 def shown_path(path: Path) -> str:
@@ -525,7 +519,7 @@ def one_build(
             "seconds": float(report["seconds"]),
             "mtris_s": report["input_triangles"] / report["seconds"] / 1e6,
             "mtris_s_process": report["input_triangles"] / seen["process_s"] / 1e6,
-            **{f"{p}_s": float(phases.get(p, math.nan)) for p in ("read", "split", "build", "write")},
+            **{f"{p}_s": float(phases.get(p, 0.0)) for p in ("scan", "read", "split", "build", "write")},
             "kd_build_s": report["kd_build_ms"] / 1000.0,
             "emit_s": report["emit_ms"] / 1000.0,
             "parts": report["parts"],
@@ -574,7 +568,7 @@ def sampled_peaks(peaks: dict[str, dict[str, int]]) -> dict[str, Any]:
     out["peak_anon_bytes"] = anon[top]
     out["peak_anon_phase"] = top
     out["peak_file_bytes"] = max(p.get("RssFile", 0) for p in peaks.values())
-    for phase in ("read", "split", "build", "write"):
+    for phase in ("scan", "read", "split", "build", "write"):
         out[f"peak_anon_{phase}_bytes"] = anon.get(phase, math.nan)
         out[f"peak_file_{phase}_bytes"] = peaks.get(phase, {}).get("RssFile", math.nan)
     return out
@@ -645,6 +639,7 @@ def main_table(rows: list[dict[str, Any]]) -> str:
         "ooc levels",
         "total s",
         "Mtri/s",
+        "scan s",
         "read s",
         "split s",
         "build s",
@@ -676,6 +671,7 @@ def main_table(rows: list[dict[str, Any]]) -> str:
                 str(r["ooc_levels"]),
                 fmt(r["seconds"]),
                 fmt(r["mtris_s"], 3),
+                fmt(r["scan_s"]),
                 fmt(r["read_s"]),
                 fmt(r["split_s"]),
                 fmt(r["build_s"]),
@@ -723,7 +719,7 @@ def memory_table(rows: list[dict[str, Any]], baselines: dict[str, dict[str, int]
     for r in rows:
         if "error" in r:
             continue
-        base = baselines[baseline_kind(r["input_path"])]
+        base = baselines["streamed"]
         budget = r["budget_bytes"]
         body.append(
             [
@@ -785,7 +781,7 @@ def scaling_table(rows: list[dict[str, Any]], nt: int) -> str:
         if "error" not in r and r["kind"] in ("main", "t1"):
             by_model.setdefault(r["model"], {})[r["kind"]] = r
     headers = ["model", "triangles", "1T s", f"{nt}T s", "**speedup**", "1T Mtri/s", f"{nt}T Mtri/s"]
-    headers += ["read", "split", "build", "write", "kd build", "emit", "ran first"]
+    headers += ["scan", "read", "split", "build", "write", "kd build", "emit", "ran first"]
     headers += [f"{nt}T CPU s", f"{nt}T main-thread CPU s", f"{nt}T speedup bound"]
     body = []
     for model, pair in by_model.items():
@@ -806,6 +802,7 @@ def scaling_table(rows: list[dict[str, Any]], nt: int) -> str:
                 "**" + ratio("seconds") + "**",
                 fmt(one["mtris_s"], 3),
                 fmt(many["mtris_s"], 3),
+                ratio("scan_s"),
                 ratio("read_s"),
                 ratio("split_s"),
                 ratio("build_s"),
@@ -999,9 +996,10 @@ def report(
         main_table(rows),
         "",
         "*total s* is the builder's own clock (file in to file renamed, fsync included); *Mtri/s* = "
-        "input triangles / total s. *read/split/build/write s* are its phases; *kd build s* and "
+        "input triangles / total s. *scan/read/split/build/write s* are its phases (scan: text "
+        "inputs parsed into staged arrays, soups' bounds pass); *kd build s* and "
         "*emit s* split the build phase: kd-tree construction (native, parallel) and the emission "
-        "of treelets, voxels and triangle blocks (native sampling plus LZ4 compression in Python), "
+        "of treelets, voxels and triangle blocks (native, LZ4 compression and CRC included), "
         "summed over the in-core parts. *parts* = in-core parts, *ooc levels* = out-of-core "
         "treelet levels above them (each is one pass over the triangles). *peak RSS* is the child's "
         "`ru_maxrss`, the whole process (interpreter and libraries included). *B/tri* = file bytes "
@@ -1016,19 +1014,18 @@ def report(
         "Each ratio is 1-thread time / all-thread time (above 1: the threads help). On a machine "
         "that other work keeps busy the threads cannot show; the last three columns do not depend "
         "on that: the CPU seconds of the all-thread build (all threads of the child, during "
-        "`build_model`), those of its main thread (all the Python: reading, splitting, LZ4, "
+        "`build_model`), those of its main thread (all the Python: reading, splitting, "
         "plus its share of the native work), and their quotient: about the most these threads "
         "could speed the build up on idle cores, since the main thread's CPU time is a floor under "
         "the wall time and one thread would need about all of the CPU time.",
         "",
         "## Memory",
         "",
-        f"An idle child (interpreter, numpy, lz4, the native module; nothing built) peaks at "
+        f"An idle child (interpreter, numpy, the native module; nothing built) peaks at "
         f"{baselines['streamed']['rss'] / MiB:.0f} MiB ({baselines['streamed']['anon'] / MiB:.0f} MiB "
-        f"anonymous), {baselines['whole']['rss'] / MiB:.0f} MiB "
-        f"({baselines['whole']['anon'] / MiB:.0f} MiB anonymous) with trimesh imported as well "
-        "(inputs other than binary PLY/STL, here the OBJ meshes, are loaded whole through trimesh); "
-        "the *- idle child* columns subtract the matching one. *peak RSS* is the kernel's high-water "
+        "anonymous); every input streams (text formats are scanned into staged binary arrays in "
+        "the scratch folder first), and the *- idle child* columns subtract it. *peak RSS* is the "
+        "kernel's high-water "
         "mark (`ru_maxrss`), which counts the pages of memory-mapped files (the input, the scratch "
         "records) along with the heap; *peak anon* and *peak file-backed* are the largest `RssAnon` "
         "and `RssFile` of `/proc/self/status`, sampled every 20 ms by a thread in the child, and "
@@ -1237,7 +1234,7 @@ def main(argv: list[str] | None = None) -> int:
     models.sort(key=lambda m: (m.family != "real", m.triangles, m.label))
 
     baselines = {}
-    for kind in ("streamed", "whole"):
+    for kind in ("streamed",):
         baseline_report, _ = run_child({"baseline": kind, "snapshot": snapshot})
         baselines[kind] = {"rss": baseline_report["peak_rss_bytes"], "anon": baseline_report["anon_bytes"]}
     info["children import"] = f"{baseline_report['build']}, {baseline_report['native']}"

@@ -78,13 +78,12 @@ ModelWriter::ModelWriter(const ModelWriterParams& params, BlockSink sink, Progre
 
 ModelWriter::~ModelWriter() = default;
 
-int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, const std::uint32_t* colours,
-                             std::size_t n, const Box3f& cell, int level) {
+int ModelWriter::add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level) {
     if (n == 0) throw std::invalid_argument("a subtree needs at least one triangle");
-    if (impl_->p.has_colours && colours == nullptr) throw std::invalid_argument("the model has colours; pass them");
+    if (stride != record_size(impl_->p.has_colours)) throw std::invalid_argument("records of the wrong size for this model");
     const auto t0 = std::chrono::steady_clock::now();
-    const auto* verts = reinterpret_cast<const Vec3f*>(corners);
-    KdTree tree = build_kdtree(TriangleSoup{verts, n}, impl_->p.kd, &cell);
+    const TriangleSoup soup{reinterpret_cast<const Vec3f*>(records), n, stride / 4};
+    KdTree tree = build_kdtree(soup, impl_->p.kd, &cell);
     const auto t1 = std::chrono::steady_clock::now();
     stats_.kd_build_ms += std::chrono::duration<double, std::milli>(t1 - t0).count();
     stats_.degenerate += tree.stats.degenerate;
@@ -97,9 +96,9 @@ int ModelWriter::add_subtree(const float* corners, const std::uint32_t* ids, con
     constexpr std::size_t kFacetChunk = 1 << 16;
     ThreadPool::global().parallel_for((n + kFacetChunk - 1) / kFacetChunk, [&](std::size_t c, unsigned) {
         const std::size_t end = std::min(n, (c + 1) * kFacetChunk);
-        for (std::size_t i = c * kFacetChunk; i < end; ++i) facets[i] = writer::facet_of(verts + 3 * i);
+        for (std::size_t i = c * kFacetChunk; i < end; ++i) facets[i] = writer::facet_of(&soup.v(i, 0));
     }, lanes);
-    const writer::TriangleSource src{verts, ids, impl_->p.has_colours ? colours : nullptr, facets.data()};
+    const writer::TriangleSource src{records, stride, impl_->p.has_colours, facets.data()};
     SubtreeEmitter& m = impl_->main;
     m.bind(&tree, src);
     const auto lvl = static_cast<std::size_t>(level);

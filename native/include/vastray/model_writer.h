@@ -64,6 +64,9 @@ using BlockSink = std::function<void(int level, StoredBlock&& block)>;
 // Reports leaf triangle references written so far (for progress bars).
 using ProgressSink = std::function<void(std::uint64_t references)>;
 
+// Bytes of one builder record (vastray/build.py writes them).
+inline std::size_t record_size(bool has_colours) { return 36 + 4 + (has_colours ? 4 : 0); }
+
 class ModelWriter {
 public:
     ModelWriter(const ModelWriterParams& params, BlockSink sink, ProgressSink progress);
@@ -71,12 +74,12 @@ public:
     ModelWriter(const ModelWriter&) = delete;
     ModelWriter& operator=(const ModelWriter&) = delete;
 
-    // Builds a kd-tree over n triangles (9 floats each, model-local) inside `cell`,
-    // whose root sits at depth 3 * level, and writes all of it except its root treelet,
-    // which stays pending under the returned handle. ids: input triangle indices;
-    // colours: 0x00BBGGRR per triangle or null.
-    int add_subtree(const float* corners, const std::uint32_t* ids, const std::uint32_t* colours,
-                    std::size_t n, const Box3f& cell, int level);
+    // Builds a kd-tree over n triangle records (record_size bytes each: nine f32 corners,
+    // model-local; the u32 input id; the u32 colour 0x00BBGGRR when the model has
+    // colours) inside `cell`, whose root sits at depth 3 * level, and writes all of it
+    // except its root treelet, which stays pending under the returned handle. The
+    // records are read in place (no copy) until the call returns.
+    int add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level);
 
     // A treelet of three median-split levels above eight pending children. Nodes are in
     // heap order (0 root, 1-2 its children, 3-6 grandchildren); child slot 2j + s

@@ -1,5 +1,6 @@
 #include "writer/parallel_emission.h"
 
+#include <algorithm>
 #include <atomic>
 #include <condition_variable>
 #include <exception>
@@ -49,17 +50,19 @@ std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& j
 }  // namespace
 
 std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level) {
-    constexpr std::uint64_t kMinParallel = 1 << 12;  // smaller parts emit on one thread
-    constexpr std::uint64_t kShare = 32;             // no job above 1/kShare of the part...
-    constexpr std::size_t kMaxJobs = 512;            // ...within this many jobs
+    // Each job ends in a partly filled triangle block (its blocks close on their own), so
+    // jobs are not made smaller than ~100 full blocks' worth of references.
+    constexpr std::uint64_t kMinJob = 1 << 18;
+    constexpr std::uint64_t kShare = 32;   // no job above 1/kShare of the part...
+    constexpr std::size_t kMaxJobs = 512;  // ...within this many jobs
     const std::uint64_t total = subtree_references(tree, 0);
-    if (total < kMinParallel) return {};
+    if (total < 2 * kMinJob) return {};  // smaller parts emit on one thread
     std::vector<EmissionJob> jobs = child_treelets(tree, {0, cell, level, total});
     std::vector<bool> final(jobs.size(), false);  // no child treelets: cannot be split
     while (jobs.size() < kMaxJobs) {
         std::size_t biggest = jobs.size();
         for (std::size_t i = 0; i < jobs.size(); ++i) {
-            if (final[i] || jobs[i].references <= total / kShare) continue;
+            if (final[i] || jobs[i].references <= std::max(total / kShare, kMinJob)) continue;
             if (biggest == jobs.size() || jobs[i].references > jobs[biggest].references) biggest = i;
         }
         if (biggest == jobs.size()) break;

@@ -26,8 +26,9 @@ struct EmissionJob {
 };
 
 // Treelet roots below the part's root treelet, in tree order: the biggest is split into
-// its child treelets until none holds more than 1/32 of the part's leaf references (or
-// it has no child treelets). Empty when the part is too small to be worth it.
+// its child treelets until none holds more than 1/32 of the part's leaf references (and
+// 2^18 at least), or it has no child treelets. Empty when the part is too small to be
+// worth it.
 std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level);
 
 // Emits the whole part through `main` (bound to the part), returns its root treelet.

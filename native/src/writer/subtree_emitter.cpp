@@ -77,7 +77,7 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
             const auto [block, first] = triangles.add_leaf(tris, n.count, src_);
             n.tri_block = block;
             n.first = first;
-            self.proxies.push_back(leaf_proxy(src_.corners, src_.facets, src_.colours, tris, n.count, n.cell));
+            self.proxies.push_back(leaf_proxy(src_, tris, n.count, n.cell));
             stats.references += n.count;
             counter_.add(n.count);
         }

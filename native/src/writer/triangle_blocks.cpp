@@ -74,12 +74,14 @@ bool TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, cons
         if (verts_.size() > kMaxVertices || ids_.size() > kMaxTriangles) return false;
         const std::uint32_t t = tris[i];
         bool fresh = false;
-        const std::uint32_t local = id_map_.find_or_insert(src.ids[t], static_cast<std::uint32_t>(ids_.size()), fresh);
+        const std::uint32_t id = src.id(t);
+        const std::uint32_t local = id_map_.find_or_insert(id, static_cast<std::uint32_t>(ids_.size()), fresh);
         if (fresh) {
-            ids_.push_back(src.ids[t]);
-            if (has_colours_) colours_.push_back(src.colours[t]);
+            ids_.push_back(id);
+            if (has_colours_) colours_.push_back(src.colour(t));
+            const Vec3f* corners = src.corners(t);
             for (int k = 0; k < 3; ++k) {
-                const Vec3f& p = src.corners[3 * static_cast<std::size_t>(t) + static_cast<std::size_t>(k)];
+                const Vec3f& p = corners[k];
                 const VertexKey key{{format::float_bits(p.x), format::float_bits(p.y), format::float_bits(p.z)}};
                 bool new_vertex = false;
                 const std::uint32_t v = vertex_map_.find_or_insert(key, static_cast<std::uint32_t>(verts_.size()), new_vertex);

@@ -5,6 +5,7 @@
 #include <array>
 #include <cstddef>
 #include <cstdint>
+#include <cstring>
 #include <stdexcept>
 #include <utility>
 #include <vector>
@@ -72,14 +73,26 @@ struct VertexHash {
     }
 };
 
-// The triangles a part's leaves refer to: soup corners (3 per triangle, model-local),
-// input ids, colours (0x00BBGGRR, or null) and facets, indexed by the kd-tree's
-// triangle ids.
+// The triangles a part's leaves refer to, indexed by the kd-tree's triangle ids: the
+// builder's records (docs/FORMAT.md, "Building a model"), `stride` bytes each: nine f32
+// corners (model-local), the u32 input id, and the u32 colour 0x00BBGGRR when the model
+// has colours; and one facet per triangle.
 struct TriangleSource {
-    const Vec3f* corners = nullptr;
-    const std::uint32_t* ids = nullptr;
-    const std::uint32_t* colours = nullptr;
+    const std::uint8_t* records = nullptr;
+    std::size_t stride = 40;
+    bool has_colours = false;
     const Facet* facets = nullptr;
+
+    const Vec3f* corners(std::size_t t) const { return reinterpret_cast<const Vec3f*>(records + stride * t); }
+    std::uint32_t id(std::size_t t) const { return word(t, 36); }
+    std::uint32_t colour(std::size_t t) const { return word(t, 40); }
+
+private:
+    std::uint32_t word(std::size_t t, std::size_t at) const {
+        std::uint32_t w;
+        std::memcpy(&w, records + stride * t + at, 4);
+        return w;
+    }
 };
 
 class TriangleBlocks {

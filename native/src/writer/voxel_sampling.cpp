@@ -5,6 +5,7 @@
 #include <limits>
 
 #include "vastray/format.h"
+#include "writer/triangle_blocks.h"
 
 namespace vastray::writer {
 
@@ -16,8 +17,7 @@ Facet facet_of(const Vec3f* v) {
     return f;
 }
 
-Proxy leaf_proxy(const Vec3f* corners, const Facet* facets, const std::uint32_t* colours, const std::uint32_t* tris,
-                 std::uint32_t count, const Box3f& cell) {
+Proxy leaf_proxy(const TriangleSource& src, const std::uint32_t* tris, std::uint32_t count, const Box3f& cell) {
     Proxy q;
     // Per axis: the two faces see the same projected area, so they share the colour
     // and weight sums, and their normal sums are exact negatives of each other.
@@ -25,15 +25,15 @@ Proxy leaf_proxy(const Vec3f* corners, const Facet* facets, const std::uint32_t*
     float wsum[3] = {}, area_sum = 0;
     Vec3f cflat, nflat, first_normal;
     for (std::uint32_t i = 0; i < count; ++i) {
-        const Vec3f* v = corners + 3 * static_cast<std::size_t>(tris[i]);
+        const Vec3f* v = src.corners(tris[i]);
         for (int k = 0; k < 3; ++k) q.box.extend(v[k]);
-        const Facet& t = facets[tris[i]];
+        const Facet& t = src.facets[tris[i]];
         const float area = t.area;
         if (!(area > 0)) continue;
         const Vec3f n = t.normal;
         Vec3f c(0.75f, 0.75f, 0.75f);
-        if (colours != nullptr) {
-            const std::uint32_t rgb = colours[tris[i]];
+        if (src.has_colours) {
+            const std::uint32_t rgb = src.colour(tris[i]);
             c = Vec3f(static_cast<float>(rgb & 255u), static_cast<float>((rgb >> 8) & 255u),
                       static_cast<float>((rgb >> 16) & 255u)) / 255.0f;
         }

@@ -13,6 +13,8 @@
 
 namespace vastray::writer {
 
+struct TriangleSource;  // triangle_blocks.h
+
 // Face f = 2 * axis + side: side 0 is the face at the low end of the axis (looked at
 // from -axis), side 1 the high one. A sample for face f describes what a viewer outside
 // that face sees, so its normal is oriented towards the viewer (dot(n, outward_f) >= 0).
@@ -42,10 +44,8 @@ struct Facet {
 Facet facet_of(const Vec3f* corners);
 
 // The proxy of a leaf: its triangles' box (clipped to the cell) with area-weighted
-// colours and normals per face. corners: 3 per triangle; facets: one per triangle;
-// colours 0x00BBGGRR or null.
-Proxy leaf_proxy(const Vec3f* corners, const Facet* facets, const std::uint32_t* colours, const std::uint32_t* tris,
-                 std::uint32_t count, const Box3f& cell);
+// colours and normals per face (grey without colours).
+Proxy leaf_proxy(const TriangleSource& src, const std::uint32_t* tris, std::uint32_t count, const Box3f& cell);
 
 // Samples a voxel filling `cell` from the proxies of its (at most two) child treelets;
 // either may be null. `rays` per axis and face (clamped to 1 ... 8).
