@@ -51,11 +51,12 @@ from vastray.mesh import MeshError
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 from vastray.triangle_readers import TriangleChunk, VertexTable
 
-# Peak memory of an in-core part per triangle, measured with bench/build.py (peak RSS
-# growth while add_subtree() runs, plus the loaded records): kd-tree references,
-# nodes, facets, the writer's pending treelets and buffered job blocks. Parts are sized
-# with it.
-INCORE_BYTES_PER_TRIANGLE = 240
+# Peak memory of an in-core part per triangle, measured with bench/build.py on 2 threads
+# (peak RSS of 10^7-triangle single-part builds, 132-137 bytes above the idle process):
+# the 44-byte records, kd-tree references (28 bytes, about 2.3 per triangle at the
+# deepest point of the build), nodes and leaf lists, facets, the writer's pending
+# treelets and buffered job blocks. Parts are sized with it.
+INCORE_BYTES_PER_TRIANGLE = 150
 # The budget covers the builder's working set: streaming chunks and in-core parts. On
 # top of it comes a fixed overhead that does not grow with the model: the interpreter,
 # numpy, lz4 and the native module (90 MiB measured) plus allocator slack.
@@ -272,8 +273,8 @@ class _Sifter:
 
 class _Records:
     """Where the read pass puts its records: in memory while the input fits one in-core
-    part, then (and from the start, when the input is known to be bigger) sifted into
-    the first out-of-core treelet's cells."""
+    part (the native record maker writes them in place), then (and from the start, when
+    the input is known to be bigger) sifted into the first out-of-core treelet's cells."""
 
     def __init__(self, stride: int, limit: int, expected: int, split: Callable[[], _Sifter]) -> None:
         self.stride, self.limit, self.make_sifter = stride, limit, split
@@ -283,24 +284,27 @@ class _Records:
         if expected > limit:
             self.sifter = split()
 
-    def add(self, records: np.ndarray) -> None:
-        n = len(records)
+    def space(self, n: int) -> np.ndarray | None:
+        """Room for the records of n more triangles, or None when they are to be sifted."""
         if self.sifter is None and self.count + n > self.limit:
             self.sifter = self.make_sifter()
             if self.count:
                 self.sifter.add(self.buffer[: self.count])
             self.buffer = np.empty((0, self.stride), np.uint8)
         if self.sifter is not None:
+            return None
+        if self.count + n > len(self.buffer):
+            rows = min(self.limit, max(self.count + n, len(self.buffer) * 3 // 2))
+            grown = np.empty((rows, self.stride), np.uint8)
+            grown[: self.count] = self.buffer[: self.count]
+            self.buffer = grown
+        return self.buffer[self.count : self.count + n]
+
+    def commit(self, records: np.ndarray) -> None:
+        """Takes the records made in `space()` (or, when sifting, anywhere)."""
+        if self.sifter is not None:
             self.sifter.add(records)
-        else:
-            if self.count + n > len(self.buffer):
-                grown = np.empty(
-                    (min(self.limit, max(self.count + n, len(self.buffer) * 3 // 2)), self.stride), np.uint8
-                )
-                grown[: self.count] = self.buffer[: self.count]
-                self.buffer = grown
-            self.buffer[self.count : self.count + n] = records
-        self.count += n
+        self.count += len(records)
 
     def in_memory(self) -> np.ndarray:
         return self.buffer[: self.count]
@@ -433,16 +437,17 @@ class _Builder:
                 ids = None if chunk.ids is None else chunk.ids.astype(np.uint32)
                 if chunk.first + chunk.count > MAX_INPUT_TRIANGLES:
                     raise ValueError(f"{self.src.name}: over {MAX_INPUT_TRIANGLES} triangles; ids are 32-bit")
+                out = records.space(chunk.count)
                 if chunk.indices is not None and table is not None:
                     # Native: gathers each corner from the vertex records, then records as below.
-                    if table_bytes is None or len(table_bytes) < table.count * table.stride:
+                    if table_bytes is None:
                         table_bytes = table.buffer()
                     rec, _, lo_k, hi_k, bad = native.make_indexed_records(
                         table_bytes, table.stride, table.offsets, table.types, table.count,
-                        chunk.indices, chunk.colours, ids, chunk.first, centre_list,
+                        chunk.indices, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads,
                     )  # fmt: skip
                     if bad >= 0:
-                        idx = chunk.indices[bad]
+                        idx = np.asarray(chunk.indices[bad], dtype=np.int64)
                         j = int(idx[(idx < 0) | (idx >= table.count)][0])
                         raise MeshError(
                             f"{self.src.name}: face {chunk.first + bad} refers to vertex {j}, "
@@ -453,12 +458,12 @@ class _Builder:
                     # Scene (bit-identical vertices on both paths); zero-area triangles (in
                     # those float32 coordinates) are left out and counted.
                     rec, _, lo_k, hi_k, _ = native.make_records(
-                        chunk.corners, chunk.colours, ids, chunk.first, centre_list
+                        chunk.corners, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads
                     )
                 if len(rec):
                     box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
                     box_hi = np.maximum(box_hi, np.asarray(hi_k, dtype=np.float32))
-                    records.add(rec)
+                    records.commit(rec)
                 total = max(total, chunk.first + chunk.count)
                 self.report("read", total, max(total, self.src.estimate))
                 # Vertices read at random leave the resident set with their map.

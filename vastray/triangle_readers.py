@@ -176,13 +176,13 @@ class TriangleSource:
 
 
 def _table_bounds(table: VertexTable, path: Path) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    if table.count == 0:
+        return np.full(3, np.inf), np.full(3, -np.inf)
     buffer = table.buffer()
-    for start in range(0, table.count, DEFAULT_CHUNK):
-        xyz = table.xyz(buffer, start, min(table.count, start + DEFAULT_CHUNK))
-        _check_vertices(xyz, start, lambda what: MeshError(f"{path}: {what}"))
-        lo, hi = np.minimum(lo, xyz.min(axis=0)), np.maximum(hi, xyz.max(axis=0))
-    return lo, hi
+    lo, hi, bad = native.vertex_bounds(buffer, table.stride, table.offsets, table.types, table.count)
+    if bad >= 0:
+        _check_vertices(table.xyz(buffer, bad, bad + 1), bad, lambda what: MeshError(f"{path}: {what}"))
+    return np.array(lo), np.array(hi)
 
 
 def _check_vertices(xyz: np.ndarray, first: int, fail: Callable[[str], MeshError]) -> None:
@@ -200,7 +200,7 @@ def _triangle_colours(
     """Per triangle: its face colour (rows of r, g, b, flag; flag 0: none), else the mean
     of its corners' vertex colours, else white."""
     if face_rgb_flag is not None and face_rgb_flag[:, 3].all():
-        return np.ascontiguousarray(face_rgb_flag[:, :3])
+        return face_rgb_flag[:, :3]  # a view; the record maker reads strided rows
     out = np.tile(_WHITE, (len(indices), 1))
     if table.colours is not None:
         corners = np.asarray(table.colours)[np.clip(indices, 0, table.count - 1)]
@@ -808,14 +808,16 @@ class PlySource(TriangleSource):
                 triangle = block["n"] == 3
                 k = len(block) if triangle.all() else int(np.argmin(triangle))
                 if k:
-                    tris = np.asarray(block["v"][:k], dtype=np.int64)
+                    tris = block["v"][:k]  # a view: the native gather reads any integer layout
                     colours = None
                     if self.has_colours:
                         rgb = None
                         if face_colour is not None:
                             names, is_float = face_colour
-                            rgb = np.stack([_to_u8(block[n][:k], is_float) for n in names], axis=1)
-                            rgb = np.concatenate([rgb, np.ones((k, 1), np.uint8)], axis=1)
+                            rgb = np.empty((k, 4), np.uint8)
+                            for c, n in enumerate(names):
+                                rgb[:, c] = _to_u8(block[n][:k], is_float)
+                            rgb[:, 3] = 1
                         colours = self._colours(tris, rgb)
                     yield TriangleChunk(first, k, indices=tris, vertices=self.vertices, colours=colours)
                     first += k

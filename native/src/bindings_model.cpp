@@ -4,7 +4,9 @@
 #include <pybind11/stl.h>
 
 #include <algorithm>
+#include <emmintrin.h>
 #include <array>
+#include <cmath>
 #include <limits>
 #include <stdexcept>
 #include <string>
@@ -243,18 +245,19 @@ py::tuple sift8(const py::array_t<std::uint8_t, py::array::c_style>& records, co
 // The read phase's records: per triangle its corners as float32(vertex - centre), computed
 // in double as the in-core Scene does (bit-identical vertices on both paths), the u32 input
 // id and, when given, the u32 0x00BBGGRR colour. Triangles whose float32 corners span no
-// area are left out, as the kd build would, and counted. Runs on the pool, block by block,
-// each block's kept records in input order.
+// area are left out, as the kd build would, and counted. Runs on the pool, block by block:
+// each block writes its records where its triangles would go and the blocks then close
+// up, so the kept records are in input order at the start of the destination.
 struct Records {
-    std::vector<std::uint8_t> bytes;
     std::size_t kept = 0, dropped = 0;
     float lo[3], hi[3];
     std::int64_t bad = -1;  // the first triangle whose corner fetch failed (a bad index)
 };
 
 template <typename Corners>
-Records make_records_core(std::size_t n, const Corners& corners, const std::uint8_t* colours, const std::uint32_t* ids,
-                          std::uint64_t first_id, const double centre[3]) {
+Records make_records_core(std::size_t n, const Corners& corners, const std::uint8_t* colours, std::size_t colour_stride,
+                          const std::uint32_t* ids, std::uint64_t first_id, const double centre[3], std::uint8_t* dst,
+                          unsigned lanes) {
     const std::size_t stride = 36 + 4 + (colours != nullptr ? 4 : 0);
     constexpr std::size_t kBlock = 1 << 15;
     const std::size_t blocks = (n + kBlock - 1) / kBlock;
@@ -262,18 +265,15 @@ Records make_records_core(std::size_t n, const Corners& corners, const std::uint
     ThreadPool::global().parallel_for(blocks, [&](std::size_t b, unsigned) {
         Records& r = parts[b];
         const std::size_t begin = b * kBlock, end = std::min(n, begin + kBlock);
-        r.bytes.resize((end - begin) * stride);
-        for (int k = 0; k < 3; ++k) {
-            r.lo[k] = std::numeric_limits<float>::infinity();
-            r.hi[k] = -std::numeric_limits<float>::infinity();
-        }
+        std::uint8_t* out = dst + begin * stride;
+        __m128 lo = _mm_set1_ps(std::numeric_limits<float>::infinity()), hi = _mm_sub_ps(_mm_setzero_ps(), lo);
         for (std::size_t i = begin; i < end; ++i) {
             double v[9];
             if (!corners(i, v)) {
                 r.bad = static_cast<std::int64_t>(i);
                 return;
             }
-            float f[9];
+            float f[12] = {};
             for (int k = 0; k < 9; ++k) f[k] = static_cast<float>(v[k] - centre[k % 3]);
             const Vec3d a(f[0], f[1], f[2]), bb(f[3], f[4], f[5]), d(f[6], f[7], f[8]);
             const Vec3d nrm = cross(bb - a, d - a);
@@ -281,33 +281,42 @@ Records make_records_core(std::size_t n, const Corners& corners, const std::uint
                 ++r.dropped;
                 continue;
             }
-            std::uint8_t* out = r.bytes.data() + r.kept * stride;
             std::memcpy(out, f, 36);
             const auto id = ids != nullptr ? ids[i] : static_cast<std::uint32_t>(first_id + i);
             std::memcpy(out + 36, &id, 4);
             if (colours != nullptr) {
-                const std::uint8_t* c = colours + 3 * i;
+                const std::uint8_t* c = colours + colour_stride * i;
                 const std::uint32_t packed = static_cast<std::uint32_t>(c[0]) | (static_cast<std::uint32_t>(c[1]) << 8) |
                                              (static_cast<std::uint32_t>(c[2]) << 16);
                 std::memcpy(out + 40, &packed, 4);
             }
-            for (int k = 0; k < 9; ++k) {
-                r.lo[k % 3] = std::min(r.lo[k % 3], f[k]);
-                r.hi[k % 3] = std::max(r.hi[k % 3], f[k]);
+            for (int k = 0; k < 9; k += 3) {  // lane 3 holds the next corner's x or 0: unused
+                const __m128 p = _mm_loadu_ps(f + k);
+                lo = _mm_min_ps(lo, p);
+                hi = _mm_max_ps(hi, p);
             }
+            out += stride;
             ++r.kept;
         }
-    });
+        alignas(16) float l[4], h[4];
+        _mm_store_ps(l, lo);
+        _mm_store_ps(h, hi);
+        for (int k = 0; k < 3; ++k) r.lo[k] = l[k], r.hi[k] = h[k];
+    }, lanes);
     Records all;
     for (int k = 0; k < 3; ++k) {
         all.lo[k] = std::numeric_limits<float>::infinity();
         all.hi[k] = -std::numeric_limits<float>::infinity();
     }
-    for (const Records& r : parts) {
+    std::size_t at = 0;
+    for (std::size_t b = 0; b < blocks; ++b) {
+        const Records& r = parts[b];
         if (r.bad >= 0) {
             all.bad = r.bad;
             return all;
         }
+        if (at != b * kBlock && r.kept) std::memmove(dst + at * stride, dst + b * kBlock * stride, r.kept * stride);
+        at += r.kept;
         all.kept += r.kept;
         all.dropped += r.dropped;
         for (int k = 0; k < 3; ++k) {
@@ -315,95 +324,158 @@ Records make_records_core(std::size_t n, const Corners& corners, const std::uint
             all.hi[k] = std::max(all.hi[k], r.hi[k]);
         }
     }
-    all.bytes.resize(all.kept * stride);
-    std::size_t at = 0;
-    for (const Records& r : parts) {
-        std::memcpy(all.bytes.data() + at, r.bytes.data(), r.kept * stride);
-        at += r.kept * stride;
-    }
     return all;
 }
 
+using ByteArray = py::array_t<std::uint8_t, py::array::c_style>;
+
+// Options every record call takes: colours ((n, 3) uint8, rows may be strided), explicit
+// ids, the centre, and where the records go (`out`: at least n rows of the record size;
+// none: a new array).
 struct RecordOptions {
-    py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast> rgb;
     py::array_t<std::uint32_t, py::array::c_style | py::array::forcecast> id_array;
+    py::array rgb;
     const std::uint8_t* colours = nullptr;
+    std::size_t colour_stride = 3;
     const std::uint32_t* ids = nullptr;
     double centre[3];
+    ByteArray out;
+    std::size_t stride;
 
-    RecordOptions(const py::object& colours_, const py::object& ids_, const std::vector<double>& centre_, std::size_t n) {
+    RecordOptions(const py::object& colours_, const py::object& ids_, const std::vector<double>& centre_, std::size_t n,
+                  const py::object& out_) {
         if (centre_.size() != 3) throw std::invalid_argument("centre must have three components");
         for (int k = 0; k < 3; ++k) centre[k] = centre_[static_cast<std::size_t>(k)];
         if (!colours_.is_none()) {
-            rgb = decltype(rgb)::ensure(colours_);
-            if (!rgb || static_cast<std::size_t>(rgb.size()) != 3 * n) throw std::invalid_argument("colours must be (n, 3) uint8");
-            colours = rgb.data();
+            rgb = py::array::ensure(colours_);
+            if (!rgb || rgb.dtype().kind() != 'u' || rgb.itemsize() != 1 || rgb.ndim() != 2 ||
+                static_cast<std::size_t>(rgb.shape(0)) != n || rgb.shape(1) != 3 || rgb.strides(1) != 1) {
+                throw std::invalid_argument("colours must be (n, 3) uint8 with contiguous rows");
+            }
+            colours = static_cast<const std::uint8_t*>(rgb.data());
+            colour_stride = static_cast<std::size_t>(rgb.strides(0));
         }
         if (!ids_.is_none()) {
             id_array = decltype(id_array)::ensure(ids_);
             if (!id_array || static_cast<std::size_t>(id_array.size()) != n) throw std::invalid_argument("ids must be one uint32 per triangle");
             ids = id_array.data();
         }
+        stride = record_size(colours != nullptr);
+        if (out_.is_none()) {
+            out = ByteArray({static_cast<py::ssize_t>(n), static_cast<py::ssize_t>(stride)});
+        } else {
+            out = out_.cast<ByteArray>();
+            if (out.ndim() != 2 || static_cast<std::size_t>(out.shape(1)) != stride || static_cast<std::size_t>(out.shape(0)) < n ||
+                !out.writeable()) {
+                throw std::invalid_argument("out must be a writeable (>= n, record size) uint8 array");
+            }
+        }
     }
+    std::uint8_t* dst() { return out.mutable_data(); }
 };
 
-py::tuple records_result(Records&& r, bool with_colours) {
-    const std::size_t stride = 36 + 4 + (with_colours ? 4 : 0);
-    py::array_t<std::uint8_t> records({static_cast<py::ssize_t>(r.kept), static_cast<py::ssize_t>(stride)});
-    std::memcpy(records.mutable_data(), r.bytes.data(), r.bytes.size());
-    return py::make_tuple(records, r.dropped, std::vector<float>(r.lo, r.lo + 3), std::vector<float>(r.hi, r.hi + 3), r.bad);
+// (records: the first `kept` rows of the destination, dropped, lo, hi, bad triangle or -1)
+py::tuple records_result(const Records& r, RecordOptions& o) {
+    py::object rows = o.out[py::slice(0, static_cast<py::ssize_t>(r.bad >= 0 ? 0 : r.kept), 1)];
+    return py::make_tuple(rows, r.dropped, std::vector<float>(r.lo, r.lo + 3), std::vector<float>(r.hi, r.hi + 3), r.bad);
 }
 
 // Records from corners: (n, 3, 3) float64.
 py::tuple make_records(DoubleArray corners, py::object colours, py::object ids, std::uint64_t first_id,
-                       const std::vector<double>& centre) {
+                       const std::vector<double>& centre, py::object out, unsigned threads) {
     if (corners.size() % 9 != 0) throw std::invalid_argument("corners must be (n, 3, 3)");
     const auto n = static_cast<std::size_t>(corners.size() / 9);
-    const RecordOptions o(colours, ids, centre, n);
+    RecordOptions o(colours, ids, centre, n, out);
     const double* c = corners.data();
+    std::uint8_t* dst = o.dst();
     Records r;
     {
         py::gil_scoped_release release;
         r = make_records_core(
             n, [c](std::size_t i, double* v) { std::memcpy(v, c + 9 * i, 9 * sizeof(double)); return true; },
-            o.colours, o.ids, first_id, o.centre);
+            o.colours, o.colour_stride, o.ids, first_id, o.centre, dst, threads);
     }
-    return records_result(std::move(r), o.colours != nullptr);
+    return records_result(r, o);
 }
 
-// Records from vertex indices into a table of vertex records: `vertices` holds `count`
-// records of `stride` bytes, coordinate k at byte offsets[k], typed types[k] ("<f4",
-// ">f4", "<f8", ">f8"): a binary PLY's vertex element where it lies in the file, or a
-// float64 table. The result's last field names the first triangle with an index outside
-// 0 ... count - 1 (-1: none), and then no records are made.
-py::tuple make_indexed_records(const py::buffer& vertices, std::size_t stride, const std::array<std::size_t, 3>& offsets,
-                               const std::array<std::string, 3>& types, std::size_t count,
-                               py::array_t<std::int64_t, py::array::c_style | py::array::forcecast> indices,
-                               py::object colours, py::object ids, std::uint64_t first_id,
-                               const std::vector<double>& centre) {
-    const py::buffer_info vb = vertices.request();
-    if (vb.itemsize != 1 || static_cast<std::size_t>(vb.size) < count * stride) {
-        throw std::invalid_argument("vertices: a byte buffer of count * stride bytes");
-    }
-    bool swap[3], wide[3];
-    for (int k = 0; k < 3; ++k) {
-        const std::string& t = types[static_cast<std::size_t>(k)];
-        if (t.size() != 3 || (t[0] != '<' && t[0] != '>') || t[1] != 'f' || (t[2] != '4' && t[2] != '8')) {
-            throw std::invalid_argument("vertex coordinate types are <f4, >f4, <f8 or >f8");
+// Vertex indices (n, 3) of any integer type and layout (a field of a face record array),
+// read as int64.
+struct Indices {
+    const std::uint8_t* base;
+    std::ptrdiff_t row, col;
+    char kind;
+    std::size_t size;
+
+    explicit Indices(const py::array& a) {
+        if (a.ndim() != 2 || a.shape(1) != 3) throw std::invalid_argument("indices must be (n, 3)");
+        kind = a.dtype().kind();
+        size = static_cast<std::size_t>(a.itemsize());
+        if ((kind != 'i' && kind != 'u') || (size != 1 && size != 2 && size != 4 && size != 8)) {
+            throw std::invalid_argument("indices must be integers");
         }
-        wide[k] = t[2] == '8';
-        swap[k] = t[0] == '>';
-        if (offsets[static_cast<std::size_t>(k)] + (wide[k] ? 8 : 4) > stride) throw std::invalid_argument("vertex field past its record");
+        if (a.dtype().byteorder() == '>') throw std::invalid_argument("indices must be in native byte order");
+        base = static_cast<const std::uint8_t*>(a.data());
+        row = a.strides(0);
+        col = a.strides(1);
     }
-    if (indices.ndim() != 2 || indices.shape(1) != 3) throw std::invalid_argument("indices must be (n, 3)");
-    const auto n = static_cast<std::size_t>(indices.shape(0));
-    const RecordOptions o(colours, ids, centre, n);
-    const auto* base = static_cast<const std::uint8_t*>(vb.ptr);
-    const std::int64_t* idx = indices.data();
-    auto coord = [&](const std::uint8_t* rec, int k) -> double {
+    std::int64_t operator()(std::size_t i, int c) const {
+        const std::uint8_t* p = base + static_cast<std::ptrdiff_t>(i) * row + c * col;
+        switch (size) {
+            case 1: return kind == 'i' ? static_cast<std::int8_t>(*p) : *p;
+            case 2: return kind == 'i' ? load_as<std::int16_t>(p) : load_as<std::uint16_t>(p);
+            case 4: return kind == 'i' ? load_as<std::int32_t>(p) : load_as<std::uint32_t>(p);
+            default: {
+                std::uint64_t u;
+                std::memcpy(&u, p, sizeof u);
+                const bool fits = kind == 'i' || u <= static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max());
+                return fits ? static_cast<std::int64_t>(u) : std::int64_t{-1};
+            }
+        }
+    }
+    template <typename T>
+    static std::int64_t load_as(const std::uint8_t* p) {
+        T v;
+        std::memcpy(&v, p, sizeof v);
+        return static_cast<std::int64_t>(v);
+    }
+};
+
+// A table of vertex records: `count` records of `stride` bytes, coordinate k at byte
+// offsets[k], typed types[k] ("<f4", ">f4", "<f8", ">f8"): a binary PLY's vertex element
+// where it lies in the file, or a staged float64 table.
+struct VertexRecords {
+    py::buffer_info buffer;
+    const std::uint8_t* base;
+    std::size_t stride, count, offsets[3];
+    bool swap[3], wide[3];
+    bool packed;  // native-order x, y, z side by side, all one width
+
+    VertexRecords(const py::buffer& vertices, std::size_t stride_, const std::array<std::size_t, 3>& offsets_,
+                  const std::array<std::string, 3>& types, std::size_t count_)
+        : buffer(vertices.request()), stride(stride_), count(count_) {
+        if (buffer.itemsize != 1 || static_cast<std::size_t>(buffer.size) < count * stride) {
+            throw std::invalid_argument("vertices: a byte buffer of count * stride bytes");
+        }
+        base = static_cast<const std::uint8_t*>(buffer.ptr);
+        for (int k = 0; k < 3; ++k) {
+            const std::string& t = types[static_cast<std::size_t>(k)];
+            if (t.size() != 3 || (t[0] != '<' && t[0] != '>') || t[1] != 'f' || (t[2] != '4' && t[2] != '8')) {
+                throw std::invalid_argument("vertex coordinate types are <f4, >f4, <f8 or >f8");
+            }
+            wide[k] = t[2] == '8';
+            swap[k] = t[0] == '>';
+            offsets[k] = offsets_[static_cast<std::size_t>(k)];
+            if (offsets[k] + (wide[k] ? 8 : 4) > stride) throw std::invalid_argument("vertex field past its record");
+        }
+        const std::size_t width = wide[0] ? 8 : 4;
+        packed = offsets[1] == offsets[0] + width && offsets[2] == offsets[1] + width && wide[0] == wide[1] &&
+                 wide[1] == wide[2] && !swap[0] && !swap[1] && !swap[2];
+    }
+
+    double coord(const std::uint8_t* rec, int k) const {
         std::uint8_t b[8];
         const std::size_t w = wide[k] ? 8 : 4;
-        std::memcpy(b, rec + offsets[static_cast<std::size_t>(k)], w);
+        std::memcpy(b, rec + offsets[k], w);
         if (swap[k]) std::reverse(b, b + w);
         if (wide[k]) {
             double d;
@@ -413,24 +485,108 @@ py::tuple make_indexed_records(const py::buffer& vertices, std::size_t stride, c
         float f;
         std::memcpy(&f, b, 4);
         return f;
-    };
+    }
+
+    // Calls fn(fetch) with a fetch(vertex index, double* xyz) specialised for the layout:
+    // the common ones get their own loops, anything else goes coordinate by coordinate.
+    template <typename Fn>
+    auto with_fetch(Fn&& fn) const {
+        const std::size_t at = offsets[0];
+        if (packed && !wide[0]) {
+            return fn([this, at](std::size_t j, double* v) {
+                float f[3];
+                std::memcpy(f, base + j * stride + at, sizeof f);
+                v[0] = f[0], v[1] = f[1], v[2] = f[2];
+            });
+        }
+        if (packed) {
+            return fn([this, at](std::size_t j, double* v) { std::memcpy(v, base + j * stride + at, 3 * sizeof(double)); });
+        }
+        return fn([this](std::size_t j, double* v) {
+            for (int k = 0; k < 3; ++k) v[k] = coord(base + j * stride, k);
+        });
+    }
+};
+
+// Records from vertex indices into a table of vertex records (see VertexRecords). The
+// result's last field names the first triangle with an index outside 0 ... count - 1
+// (-1: none), and then no records are made.
+py::tuple make_indexed_records(const py::buffer& vertices, std::size_t stride, const std::array<std::size_t, 3>& offsets,
+                               const std::array<std::string, 3>& types, std::size_t count, const py::array& indices,
+                               py::object colours, py::object ids, std::uint64_t first_id,
+                               const std::vector<double>& centre, py::object out, unsigned threads) {
+    const VertexRecords table(vertices, stride, offsets, types, count);
+    const Indices idx(indices);
+    const auto n = static_cast<std::size_t>(indices.shape(0));
+    RecordOptions o(colours, ids, centre, n, out);
+    std::uint8_t* dst = o.dst();
     Records r;
     {
         py::gil_scoped_release release;
-        r = make_records_core(
-            n,
-            [&](std::size_t i, double* v) {
-                for (int c = 0; c < 3; ++c) {
-                    const std::int64_t j = idx[3 * i + static_cast<std::size_t>(c)];
-                    if (j < 0 || static_cast<std::uint64_t>(j) >= count) return false;
-                    const std::uint8_t* rec = base + static_cast<std::size_t>(j) * stride;
-                    for (int k = 0; k < 3; ++k) v[3 * c + k] = coord(rec, k);
-                }
-                return true;
-            },
-            o.colours, o.ids, first_id, o.centre);
+        r = table.with_fetch([&](auto&& fetch) {
+            return make_records_core(
+                n,
+                [&](std::size_t i, double* v) {
+                    for (int c = 0; c < 3; ++c) {
+                        const std::int64_t j = idx(i, c);
+                        if (j < 0 || static_cast<std::uint64_t>(j) >= count) return false;
+                        fetch(static_cast<std::size_t>(j), v + 3 * c);
+                    }
+                    return true;
+                },
+                o.colours, o.colour_stride, o.ids, first_id, o.centre, dst, threads);
+        });
     }
-    return records_result(std::move(r), o.colours != nullptr);
+    return records_result(r, o);
+}
+
+// (lo, hi, first vertex with a non-finite coordinate or -1) of a table of vertex records,
+// on the pool: what the model centre and the root cell come from.
+py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const std::array<std::size_t, 3>& offsets,
+                        const std::array<std::string, 3>& types, std::size_t count, unsigned threads) {
+    const VertexRecords table(vertices, stride, offsets, types, count);
+    constexpr std::size_t kBlock = 1 << 16;
+    const std::size_t blocks = (count + kBlock - 1) / kBlock;
+    struct Part {
+        double lo[3], hi[3];
+        std::int64_t bad = -1;
+    };
+    std::vector<Part> parts(blocks);
+    {
+        py::gil_scoped_release release;
+        table.with_fetch([&](auto&& fetch) {
+            ThreadPool::global().parallel_for(blocks, [&](std::size_t b, unsigned) {
+                Part& p = parts[b];
+                for (int k = 0; k < 3; ++k) {
+                    p.lo[k] = std::numeric_limits<double>::infinity();
+                    p.hi[k] = -std::numeric_limits<double>::infinity();
+                }
+                const std::size_t end = std::min(count, (b + 1) * kBlock);
+                for (std::size_t j = b * kBlock; j < end; ++j) {
+                    double v[3];
+                    fetch(j, v);
+                    if (!std::isfinite(v[0]) || !std::isfinite(v[1]) || !std::isfinite(v[2])) {
+                        p.bad = static_cast<std::int64_t>(j);
+                        return;
+                    }
+                    for (int k = 0; k < 3; ++k) {
+                        p.lo[k] = std::min(p.lo[k], v[k]);
+                        p.hi[k] = std::max(p.hi[k], v[k]);
+                    }
+                }
+            }, threads);
+            return 0;
+        });
+    }
+    std::vector<double> lo(3, std::numeric_limits<double>::infinity()), hi(3, -std::numeric_limits<double>::infinity());
+    for (const Part& p : parts) {
+        if (p.bad >= 0) return py::make_tuple(lo, hi, p.bad);
+        for (int k = 0; k < 3; ++k) {
+            lo[static_cast<std::size_t>(k)] = std::min(lo[static_cast<std::size_t>(k)], p.lo[k]);
+            hi[static_cast<std::size_t>(k)] = std::max(hi[static_cast<std::size_t>(k)], p.hi[k]);
+        }
+    }
+    return py::make_tuple(lo, hi, -1);
 }
 
 }  // namespace
@@ -451,11 +607,14 @@ void bind_model(py::module_& m) {
         .def_property_readonly("levels", &PyModelWriter::levels)
         .def_property_readonly("stats", &PyModelWriter::stats);
     m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("ids"), py::arg("first_id"),
-          py::arg("centre"), "Builder records for a chunk of triangles (corners), zero-area ones left out");
+          py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,
+          "Builder records for a chunk of triangles (corners), zero-area ones left out");
     m.def("make_indexed_records", &make_indexed_records, py::arg("vertices"), py::arg("stride"), py::arg("offsets"),
           py::arg("types"), py::arg("count"), py::arg("indices"), py::arg("colours"), py::arg("ids"),
-          py::arg("first_id"), py::arg("centre"),
+          py::arg("first_id"), py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,
           "Builder records for a chunk of indexed triangles, gathered from vertex records");
+    m.def("vertex_bounds", &vertex_bounds, py::arg("vertices"), py::arg("stride"), py::arg("offsets"), py::arg("types"),
+          py::arg("count"), py::arg("threads") = 0u, "Bounds of a table of vertex records, and its first non-finite vertex");
     bind_ingest(m);
     m.def("sift8", &sift8, py::arg("records"), py::arg("axes"), py::arg("splits"), py::arg("cell_lo"),
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");

@@ -180,6 +180,46 @@ private:
 };
 static_assert(std::is_trivially_copyable_v<PrimRef>, "references are moved by realloc and memmove");
 
+// Puts boxes into the bins of one cell (the binned SAH's input: per axis, how many
+// boxes start and end in each slice): bin = (x - lo) * bins / extent, clamped to
+// 0 ... bins - 1 in float before it is truncated (which is what a scalar static_cast of
+// the clamped float gives). Lane 3 of a corner is whatever follows it in memory; it is
+// scaled by 0 and clamped, and its bin is never counted.
+class Binner {
+public:
+    Binner(const Box3f& cell, int bins) : bins_(bins) {
+        float scale[3];
+        for (int a = 0; a < 3; ++a) {
+            const float ext = cell.hi[a] - cell.lo[a];
+            scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
+        }
+        lo_ = _mm_setr_ps(cell.lo.x, cell.lo.y, cell.lo.z, 0.0f);
+        scale_ = _mm_setr_ps(scale[0], scale[1], scale[2], 0.0f);
+        top_ = _mm_set1_ps(static_cast<float>(bins - 1));
+        base_ = _mm_setr_epi32(0, bins, 2 * bins, 0);
+    }
+    int bins() const { return bins_; }
+    void add(__m128 lo, __m128 hi, std::uint32_t* starts, std::uint32_t* ends) const {
+        alignas(16) std::int32_t s[4], e[4];
+        _mm_store_si128(reinterpret_cast<__m128i*>(s), _mm_add_epi32(_mm_cvttps_epi32(clamp(lo)), base_));
+        _mm_store_si128(reinterpret_cast<__m128i*>(e), _mm_add_epi32(_mm_cvttps_epi32(clamp(hi)), base_));
+        starts[s[0]]++;
+        starts[s[1]]++;
+        starts[s[2]]++;
+        ends[e[0]]++;
+        ends[e[1]]++;
+        ends[e[2]]++;
+    }
+
+private:
+    __m128 clamp(__m128 x) const {
+        return _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(x, lo_), scale_), _mm_setzero_ps()), top_);
+    }
+    int bins_;
+    __m128 lo_, scale_, top_;
+    __m128i base_;
+};
+
 class Builder {
 public:
     Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
@@ -411,36 +451,12 @@ namespace {
 
 constexpr int kStackBins = 64;
 
-// Counts, per axis, the references whose box starts (ends) in each bin. The six bin
-// indices of a reference come from two SSE vectors: (lo.x lo.y lo.z hi.x) and
-// (_ _ hi.y hi.z), clamped in float before the conversion, which truncates exactly as
-// the scalar static_cast of the same float would.
-void bin_references(const PrimRef* refs, std::size_t n, const Box3f& cell, const float scale[3], int bins,
-                    std::uint32_t* starts, std::uint32_t* ends) {
-    const int nb = bins;
-    const __m128 off_a = _mm_setr_ps(cell.lo.x, cell.lo.y, cell.lo.z, cell.lo.x);
-    const __m128 scale_a = _mm_setr_ps(scale[0], scale[1], scale[2], scale[0]);
-    const __m128 off_b = _mm_setr_ps(0.0f, 0.0f, cell.lo.y, cell.lo.z);
-    const __m128 scale_b = _mm_setr_ps(0.0f, 0.0f, scale[1], scale[2]);
-    const __m128 zero = _mm_setzero_ps();
-    const __m128 top = _mm_set1_ps(static_cast<float>(bins - 1));
-    const __m128i base_a = _mm_setr_epi32(0, nb, 2 * nb, 0);
-    const __m128i base_b = _mm_setr_epi32(0, 0, nb, 2 * nb);
-    alignas(16) std::int32_t ia[4], ib[4];
+// Counts, per axis, the references whose box starts (ends) in each bin.
+void bin_references(const PrimRef* refs, std::size_t n, const Binner& binner, std::uint32_t* starts,
+                    std::uint32_t* ends) {
     for (std::size_t i = 0; i < n; ++i) {
-        const float* box = &refs[i].box.lo.x;
-        const __m128 a = _mm_loadu_ps(box);      // lo.x lo.y lo.z hi.x
-        const __m128 b = _mm_loadu_ps(box + 2);  // lo.z hi.x hi.y hi.z
-        const __m128 ta = _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(a, off_a), scale_a), zero), top);
-        const __m128 tb = _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(b, off_b), scale_b), zero), top);
-        _mm_store_si128(reinterpret_cast<__m128i*>(ia), _mm_add_epi32(_mm_cvttps_epi32(ta), base_a));
-        _mm_store_si128(reinterpret_cast<__m128i*>(ib), _mm_add_epi32(_mm_cvttps_epi32(tb), base_b));
-        starts[ia[0]]++;
-        starts[ia[1]]++;
-        starts[ia[2]]++;
-        ends[ia[3]]++;
-        ends[ib[2]]++;
-        ends[ib[3]]++;
+        // lo's lane 3 is hi.x, hi's is the id: both are ignored.
+        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), starts, ends);
     }
 }
 
@@ -519,12 +535,7 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     }
     std::uint32_t* counts_right = counts_left + nb + 4;
     std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
-    float scale[3];
-    for (int a = 0; a < 3; ++a) {
-        const float ext = cell.hi[a] - cell.lo[a];
-        scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
-    }
-    bin_references(refs, n, cell, scale, bins, starts, ends);
+    bin_references(refs, n, Binner(cell, bins), starts, ends);
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
