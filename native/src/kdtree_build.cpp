@@ -8,6 +8,10 @@
 // traversal needs.
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <exception>
+#include <mutex>
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
@@ -164,19 +168,27 @@ public:
     PrimRef* data() { return refs_; }
     // Makes room for references up to index `top`; may move the buffer. The memory is
     // not initialised: untouched room costs address space, not resident pages, and a
-    // large block grows by remapping rather than copying.
+    // large block grows by remapping rather than copying. Only the owning thread calls it.
     void reserve(std::size_t top) {
         if (top <= capacity_) return;
         const std::size_t want = std::max(top, capacity_ + capacity_ / 2);
+        std::lock_guard<std::mutex> lock(move_);
         void* grown = std::realloc(static_cast<void*>(refs_), want * sizeof(PrimRef));
         if (grown == nullptr) throw std::bad_alloc();
         refs_ = static_cast<PrimRef*>(grown);
         capacity_ = want;
     }
+    // Copies references [first, first + n) for another thread, which the owner does not
+    // touch meanwhile; the lock keeps the owner from moving the buffer under the copy.
+    void copy_out(std::size_t first, std::size_t n, PrimRef* to) {
+        std::lock_guard<std::mutex> lock(move_);
+        std::memcpy(to, refs_ + first, n * sizeof(PrimRef));
+    }
 
 private:
     PrimRef* refs_ = nullptr;  // PrimRef is trivially copyable: realloc may move it
     std::size_t capacity_ = 0;
+    std::mutex move_;
 };
 static_assert(std::is_trivially_copyable_v<PrimRef>, "references are moved by realloc and memmove");
 
@@ -220,11 +232,96 @@ private:
     __m128i base_;
 };
 
+// Fork-join over subtrees: a split with two big children offers the right one as a task
+// and builds the left one itself. An idle helper takes the oldest task on offer (the
+// biggest: the one nearest the root) and builds it into an output of its own. Back from
+// the left child, the owner builds the right one itself if nobody took it, or waits for
+// it and splices the helper's output after the left child's. Who builds what changes
+// nothing in the tree: the nodes end up in the same preorder either way.
+struct Task {
+    RefStack* stack = nullptr;  // the owner's: the child's references lie there, untouched meanwhile
+    std::size_t first = 0, n = 0;
+    Box3f cell, used;
+    int depth = 0, bad = 0;
+    enum State { Offered, Taken, Reclaimed } state = Offered;  // guarded by Tasks::mutex_
+    bool done = false;
+    std::exception_ptr error;
+    Output out;
+};
+
+class Tasks {
+public:
+    void offer(Task* t) {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            offered_.push_back(t);
+        }
+        wake_.notify_one();
+    }
+    // The owner takes its task back; false when a helper has it.
+    bool reclaim(Task* t) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        if (t->state != Task::Offered) return false;
+        t->state = Task::Reclaimed;
+        offered_.erase(std::find(offered_.begin(), offered_.end(), t));
+        return true;
+    }
+    void wait(Task* t) {
+        std::unique_lock<std::mutex> lock(mutex_);
+        finished_.wait(lock, [t] { return t->done; });
+    }
+    // A helper's next task, or null once the build is over.
+    Task* take() {
+        std::unique_lock<std::mutex> lock(mutex_);
+        wake_.wait(lock, [this] { return over_ || !offered_.empty(); });
+        if (offered_.empty()) return nullptr;
+        Task* t = offered_.front();
+        offered_.pop_front();
+        t->state = Task::Taken;
+        return t;
+    }
+    void complete(Task* t) {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            t->done = true;
+        }
+        finished_.notify_all();
+    }
+    void end() {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            over_ = true;
+        }
+        wake_.notify_all();
+    }
+
+private:
+    std::mutex mutex_;
+    std::condition_variable wake_, finished_;
+    std::deque<Task*> offered_;
+    bool over_ = false;
+};
+
 class Builder {
 public:
-    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
-        : soup_(soup), p_(params), max_depth_(max_depth),
-          spare_threads_(static_cast<int>(threads) - 1) {}
+    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, bool parallel)
+        : soup_(soup), p_(params), max_depth_(max_depth), parallel_(parallel) {}
+
+    // A helper thread: builds offered subtrees until the build is over.
+    void help() {
+        RefStack rs;
+        while (Task* t = tasks_.take()) {
+            try {
+                rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+                t->stack->copy_out(t->first, t->n, rs.data());
+                build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
+            } catch (...) {
+                t->error = std::current_exception();
+            }
+            tasks_.complete(t);
+        }
+    }
+    void end() { tasks_.end(); }
 
     // The node whose references are rs.refs[first, first + n).
     // used: the union of the references' boxes (computed by the caller's partition pass,
@@ -251,7 +348,8 @@ private:
     const TriangleSoup& soup_;
     const KdBuildParams& p_;
     const int max_depth_;
-    std::atomic<int> spare_threads_;
+    const bool parallel_;
+    Tasks tasks_;
 };
 
 void Builder::count_empty(int depth, Output& out) {
@@ -371,36 +469,42 @@ void Builder::build_children(RefStack& rs, const Side& left, const Side& right, 
         return;
     }
 
-    // Large subtrees build on spare threads; the right one is spliced in afterwards.
+    // Big children: the right one is offered to the helpers while this thread builds the left.
     constexpr std::size_t kParallelThreshold = 4096;
-    bool spawn = false;
-    if (right.n >= kParallelThreshold && left.n >= kParallelThreshold) {
-        int spare = spare_threads_.load();
-        while (spare > 0 && !spare_threads_.compare_exchange_weak(spare, spare - 1)) {
+    const bool offer = parallel_ && right.n >= kParallelThreshold && left.n >= kParallelThreshold;
+    Task task;
+    if (offer) {
+        task.stack = &rs;
+        task.first = right.first;
+        task.n = right.n;
+        task.cell = right.cell;
+        task.used = right.used;
+        task.depth = depth + 1;
+        task.bad = bad;
+    }
+    // Whatever happens to the left child, the task must be taken back or finished before
+    // this frame (which holds it) goes.
+    struct Settle {
+        Tasks* tasks;
+        Task* task;
+        bool settled = false;
+        ~Settle() {
+            if (!settled && tasks != nullptr && !tasks->reclaim(task)) tasks->wait(task);
         }
-        spawn = spare > 0;
-    }
-    Output right_out;
-    RefStack right_rs;
-    std::thread worker;
-    if (spawn) {
-        // The worker gets its own copy: building the left child may move this buffer.
-        right_rs.reserve(2 * right.n);
-        std::memcpy(right_rs.data(), rs.data() + right.first, right.n * sizeof(PrimRef));
-        worker = std::thread([&] {
-            build(right_rs, 0, right.n, right.cell, right.used, depth + 1, bad, right_out);
-            spare_threads_.fetch_add(1);
-        });
-    }
+    } settle{offer ? &tasks_ : nullptr, &task};
+    if (offer) tasks_.offer(&task);
     build(rs, left.first, left.n, left.cell, left.used, depth + 1, bad, out);
     const std::size_t right_offset = out.nodes.size() - self;
     if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
     out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
-    if (!spawn) {
+    settle.settled = true;
+    if (!offer || tasks_.reclaim(&task)) {
         build(rs, right.first, right.n, right.cell, right.used, depth + 1, bad, out);
         return;
     }
-    worker.join();
+    tasks_.wait(&task);
+    if (task.error) std::rethrow_exception(task.error);
+    const Output& right_out = task.out;
     const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
     for (KdNode n : right_out.nodes) {
         if (n.is_leaf()) n = KdNode::leaf(n.first() + id_base, n.count());
@@ -667,12 +771,25 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
         max_depth = std::min(max_depth, 60);
     }
     const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
-    Builder builder(soup, params, max_depth, threads);
+    const unsigned helpers = root_refs >= (1u << 14) ? threads - 1 : 0;  // small trees: one thread
+    Builder builder(soup, params, max_depth, helpers > 0);
     Output out;
     // Measured: about one node and three leaf references per triangle.
     out.nodes.reserve(soup.count + soup.count / 4 + 16);
     out.tri_ids.reserve(3 * soup.count + 16);
-    builder.build(rs, 0, root_refs, tree.bounds, used, 0, 0, out);
+    {
+        std::vector<std::thread> help;
+        struct Join {
+            Builder& builder;
+            std::vector<std::thread>& threads;
+            ~Join() {
+                builder.end();
+                for (auto& t : threads) t.join();
+            }
+        } join{builder, help};
+        for (unsigned i = 0; i < helpers; ++i) help.emplace_back([&builder] { builder.help(); });
+        builder.build(rs, 0, root_refs, tree.bounds, used, 0, 0, out);
+    }
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);
