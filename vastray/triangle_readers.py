@@ -291,7 +291,7 @@ class _Stage:
 
 def _text_blocks(
     path: Path, start: int, progress: Progress | None, block: int = TEXT_BLOCK
-) -> Iterator[tuple[bytes, bool]]:
+) -> Iterator[tuple[bytes | memoryview, bool]]:
     """The file from byte `start` in blocks of whole lines: (data, at the end). The last
     block has at the end set (it may be empty). A line continued by a backslash stays in
     one block."""
@@ -308,9 +308,10 @@ def _text_blocks(
                 return
             data = carry + data
             cut = len(data)
-            while True:
+            while True:  # the last newline that a backslash does not continue
                 cut = data.rfind(b"\n", 0, cut)
-                if cut < 0 or not data[:cut].rstrip(b"\r").endswith(b"\\"):
+                before = cut - 1 if cut > 0 and data[cut - 1 : cut] == b"\r" else cut
+                if cut < 0 or data[before - 1 : before] != b"\\":
                     break
             if cut < 0:
                 carry = data
@@ -318,7 +319,7 @@ def _text_blocks(
             carry = data[cut + 1 :]
             if progress is not None:
                 progress(done - len(carry), total)
-            yield data[: cut + 1], False
+            yield memoryview(data)[: cut + 1], False  # no copy of the block
 
 
 class _RowStream:
@@ -326,7 +327,7 @@ class _RowStream:
     current block; a row cut off by its end waits for the next block."""
 
     def __init__(
-        self, blocks: Iterator[tuple[bytes, bool]], start: int, fail: Callable[[str], MeshError]
+        self, blocks: Iterator[tuple[bytes | memoryview, bool]], start: int, fail: Callable[[str], MeshError]
     ) -> None:
         self.blocks, self.fail = blocks, fail
         self.data, self.at_end = next(blocks, (b"", True))
