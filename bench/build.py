@@ -139,6 +139,52 @@ def use_snapshot(folder: str) -> None:
     sys.path.insert(0, folder)
 
 
+def build_baseline(rev: str) -> tuple[Path, str]:
+    """The vastray package of git revision `rev`, Python sources and a native module built
+    from that revision (Release, baseline flags), in a private folder: builds of the
+    current code and of `rev` then alternate in one run (the before/after table)."""
+    import atexit
+
+    folder = Path(tempfile.mkdtemp(prefix="vastray-baseline-"))
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    src = folder / "src"
+    src.mkdir()
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", rev], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    archive = subprocess.run(
+        ["git", "archive", commit], cwd=REPO_ROOT, capture_output=True, check=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(src)], input=archive, check=True)
+    import pybind11
+
+    bin_dir = Path(sys.executable).parent
+    build = folder / "build"
+    print(f"baseline {rev} ({commit}): building its native module", file=sys.stderr, flush=True)
+    cmake = str(bin_dir / "cmake")
+    configure = [
+        cmake,
+        "-S",
+        str(src),
+        "-B",
+        str(build),
+        "-G",
+        "Ninja",
+        f"-DCMAKE_MAKE_PROGRAM={bin_dir / 'ninja'}",
+    ]
+    configure += ["-DCMAKE_BUILD_TYPE=Release", f"-Dpybind11_DIR={pybind11.get_cmake_dir()}"]
+    configure += [f"-DPython_EXECUTABLE={sys.executable}"]
+    subprocess.run(configure, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [cmake, "--build", str(build), "--target", "native"], check=True, stdout=subprocess.DEVNULL
+    )
+    so = next((build / "native").glob("native*.so"))
+    package = folder / "pkg"
+    shutil.copytree(src / "vastray", package / "vastray", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy2(so, package / "vastray" / so.name)
+    return package, f"{rev} ({commit}), built for this run"
+
+
 def _jsonable(value: Any) -> Any:
     if hasattr(value, "item"):
         return value.item()
@@ -641,16 +687,24 @@ def bench_model(
     scaling = model.family != "real" and model.requested in args.scaling_sizes and nt > 1
     main_runs: list[dict[str, Any]] = []
     t1_runs: list[dict[str, Any]] = []
+    base_runs: list[dict[str, Any]] = []
+    baseline = args.baseline_package and model.family != "real"
     for rep in range(args.reps):
-        # The one-thread and all-thread builds run back to back, alternating which goes
-        # first, so slow spells of the shared machine hit both alike.
-        order = ["main", "t1"] if (index + rep) % 2 == 0 else ["t1", "main"]
+        # The one-thread and all-thread builds (and the baseline's) run back to back,
+        # alternating which goes first, so slow spells of the shared machine hit all alike.
+        order = ["main", "t1", "baseline"] if (index + rep) % 2 == 0 else ["baseline", "t1", "main"]
         for kind in order:
             if kind == "main":
                 main_runs.append(one_build(model, "main", args.memory, nt, snapshot, workdir))
-            elif scaling:
+            elif kind == "t1" and scaling:
                 t1_runs.append(one_build(model, "t1", args.memory, 1, snapshot, workdir))
+            elif kind == "baseline" and baseline:
+                base_runs.append(
+                    one_build(model, "baseline", args.memory, nt, args.baseline_package, workdir)
+                )
     rows.append(best(main_runs))
+    if base_runs:
+        rows.append(best(base_runs))
     if t1_runs:
         t1 = best(t1_runs)
         t1["first"] = "t1" if index % 2 else "all"
@@ -700,7 +754,7 @@ def main_table(rows: list[dict[str, Any]]) -> str:
     ]
     body = []
     for r in rows:
-        if r["kind"] == "t1":
+        if r["kind"] in ("t1", "baseline"):
             continue
         if "error" in r:
             head = [r["model"], "n/a", budget_text(r["budget_bytes"]), str(r["threads"]), "FAILED"]
@@ -762,7 +816,7 @@ def memory_table(rows: list[dict[str, Any]], baselines: dict[str, dict[str, int]
     ]
     body = []
     for r in rows:
-        if "error" in r:
+        if "error" in r or r["kind"] == "baseline":
             continue
         base = baselines["streamed"]
         budget = r["budget_bytes"]
@@ -801,7 +855,7 @@ def io_table(rows: list[dict[str, Any]]) -> str:
     ]
     body = []
     for r in rows:
-        if "error" in r:
+        if "error" in r or r["kind"] == "baseline":
             continue
         body.append(
             [
@@ -861,6 +915,49 @@ def scaling_table(rows: list[dict[str, Any]], nt: int) -> str:
             ]
         )
     return markdown_table(headers, body) if body else "(no thread-scaling pairs in this run)"
+
+
+def baseline_table(rows: list[dict[str, Any]], rev: str) -> str:
+    """The baseline revision's builds beside the current code's, same input and settings."""
+    pairs: dict[str, dict[str, dict[str, Any]]] = {}
+    for r in rows:
+        if "error" not in r and r["kind"] in ("main", "baseline"):
+            pairs.setdefault(r["model"], {})[r["kind"]] = r
+    headers = [
+        "model",
+        "triangles",
+        "threads",
+        f"{rev} s",
+        "now s",
+        "**speedup**",
+        f"{rev} Mtri/s",
+        "now Mtri/s",
+    ]
+    headers += ["scan+read", "split", "build", "write", "kd build", "emit"]
+    headers += [f"{rev} parts", "now parts", f"{rev} RSS MiB", "now RSS MiB", f"{rev} B/tri", "now B/tri"]
+    body = []
+    for model, pair in pairs.items():
+        if "baseline" not in pair or "main" not in pair:
+            continue
+        old, new = pair["baseline"], pair["main"]
+
+        def ratio(key: str, old: dict[str, Any] = old, new: dict[str, Any] = new) -> str:
+            a, b = old[key], new[key]
+            return f"{a / b:.2f}x" if b > 0.005 and math.isfinite(a / b) else "-"
+
+        old_rs = old["scan_s"] + old["read_s"]
+        new_rs = new["scan_s"] + new["read_s"]
+        body.append(
+            [
+                model, f"{new['triangles']:,}", str(new["threads"]), fmt(old["seconds"]), fmt(new["seconds"]),
+                "**" + ratio("seconds") + "**", fmt(old["mtris_s"], 3), fmt(new["mtris_s"], 3),
+                f"{old_rs / new_rs:.2f}x" if new_rs > 0.005 else "-",
+                ratio("split_s"), ratio("build_s"), ratio("write_s"), ratio("kd_build_s"), ratio("emit_s"),
+                str(old["parts"]), str(new["parts"]), mib(old["peak_rss_bytes"]), mib(new["peak_rss_bytes"]),
+                fmt(old["bytes_per_triangle"], 1), fmt(new["bytes_per_triangle"], 1),
+            ]
+        )  # fmt: skip
+    return markdown_table(headers, body) if body else "(no baseline pairs in this run)"
 
 
 def generation_table(models: list[Model]) -> str:
@@ -1065,6 +1162,21 @@ def report(
         "in kd-tree leaves per triangle, *1-sample voxel %* = share of LOD voxels with one colour "
         "sample (the rest have six).",
         "",
+        *(
+            [
+                f"## Before and after: {args.baseline} against the current code (same input, back to back)",
+                "",
+                baseline_table(rows, args.baseline),
+                "",
+                f"Each ratio is {args.baseline}'s time / the current code's (above 1: faster now), from "
+                "builds of the same input run back to back, alternating which goes first. "
+                f"{args.baseline} had no scan phase (its read phase took the bounds pass); its split "
+                "phase included what is now sifted while reading.",
+                "",
+            ]
+            if args.baseline
+            else []
+        ),
         "## Thread scaling (same budget, same input, one thread against all, back to back)",
         "",
         scaling_table(rows, nt),
@@ -1247,6 +1359,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="procedural sizes that also build on one thread, for thread scaling (default 1e6,1e7)",
     )
     ap.add_argument("--threads", type=int, default=0, help="'all threads' count (default: hardware threads)")
+    ap.add_argument(
+        "--baseline",
+        default="",
+        help="a git revision whose builder runs beside the current one on the procedural models "
+        "(built for the run; the before/after table)",
+    )
     ap.add_argument("--reps", type=int, default=1, help="builds per setting; the fastest is kept (default 1)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument(
@@ -1273,6 +1391,10 @@ def main(argv: list[str] | None = None) -> int:
     from vastray.build import INCORE_BYTES_PER_TRIANGLE, MIN_INCORE_TRIANGLES
 
     args = parse_args(argv)
+    args.baseline_package = ""
+    if args.baseline:
+        package, desc = build_baseline(args.baseline)
+        args.baseline_package = str(package)
     names = [m.strip() for m in args.models.split(",") if m.strip()]
     sizes = [parse_count(s) for s in args.sizes.split(",") if s.strip()]
     nt = args.threads or native.hardware_threads()
@@ -1281,6 +1403,7 @@ def main(argv: list[str] | None = None) -> int:
     info = machine_info(
         {
             "vastray": snap_desc,
+            **({"baseline": desc} if args.baseline else {}),
             "vastray hardware threads": str(native.hardware_threads()),
             "all-threads setting": str(nt),
             "models": str(models_dir()),

@@ -26,7 +26,8 @@ from vastray.triangle_readers import STREAMED_EXTENSIONS, open_triangles
 
 __all__ = ["SUPPORTED_EXTENSIONS", "load_mesh"]
 
-SUPPORTED_EXTENSIONS: tuple[str, ...] = STREAMED_EXTENSIONS
+# Maps a file extension to the format it is read as.
+SUPPORTED_EXTENSIONS: dict[str, str] = STREAMED_EXTENSIONS
 
 
 def load_mesh(path: str | os.PathLike[str]) -> Mesh:

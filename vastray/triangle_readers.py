@@ -1403,7 +1403,11 @@ def _unquote(uri: str) -> str:
 
 # ---- opening ------------------------------------------------------------------------------------
 
-STREAMED_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".gltf", ".glb", ".f32", ".soup")
+# Maps a file extension to the format it is read as.
+STREAMED_EXTENSIONS: dict[str, str] = {
+    ".obj": "obj", ".ply": "ply", ".stl": "stl", ".off": "off", ".gltf": "gltf", ".glb": "glb",
+    ".f32": "soup", ".soup": "soup",
+}  # fmt: skip
 
 
 def open_triangles(

@@ -313,6 +313,10 @@ public:
         while (Task* t = tasks_.take()) {
             try {
                 rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+                // Room for the subtree's nodes and leaf lists (address space: only what is
+                // written becomes resident), so they do not grow by copying.
+                t->out.nodes.reserve(t->n / 2 + 16);
+                t->out.tri_ids.reserve(2 * t->n + 16);
                 t->stack->copy_out(t->first, t->n, rs.data());
                 build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
             } catch (...) {
@@ -793,8 +797,6 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);
-    tree.nodes.shrink_to_fit();
-    tree.tri_ids.shrink_to_fit();
     tree.stats = out.stats;
     tree.stats.nodes = tree.nodes.size();
     tree.stats.degenerate = degenerate;
