@@ -830,13 +830,28 @@ def test_truncated_ply_fails_cleanly(tmp_path: Path) -> None:
     assert os.listdir(outputs) == []
 
 
+@pytest.fixture(scope="module")
+def two_level_soup(workdir: Path) -> Path:
+    """A height field of 204,800 triangles: at the smallest budget its first out-of-core
+    cells are still too big, so a second level is sifted in the split phase."""
+    path = workdir / "inputs" / "grid.f32"
+    path.parent.mkdir(exist_ok=True)
+    if not path.exists():
+        write_grid_soup(path, 320)
+    return path
+
+
 @pytest.mark.parametrize(
-    ("phase", "own_scratch"), [("read", False), ("split", False), ("build", True), ("write", False)]
+    ("phase", "own_scratch"),
+    [("scan", False), ("read", False), ("split", False), ("build", True), ("write", False)],
 )
-def test_cancel_leaves_nothing_behind(tmp_path: Path, ooc_ply: Path, phase: str, own_scratch: bool) -> None:
+def test_cancel_leaves_nothing_behind(
+    tmp_path: Path, ooc_ply: Path, two_level_soup: Path, phase: str, own_scratch: bool
+) -> None:
     outputs, scratch = tmp_path / "out", tmp_path / "scratch"
     outputs.mkdir()
     scratch.mkdir()
+    source = {"split": two_level_soup, "scan": "scene:plant:30000:2"}.get(phase, ooc_ply)
     cancel = threading.Event()
     seen: list[BuildProgress] = []
 
@@ -847,7 +862,7 @@ def test_cancel_leaves_nothing_behind(tmp_path: Path, ooc_ply: Path, phase: str,
 
     options = BuildOptions(memory=SMALL_MEMORY, scratch_dir=str(scratch) if own_scratch else None)
     with pytest.raises(BuildCancelledError):
-        build_model(ooc_ply, outputs / "m.vast", options, progress=progress, cancel=cancel)
+        build_model(source, outputs / "m.vast", options, progress=progress, cancel=cancel)
     assert cancel.is_set() and seen[-1].phase == phase
     assert os.listdir(outputs) == []
     assert os.listdir(scratch) == []
@@ -901,7 +916,7 @@ def test_interrupted_cli_build_leaves_nothing_behind(
     into it): exit status 128 + signal, "interrupted", no model, partial or scratch files."""
     out = tmp_path / "plant.vast"
     proc = subprocess.Popen(
-        [str(VASTRAY), "build", "scene:plant:400000:1", "-o", str(out), "--memory", "16M"],
+        [str(VASTRAY), "build", "scene:plant:400000:1", "-o", str(out), "--memory", "6M"],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )  # fmt: skip
     err: list[str] = []
@@ -953,23 +968,33 @@ def test_existing_output_is_kept_unless_overwriting(built: Callable[[str], Case]
 # ---- progress ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", ["plant", "out-of-core"])
+@pytest.mark.parametrize("name", ["bunny", "plant", "soup", "out-of-core"])
 def test_progress_phases_in_order(built: Callable[[str], Case], name: str) -> None:
+    """Phases in order, each ending with done == total; the read phase counts the
+    input's triangles once (a 300k-triangle input reads 300k, whatever passes the
+    bounds took), and a scan's total is what it scans (bytes of a text file, triangles
+    of a soup or generated scene)."""
     case = built(name)
     phases = [phase for phase, _ in groupby(case.events, key=lambda e: e.phase)]
-    split = ["split"] if name == "out-of-core" else []
-    assert phases == ["read", *split, "build", "write"]
+    scan = ["scan"] if name in ("bunny", "plant", "soup") else []  # text file, generator, soup bounds
+    assert phases == [*scan, "read", "build", "write"]
     elapsed = [e.elapsed for e in case.events]
     assert elapsed == sorted(elapsed)
+    scan_unit = "bytes" if name == "bunny" else "triangles"
     for phase, group in groupby(case.events, key=lambda e: e.phase):
         events = list(group)
         done = [e.done for e in events]
         assert done == sorted(done), f"{phase}: done goes back: {done}"
         assert all(0 <= e.done <= e.total for e in events), phase
-        assert {e.unit for e in events} == {"bytes" if phase == "write" else "triangles"}
-        if phase in ("build", "write"):
-            assert len({e.total for e in events}) == 1, phase
-            assert events[-1].done == events[-1].total > 0, phase
+        unit = {"write": "bytes", "scan": scan_unit}.get(phase, "triangles")
+        assert {e.unit for e in events} == {unit}, phase
+        assert events[-1].done == events[-1].total > 0, phase
+        if phase in ("read", "build", "write"):
+            assert len({e.total for e in events}) == 1, (phase, {e.total for e in events})
+    read_total = next(e.total for e in case.events if e.phase == "read")
+    assert read_total == len(case.corners) == case.report["input_triangles"]
+    if name == "bunny":
+        assert next(e.total for e in case.events if e.phase == "scan") == Path(case.source).stat().st_size
     write_total = next(e.total for e in case.events if e.phase == "write")
     assert write_total == sum(b.stored_size for b in case.model.blocks)
 
@@ -982,8 +1007,8 @@ def test_cli_build_inspect_render(built: Callable[[str], Case], tmp_path: Path) 
     out = tmp_path / "soup.vast"
     result = run_cli("build", str(soup.source), "-o", str(out), "--memory", "8M", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    assert f"input      {len(soup.corners):,} triangles; 3 degenerate dropped" in result.stdout
     assert f"built      {out}: {len(soup.corners) - 3:,} triangles" in result.stdout
-    assert "dropped 3 degenerate" in result.stdout
     assert sorted(os.listdir(tmp_path)) == ["soup.vast"]
 
     result = run_cli("inspect", str(out), cwd=tmp_path)
@@ -1035,4 +1060,29 @@ def test_parse_bytes(tmp_path: Path) -> None:
             parse_bytes(bad, "memory budget")
     with pytest.raises(ValueError, match="memory budget too small"):
         build_model("scene:plant:1000:1", tmp_path / "m.vast", BuildOptions(memory=1 << 20))
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"threads": -1}, r"threads must be 0 \(every core\) or a positive count, got -1"),
+        ({"threads": 1.5}, "threads must be an integer"),
+        ({"leaf_size": 0}, "leaf_size must be at least 1"),
+        ({"voxel_rays": 9}, r"voxel_rays must be 1 \.\.\. 8"),
+        ({"traversal_cost": float("nan")}, "traversal_cost must be a positive number"),
+        ({"empty_space_ratio": 1.0}, r"empty_space_ratio must be in \[0, 1\)"),
+    ],
+)
+def test_bad_options_are_clear_errors_before_any_work(tmp_path: Path, options: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        build_model("scene:plant:1000:1", tmp_path / "m.vast", BuildOptions(**options))
+    assert os.listdir(tmp_path) == []
+
+
+def test_cli_rejects_negative_threads_without_a_traceback(tmp_path: Path) -> None:
+    result = run_cli("build", "demo", "-o", str(tmp_path / "d.vast"), "--threads", "-1", cwd=tmp_path)
+    assert result.returncode == 2
+    expected = "vastray: error: threads must be 0 (every core) or a positive count, got -1"
+    assert result.stderr.strip() == expected
     assert os.listdir(tmp_path) == []

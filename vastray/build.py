@@ -1,63 +1,73 @@
 """Builds the out-of-core model from any triangle input within a memory budget
 (paper 000 §4; the file format is in docs/FORMAT.md).
 
-Phases, each reported through `progress`:
-1. read   Stream the input once, write its triangles as model-local float32 records
-          (relative to the model centre, which is kept in double) to a scratch file,
-          and drop zero-area triangles.
-2. split  While a node's triangles exceed what the budget lets us build in core, split
-          it out of core: one pass over its scratch file sifts the triangles into the
-          eight cells of three median-split levels (a whole treelet). Straddling
-          triangles go to every cell they touch.
-3. build  Each part that fits is loaded and handed to the native writer, which builds
-          its kd-tree with binned SAH and empty-space cutting on all cores, samples the
-          LOD voxels, and emits treelets and triangle blocks. The out-of-core treelets
-          above the parts are then written bottom-up.
-4. write  Blocks are LZ4-compressed and checksummed as they are produced, kept in one
-          scratch file per LOD level, and finally assembled behind the header and the
-          block index into a temporary file that is renamed over the output.
+Phases, each reported through `progress` with one honest total:
+1. scan   What must be known before the triangles can be read: a text file (OBJ, ASCII
+          PLY or STL, OFF) is parsed into staged binary arrays (bytes of the file); the
+          bounds of a soup (binary STL, raw float32) take a pass over its triangles; a
+          generated scene is staged in double precision (triangles). Indexed binary
+          files (PLY, glTF) only read their vertices for the bounds, fast enough to
+          show no phase of their own.
+2. read   One pass over the triangles (as the file holds them, polygons and strips
+          triangulated in file order) makes model-local float32 records relative to
+          the model centre, kept in double, with each triangle's input id (and colour);
+          degenerate triangles (zero area in those coordinates: repeated or collinear
+          corners) are dropped and counted. An input that fits in one in-core part
+          stays in memory; a bigger one is sifted straight into the eight cells of the
+          first out-of-core treelet as it is read.
+3. split  While a cell holds more triangles than the budget lets us build in core, one
+          pass over its scratch file sifts them into the eight cells of three
+          median-split levels (a whole treelet). Straddling triangles go to every cell
+          they touch.
+4. build  Each part that fits is handed to the native writer, which builds its kd-tree
+          with binned SAH and empty-space cutting on all cores, samples the LOD voxels,
+          emits treelets and triangle blocks, and compresses and checksums them into
+          one scratch file per LOD level. The out-of-core treelets above the parts are
+          then written bottom-up.
+5. write  The header, the block index and the level files are assembled into a
+          temporary file that is renamed over the output.
 Nothing is left behind on failure, cancellation or Ctrl-C: scratch files and the
 temporary output are removed.
 """
 
 from __future__ import annotations
 
+import numbers
 import os
 import resource
 import shutil
 import tempfile
 import threading
 import time
-import zlib
-from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lz4.block
 import numpy as np
 
 from vastray import modelfile, native
 from vastray.mesh import MeshError
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
+from vastray.triangle_readers import TriangleChunk, VertexTable
 
-# Peak memory of an in-core part per triangle, measured with bench/build.py (peak RSS
-# growth while add_subtree() runs, plus the loaded records): kd-tree references,
-# clipping buffers, nodes and the writer's pending treelets. Parts are sized with it.
-INCORE_BYTES_PER_TRIANGLE = 240
+# Peak memory of an in-core part per triangle, measured with bench/build.py on 2 threads
+# (peak RSS of 10^7-triangle single-part builds, 132-137 bytes above the idle process):
+# the 44-byte records, kd-tree references (28 bytes, about 2.3 per triangle at the
+# deepest point of the build), nodes and leaf lists, facets, the writer's pending
+# treelets and buffered job blocks. Parts are sized with it.
+INCORE_BYTES_PER_TRIANGLE = 150
 # The budget covers the builder's working set: streaming chunks and in-core parts. On
 # top of it comes a fixed overhead that does not grow with the model: the interpreter,
-# numpy, trimesh, lz4 and the native module (90 MiB measured) plus allocator slack.
+# numpy, lz4 and the native module (90 MiB measured) plus allocator slack.
 STATED_OVERHEAD_BYTES = 128 << 20
 # Streaming passes hold a chunk of records plus its float64 corners, bounds and masks.
 CHUNK_BYTES_PER_TRIANGLE = 300
 MAX_CHUNK = 1 << 19
 MIN_INCORE_TRIANGLES = 20_000
 MAX_OUT_OF_CORE_LEVELS = 16
-MAX_INFLIGHT_BLOCKS = 64  # blocks being compressed at once (4 MiB of raw data)
 DEFAULT_MEMORY = 2 << 30
+MAX_INPUT_TRIANGLES = 2**32 - 2  # the format's ids are u32, one value reserved
 
 
 class BuildCancelledError(Exception):
@@ -66,7 +76,7 @@ class BuildCancelledError(Exception):
 
 @dataclass
 class BuildProgress:
-    phase: str  # read, split, build, write
+    phase: str  # scan, read, split, build, write
     done: int
     total: int
     unit: str  # what done/total count: triangles or bytes
@@ -89,6 +99,32 @@ class BuildOptions:
     empty_space_ratio: float = 0.15
     voxel_rays: int = 3
 
+    def check(self) -> None:
+        """Raises ValueError naming the first option that cannot work."""
+
+        def number(name: str, kind: type) -> Any:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, kind):
+                what = "an integer" if kind is numbers.Integral else "a number"
+                raise ValueError(f"{name} must be {what}, got {value!r}")
+            return value
+
+        if number("threads", numbers.Integral) < 0:
+            raise ValueError(f"threads must be 0 (every core) or a positive count, got {self.threads}")
+        if number("memory", numbers.Integral) < MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE:
+            need = (MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE + (1 << 20) - 1) >> 20
+            raise ValueError(f"memory budget too small: the builder needs at least {need} MiB")
+        if number("leaf_size", numbers.Integral) < 1:
+            raise ValueError(f"leaf_size must be at least 1, got {self.leaf_size}")
+        if not 1 <= number("voxel_rays", numbers.Integral) <= 8:
+            raise ValueError(f"voxel_rays must be 1 ... 8, got {self.voxel_rays}")
+        for name in ("traversal_cost", "intersection_cost"):
+            value = number(name, numbers.Real)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if not (0.0 <= number("empty_space_ratio", numbers.Real) < 1.0):
+            raise ValueError(f"empty_space_ratio must be in [0, 1), got {self.empty_space_ratio!r}")
+
     def incore_limit(self) -> int:
         return max(MIN_INCORE_TRIANGLES, self.memory // INCORE_BYTES_PER_TRIANGLE)
 
@@ -104,15 +140,19 @@ class BuildOptions:
 class _Input:
     name: str
     has_colours: bool
-    estimate: int  # triangle count for progress (exact for files)
-    chunks: Callable[[], Iterator[tuple[np.ndarray, np.ndarray | None]]]
-    rereadable: bool  # reading twice is cheap (files, meshes); generators are not
+    estimate: int  # triangles (exact when `exact`)
+    exact: bool
+    chunks: Callable[[int], Iterator[TriangleChunk]]  # triangles per chunk -> chunks
+    rereadable: bool  # reading twice is cheap (files); generators are not
+    vertices: VertexTable | None = None  # indexed input: records are gathered natively
     # Bounds of the input's vertices when known without a pass over its triangles
     # (indexed formats). The model centre is their midpoint, as in the in-core Scene.
     bounds: Callable[[], tuple[np.ndarray, np.ndarray] | None] = lambda: None
+    parts: int = 0  # named parts in the input (not stored in the model yet)
+    source: Any = None  # the TriangleSource, whose counts become exact once it is read
 
 
-def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
+def _open_input(source: str | os.PathLike[str], scratch: Path, scan: Callable[[int, int], None]) -> _Input:
     from vastray import scenes
     from vastray.triangle_readers import open_triangles
 
@@ -120,48 +160,34 @@ def _open_input(source: str | os.PathLike[str], chunk: int) -> _Input:
     scene = parse_scene(text)
     if scene is not None:
 
-        def generated() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+        def generated(_size: int = 0) -> Iterator[TriangleChunk]:
+            first = 0
             for vertices, faces, colours in scenes.generate(scene.name, scene.triangles, scene.seed):
-                yield vertices[faces], colours
+                yield TriangleChunk(first, len(faces), corners=vertices[faces], colours=colours)
+                first += len(faces)
 
-        return _Input(scene.label, scenes.SCENES[scene.name].coloured, scene.triangles, generated, False)
+        coloured = scenes.SCENES[scene.name].coloured
+        return _Input(scene.label, coloured, scene.triangles, False, generated, False)
 
     path = Path(text)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file (or use {SOURCE_HELP})")
     if is_model_file(path):
         raise ValueError(f"{path} is already a built model; build takes a mesh")
-    try:
-        stream = open_triangles(path)
-    except MeshError:
-        stream = None  # ASCII PLY/STL or another format: load it whole through trimesh
-    if stream is not None:
-
-        def streamed() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-            for part in stream.chunks(chunk):
-                yield part.corners, part.colours
-
-        return _Input(
-            path.stem, stream.has_colours, stream.triangle_count, streamed, True, stream.vertex_bounds
-        )
-
-    from vastray.ingest import load_mesh
-
-    mesh = load_mesh(path)
-
-    def loaded() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-        for first in range(0, mesh.triangle_count, chunk):
-            faces = mesh.faces[first : first + chunk]
-            colours = None if mesh.face_colours is None else mesh.face_colours[first : first + chunk]
-            yield mesh.vertices[faces], colours
-
+    stream = open_triangles(path, stage_dir=scratch, progress=scan)
+    parts = stream.parts if stream.parts else []
+    named = sum(1 for p in parts if p.object or p.group or p.material)
     return _Input(
         path.stem,
-        mesh.face_colours is not None,
-        mesh.triangle_count,
-        loaded,
+        stream.has_colours,
+        stream.triangle_count,
+        stream.exact_count,
+        stream.chunks,
         True,
-        lambda: (mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)),
+        stream.vertices,
+        stream.vertex_bounds,
+        named,
+        stream,
     )
 
 
@@ -177,13 +203,15 @@ def _record_dtype(colours: bool) -> np.dtype:
 
 @dataclass
 class _Part:
-    """Triangles of one cell in a scratch file, small enough to build in core."""
+    """Triangles of one cell, small enough to build in core: records in a scratch file,
+    or (when the whole input fits) in memory."""
 
-    path: Path
+    path: Path | None
     count: int
     lo: np.ndarray  # float32 cell
     hi: np.ndarray
     level: int
+    records: np.ndarray | None = None  # (count, stride) uint8, when in memory
 
 
 @dataclass
@@ -200,33 +228,105 @@ class _Split:
     children: list[_Part | _Split | None] = field(default_factory=list)
 
 
+class _Sifter:
+    """Sorts record chunks into the eight cells of a split, a scratch file per cell: a
+    triangle goes to each cell whose closed half-spaces its bounding box touches."""
+
+    def __init__(self, split: _Split, scratch: Path, stride: int) -> None:
+        self.split, self.stride = split, stride
+        self.paths = [scratch / f"n{id(split)}-{s}.tri" for s in range(8)]
+        self.files = [open(p, "wb") for p in self.paths]
+        self.counts = [0] * 8
+        self.tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
+        self.thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
+
+    def add(self, records: np.ndarray) -> None:
+        """records: (n, stride) uint8."""
+        s = self.split
+        cells, bounds = native.sift8(records, s.axes, s.splits, s.slot_lo, s.slot_hi)
+        for k, cell in enumerate(cells):
+            if len(cell):
+                cell.tofile(self.files[k])
+                self.counts[k] += len(cell)
+                self.tlo[k] = np.minimum(self.tlo[k], bounds[k, :3])
+                self.thi[k] = np.maximum(self.thi[k], bounds[k, 3:])
+
+    def close(self) -> None:
+        for f in self.files:
+            f.close()
+
+    def finish(self) -> list[tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None]:
+        """Per cell (path, count, cell lo, cell hi, triangles' lo, hi), or None if empty."""
+        self.close()
+        out: list[tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None] = []
+        for k in range(8):
+            if self.counts[k] == 0:
+                self.paths[k].unlink(missing_ok=True)
+                out.append(None)
+            else:
+                s = self.split
+                out.append(
+                    (self.paths[k], self.counts[k], s.slot_lo[k], s.slot_hi[k], self.tlo[k], self.thi[k])
+                )
+        return out
+
+
+class _Records:
+    """Where the read pass puts its records: in memory while the input fits one in-core
+    part (the native record maker writes them in place), then (and from the start, when
+    the input is known to be bigger) sifted into the first out-of-core treelet's cells."""
+
+    def __init__(self, stride: int, limit: int, expected: int, split: Callable[[], _Sifter]) -> None:
+        self.stride, self.limit, self.make_sifter = stride, limit, split
+        self.sifter: _Sifter | None = None
+        self.count = 0
+        self.buffer = np.empty((min(expected, limit) if expected <= limit else 0, stride), np.uint8)
+        if expected > limit:
+            self.sifter = split()
+
+    def space(self, n: int) -> np.ndarray | None:
+        """Room for the records of n more triangles, or None when they are to be sifted."""
+        if self.sifter is None and self.count + n > self.limit:
+            self.sifter = self.make_sifter()
+            if self.count:
+                self.sifter.add(self.buffer[: self.count])
+            self.buffer = np.empty((0, self.stride), np.uint8)
+        if self.sifter is not None:
+            return None
+        if self.count + n > len(self.buffer):
+            rows = min(self.limit, max(self.count + n, len(self.buffer) * 3 // 2))
+            grown = np.empty((rows, self.stride), np.uint8)
+            grown[: self.count] = self.buffer[: self.count]
+            self.buffer = grown
+        return self.buffer[self.count : self.count + n]
+
+    def commit(self, records: np.ndarray) -> None:
+        """Takes the records made in `space()` (or, when sifting, anywhere)."""
+        if self.sifter is not None:
+            self.sifter.add(records)
+        self.count += len(records)
+
+    def in_memory(self) -> np.ndarray:
+        return self.buffer[: self.count]
+
+
 class _Builder:
     def __init__(
         self,
-        source: _Input,
         output: Path,
         options: BuildOptions,
         progress: Callable[[BuildProgress], None] | None,
         cancel: threading.Event | None,
     ) -> None:
-        self.src = source
         self.output = output
         self.opt = options
         self.progress_cb = progress
         self.cancel = cancel
         self.start = time.perf_counter()
-        self.dtype = _record_dtype(source.has_colours)
-        # A generator's triangles as they came, in input order (ids follow from position).
-        staged: list[tuple[str, str, tuple[int]]] = [("c", "<f8", (9,))]
-        if source.has_colours:
-            staged.append(("rgb", "u1", (3,)))
-        self.staged_dtype = np.dtype(staged)
         self.phase_seconds: dict[str, float] = {}
-        self.level_files: dict[int, Any] = {}
-        self.level_entries: dict[int, list[tuple[int, int, int, int]]] = {}
-        self.compressor = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1))
-        self.inflight: deque[tuple[int, Future[tuple[bytes, int, int, int]]]] = deque()
         self.warnings: list[str] = []
+        self.sifted = 0
+        self.sift_estimate = 1
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -243,84 +343,144 @@ class _Builder:
         self.phase_seconds[phase] = self.phase_seconds.get(phase, 0.0) + now - since
         return now
 
-    # -- phase 1: read ----------------------------------------------------------------------
+    # -- phase 1: scan ----------------------------------------------------------------------
 
-    def read(self, scratch: Path) -> tuple[Path, int, int, int, np.ndarray, np.ndarray, np.ndarray]:
-        """Writes root records; returns (path, count, input count, degenerate, centre, lo, hi)."""
-        total = 0
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        staged = scratch / "input.f32"
+    def open(self, source: str | os.PathLike[str], scratch: Path) -> None:
+        self.src = _open_input(source, scratch, lambda done, total: self.report("scan", done, total, "bytes"))
+        self.dtype = _record_dtype(self.src.has_colours)
+
+    def bounds(
+        self, scratch: Path
+    ) -> tuple[np.ndarray, np.ndarray, Callable[[int], Iterator[TriangleChunk]]]:
+        """The input's bounds in double, and how to read its triangles for the records."""
         known = self.src.bounds() if self.src.rereadable else None
         if known is not None:
-            lo, hi = known
-            total = self.src.estimate
-        elif self.src.rereadable:
-            for corners, _ in self.src.chunks():
+            return known[0], known[1], self.src.chunks
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        total = 0
+        if self.src.rereadable:
+            for chunk in self.src.chunks(self.opt.chunk()):
+                corners = chunk.corners
                 lo = np.minimum(lo, corners.min(axis=(0, 1)))
                 hi = np.maximum(hi, corners.max(axis=(0, 1)))
-                total += len(corners)
-                self.report("read", total, 2 * self.src.estimate, message="bounds")
-        else:
-            # A generator runs once and the centre is known only at its end: stage the
-            # corners in double, so the records get exactly float32(vertex - centre), as
-            # files and the in-core Scene do (float32 relative to a provisional origin
-            # would round twice).
-            with open(staged, "wb") as f:
-                for corners, colours in self.src.chunks():
-                    lo = np.minimum(lo, corners.min(axis=(0, 1)))
-                    hi = np.maximum(hi, corners.max(axis=(0, 1)))
-                    rec = np.empty(len(corners), self.staged_dtype)
-                    rec["c"] = corners.reshape(-1, 9)
-                    if colours is not None:
-                        rec["rgb"] = colours
-                    rec.tofile(f)
-                    total += len(corners)
-                    self.report("read", total, 2 * max(total, self.src.estimate), message="staging")
-        if total == 0:
-            raise MeshError(f"{self.src.name}: the input has no triangles")
-        if total >= 2**32 - 1:
-            raise ValueError(f"{self.src.name}: {total} triangles; the format's ids hold at most 2^32 - 2")
-        centre = 0.5 * (lo + hi)
-        first_pass = 0 if known is not None else total  # progress: the bounds pass, if any
+                total += chunk.count
+                self.report("scan", total, max(total, self.src.estimate), message="bounds")
+            self.report("scan", total, total, message="bounds")
+            return lo, hi, self.src.chunks
+        # A generator runs once and the centre is known only at its end: stage the
+        # corners in double, so the records get exactly float32(vertex - centre), as
+        # files and the in-core Scene do (float32 relative to a provisional origin
+        # would round twice).
+        staged: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", "<f8", (9,))]
+        if self.src.has_colours:
+            staged.append(("rgb", "u1", (3,)))
+        dtype = np.dtype(staged)
+        path = scratch / "input.f64"
+        with open(path, "wb") as f:
+            for chunk in self.src.chunks(self.opt.chunk()):
+                corners = chunk.corners
+                lo = np.minimum(lo, corners.min(axis=(0, 1)))
+                hi = np.maximum(hi, corners.max(axis=(0, 1)))
+                rec = np.empty(chunk.count, dtype)
+                rec["c"] = corners.reshape(-1, 9)
+                if chunk.colours is not None:
+                    rec["rgb"] = chunk.colours
+                rec.tofile(f)
+                total += chunk.count
+                self.report("scan", total, max(total, self.src.estimate), message="generating")
+        self.report("scan", total, total, message="generating")
+        self.src.estimate, self.src.exact = total, True
 
-        root = scratch / "root.tri"
-        count = 0
-        degenerate = 0
+        def staged_chunks(size: int) -> Iterator[TriangleChunk]:
+            first = 0
+            for rec in _read_records(path, dtype, size):
+                colours = rec["rgb"] if self.src.has_colours else None
+                yield TriangleChunk(first, len(rec), corners=rec["c"].reshape(-1, 3, 3), colours=colours)
+                first += len(rec)
+            path.unlink()
+
+        return lo, hi, staged_chunks
+
+    # -- phase 2: read ----------------------------------------------------------------------
+
+    def read(
+        self, scratch: Path, lo: np.ndarray, hi: np.ndarray, chunks: Callable[[int], Iterator[TriangleChunk]]
+    ) -> tuple[_Records, _Split | None, int, int, np.ndarray, np.ndarray, np.ndarray]:
+        """Returns (records, the first split or None, kept count, input count, centre,
+        lo, hi): lo/hi is the cell of the kept records (their bounds when they stay in
+        memory; else the conservative bounds the first split was made in)."""
+        if not np.isfinite(lo).all():
+            raise MeshError(f"{self.src.name}: the input has no triangles")
+        centre = 0.5 * (lo + hi)
+        # Rounding to nearest is monotonic, so float32(v - centre) stays in this box.
+        cell_lo = (lo - centre).astype(np.float32)
+        cell_hi = (hi - centre).astype(np.float32)
+        limit = self.opt.incore_limit()
+        first_split: list[_Split] = []
+
+        def sifter() -> _Sifter:
+            split = _choose_splits(cell_lo, cell_hi, cell_lo, cell_hi, 0)
+            first_split.append(split)
+            return _Sifter(split, scratch, self.dtype.itemsize)
+
+        expected = self.src.estimate if self.src.exact else 0
+        records = _Records(self.dtype.itemsize, limit, expected, sifter)
+        total = 0
         box_lo = np.full(3, np.inf, dtype=np.float32)
         box_hi = np.full(3, -np.inf, dtype=np.float32)
-        done = 0
-
-        def source_chunks() -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-            """(corners in double, colours) per chunk, in input order."""
-            if self.src.rereadable:
-                yield from self.src.chunks()
-            else:
-                for staged_rec in _read_records(staged, self.staged_dtype, self.opt.chunk()):
-                    colours = staged_rec["rgb"] if self.src.has_colours else None
-                    yield staged_rec["c"].reshape(-1, 3, 3), colours
-
-        with open(root, "wb") as f:
-            for corners, colours in source_chunks():
-                # Native: float32(vertex - centre) computed in double, as in the in-core
-                # Scene (bit-identical vertices on both paths); zero-area triangles (in
-                # those float32 coordinates) are left out and counted. A triangle's id is
-                # its position in the input (`done` triangles precede this chunk).
-                records, dropped, lo_k, hi_k = native.make_records(corners, colours, done, centre.tolist())
-                degenerate += dropped
-                if len(records):
+        table = self.src.vertices
+        table_bytes = table.buffer() if table is not None else None
+        centre_list = centre.tolist()
+        try:
+            for chunk in chunks(self.opt.chunk()):
+                ids = None if chunk.ids is None else chunk.ids.astype(np.uint32)
+                if chunk.first + chunk.count > MAX_INPUT_TRIANGLES:
+                    raise ValueError(f"{self.src.name}: over {MAX_INPUT_TRIANGLES} triangles; ids are 32-bit")
+                out = records.space(chunk.count)
+                if chunk.indices is not None and table is not None:
+                    # Native: gathers each corner from the vertex records, then records as below.
+                    if table_bytes is None:
+                        table_bytes = table.buffer()
+                    rec, _, lo_k, hi_k, bad = native.make_indexed_records(
+                        table_bytes, table.stride, table.offsets, table.types, table.count,
+                        chunk.indices, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads,
+                    )  # fmt: skip
+                    if bad >= 0:
+                        idx = np.asarray(chunk.indices[bad], dtype=np.int64)
+                        j = int(idx[(idx < 0) | (idx >= table.count)][0])
+                        raise MeshError(
+                            f"{self.src.name}: face {chunk.first + bad} refers to vertex {j}, "
+                            f"but there are only {table.count} vertices"
+                        )
+                else:
+                    # Native: float32(vertex - centre) computed in double, as in the in-core
+                    # Scene (bit-identical vertices on both paths); zero-area triangles (in
+                    # those float32 coordinates) are left out and counted.
+                    rec, _, lo_k, hi_k, _ = native.make_records(
+                        chunk.corners, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads
+                    )
+                if len(rec):
                     box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
                     box_hi = np.maximum(box_hi, np.asarray(hi_k, dtype=np.float32))
-                records.tofile(f)
-                count += len(records)
-                done += len(corners)
-                self.report("read", first_pass + done, first_pass + total, message="writing records")
-        staged.unlink(missing_ok=True)
-        if count == 0:
+                    records.commit(rec)
+                total = max(total, chunk.first + chunk.count)
+                self.report("read", total, max(total, self.src.estimate))
+                # Vertices read at random leave the resident set with their map.
+                table_bytes = None
+        finally:
+            if records.sifter is not None:
+                records.sifter.close()
+        self.report("read", total, total)
+        if total == 0:
+            raise MeshError(f"{self.src.name}: the input has no triangles")
+        if records.count == 0:
             raise MeshError(f"{self.src.name}: all {total} triangles are degenerate (zero area)")
-        return root, count, total, degenerate, centre, box_lo, box_hi
+        if records.sifter is None:
+            return records, None, records.count, total, centre, box_lo, box_hi
+        return records, first_split[0], records.count, total, centre, cell_lo, cell_hi
 
-    # -- phase 2: split ---------------------------------------------------------------------
+    # -- phase 3: split ---------------------------------------------------------------------
 
     def plan(
         self,
@@ -339,8 +499,22 @@ class _Builder:
             self.warnings.append(f"out-of-core splitting stopped at level {level} with {count:,} triangles")
             return _Part(path, count, lo, hi, level)
         split = _choose_splits(lo, hi, tight_lo, tight_hi, level)
-        kids = self.sift(path, split)
+        sifter = _Sifter(split, self.scratch, self.dtype.itemsize)
+        try:
+            for rec in _read_records(path, self.dtype, self.opt.chunk()):
+                sifter.add(rec.view(np.uint8).reshape(len(rec), self.dtype.itemsize))
+                self.sifted += len(rec)
+                self.report(
+                    "split", self.sifted, max(self.sifted, self.sift_estimate), message=f"level {level}"
+                )
+        finally:
+            sifter.close()
         path.unlink()
+        self.adopt(split, sifter.finish(), count, level, limit)
+        return split
+
+    def adopt(self, split: _Split, kids: list[Any], count: int, level: int, limit: int) -> None:
+        """Plans the children of a sifted split."""
         for kid in kids:
             if kid is None:
                 split.children.append(None)
@@ -353,60 +527,8 @@ class _Builder:
                 split.children.append(_Part(kpath, kcount, clo, chi, level + 1))
             else:
                 split.children.append(self.plan(kpath, kcount, clo, chi, tlo, thi, level + 1, limit))
-        return split
 
-    def sift(self, path: Path, split: _Split) -> list[Any]:
-        files = [open(self.scratch / f"n{id(split)}-{s}.tri", "wb") for s in range(8)]
-        counts = [0] * 8
-        tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
-        thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
-        try:
-            for rec in _read_records(path, self.dtype, self.opt.chunk()):
-                # One native pass per chunk: a triangle goes to each cell whose closed
-                # half-spaces its bounding box touches.
-                parts, bounds = native.sift8(
-                    rec.view(np.uint8).reshape(len(rec), self.dtype.itemsize), split.axes, split.splits,
-                    split.slot_lo, split.slot_hi,
-                )  # fmt: skip
-                for s, part in enumerate(parts):
-                    if len(part):
-                        part.tofile(files[s])
-                        counts[s] += len(part)
-                        tlo[s] = np.minimum(tlo[s], bounds[s, :3])
-                        thi[s] = np.maximum(thi[s], bounds[s, 3:])
-                self.sifted += len(rec)
-                self.report("split", self.sifted, self.sift_estimate, message=f"level {split.level}")
-        finally:
-            for f in files:
-                f.close()
-        out: list[Any] = []
-        for s in range(8):
-            fpath = Path(files[s].name)
-            if counts[s] == 0:
-                fpath.unlink()
-                out.append(None)
-            else:
-                out.append((fpath, counts[s], split.slot_lo[s], split.slot_hi[s], tlo[s], thi[s]))
-        return out
-
-    # -- phase 3: build ---------------------------------------------------------------------
-
-    def sink(self, level: int, raw: bytes) -> None:
-        # Compression runs on worker threads (lz4 and crc32 release the GIL) while the
-        # native writer goes on; blocks are written in the order they were made.
-        self.inflight.append((level, self.compressor.submit(_compress, raw)))
-        while self.inflight and (self.inflight[0][1].done() or len(self.inflight) > MAX_INFLIGHT_BLOCKS):
-            self.write_block()
-
-    def write_block(self) -> None:
-        level, future = self.inflight.popleft()
-        stored, raw_size, crc, codec = future.result()
-        f = self.level_files.get(level)
-        if f is None:
-            f = self.level_files[level] = open(self.scratch / f"level{level}.blk", "wb")
-            self.level_entries[level] = []
-        f.write(stored)
-        self.level_entries[level].append((len(stored), raw_size, crc, codec))
+    # -- phase 4: build ---------------------------------------------------------------------
 
     def emit(self, node: _Part | _Split, writer: native.ModelWriter) -> int:
         if isinstance(node, _Split):
@@ -414,15 +536,16 @@ class _Builder:
             return writer.add_inner_treelet(
                 node.level, node.lo.tolist(), node.hi.tolist(), node.axes, node.splits, handles
             )
-        recs = np.fromfile(node.path, dtype=self.dtype)
-        node.path.unlink()
+        if node.records is not None:
+            recs, node.records = node.records, None
+        else:
+            assert node.path is not None
+            recs = np.fromfile(node.path, dtype=np.uint8).reshape(-1, self.dtype.itemsize)
+            node.path.unlink()
         self.part_base = self.built
         self.part_refs0 = self.refs_seen
         self.part_count = node.count
-        handle = writer.add_subtree(
-            recs["c"], recs["id"], recs["rgb"] if self.src.has_colours else None,
-            node.lo.tolist(), node.hi.tolist(), node.level,
-        )  # fmt: skip
+        handle = writer.add_subtree(recs, node.lo.tolist(), node.hi.tolist(), node.level)
         del recs
         part_refs = self.refs_seen - self.part_refs0
         if node.count:
@@ -438,22 +561,30 @@ class _Builder:
 
     # -- all phases -------------------------------------------------------------------------
 
-    def run(self, scratch: Path, partial: Path) -> dict[str, Any]:
+    def run(self, source: str | os.PathLike[str], scratch: Path, partial: Path) -> dict[str, Any]:
         self.scratch = scratch
         t = time.perf_counter()
-        root, count, total, degenerate, centre, lo, hi = self.read(scratch)
+        self.open(source, scratch)
+        lo, hi, chunks = self.bounds(scratch)
+        t = self.timed("scan", t)
+        records, first_split, count, total, centre, lo, hi = self.read(scratch, lo, hi, chunks)
         t = self.timed("read", t)
 
         limit = self.opt.incore_limit()
-        self.sifted = 0
-        # Each out-of-core level passes over every triangle once (plus duplicates).
-        levels_needed = 0
-        n = count
-        while n > limit:
-            n //= 8
-            levels_needed += 1
-        self.sift_estimate = max(1, count * levels_needed)
-        tree = self.plan(root, count, lo, hi, lo, hi, 0, limit)
+        if first_split is None:
+            tree: _Part | _Split = _Part(None, count, lo, hi, 0, records.in_memory())
+        else:
+            # Each further out-of-core level passes over every triangle once (plus duplicates).
+            levels_needed = 0
+            n = count // 8
+            while n > limit:
+                n //= 8
+                levels_needed += 1
+            self.sift_estimate = max(1, count * levels_needed)
+            assert records.sifter is not None
+            self.adopt(first_split, records.sifter.finish(), count, 0, limit)
+            tree = first_split
+        del records
         t = self.timed("split", t)
 
         parts = list(_parts(tree))
@@ -462,9 +593,11 @@ class _Builder:
         self.refs_seen = 0
         self.part_base = self.part_refs0 = self.part_count = 0
         self.dup = 1.5
+        blocks_dir = scratch / "blocks"
+        blocks_dir.mkdir()
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
-            sink=self.sink,
+            scratch_dir=str(blocks_dir),
             progress=self.on_refs,
             leaf_size=self.opt.leaf_size,
             traversal_cost=self.opt.traversal_cost,
@@ -476,11 +609,8 @@ class _Builder:
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
-        while self.inflight:
-            self.write_block()
         stats = writer.stats
-        for f in self.level_files.values():
-            f.close()
+        level_files = writer.levels  # {level: (path, (n, 4) stored size, raw size, crc32, codec)}
         t = self.timed("build", t)
 
         node_levels = len(stats["level_blocks"])
@@ -488,7 +618,7 @@ class _Builder:
         levels: list[tuple[int, int, int, int]] = []
         entries: list[tuple[int, int, int, int]] = []
         for level in order:
-            es = self.level_entries.get(level, [])
+            es = [tuple(int(x) for x in e) for e in level_files[level][1]] if level in level_files else []
             if level >= 0:
                 contents = (stats["level_nodes"][level], stats["level_voxels"][level])
             else:
@@ -503,7 +633,7 @@ class _Builder:
             "cell_hi": tuple(float(x) for x in hi),
             "triangle_count": count,
             "input_triangles": total,
-            "degenerate": degenerate + stats["degenerate"],
+            "degenerate": total - count + stats["degenerate"],
             "basic_nodes": stats["basic_nodes"],
             "lod_nodes": stats["lod_nodes"],
             "leaves": stats["leaves"],
@@ -516,9 +646,9 @@ class _Builder:
         def blocks() -> Iterator[bytes]:
             nonlocal written
             for level in order:
-                path = scratch / f"level{level}.blk"
-                if not path.exists():
+                if level not in level_files:
                     continue
+                path = Path(level_files[level][0])
                 with open(path, "rb") as f:
                     while chunk := f.read(8 << 20):
                         written += len(chunk)
@@ -538,7 +668,8 @@ class _Builder:
             "output": str(self.output),
             "triangles": count,
             "input_triangles": total,
-            "degenerate": degenerate,
+            "degenerate": total - count,
+            "input_parts": self.src.parts,
             "file_bytes": size,
             "raw_bytes": raw_total,
             "compression_ratio": raw_total / stored_total if stored_total else 1.0,
@@ -571,15 +702,6 @@ def peak_rss_bytes() -> int:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-
-
-def _compress(raw: bytes) -> tuple[bytes, int, int, int]:
-    """(stored bytes, raw size, crc32 of the stored bytes, codec) for one block."""
-    stored = lz4.block.compress(raw, mode="default", store_size=False)
-    codec = modelfile.CODEC_LZ4
-    if len(stored) >= len(raw):
-        stored, codec = raw, modelfile.CODEC_STORED
-    return stored, len(raw), zlib.crc32(stored), codec
 
 
 def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarray]:
@@ -646,22 +768,23 @@ def build_model(
     cancel: threading.Event | None = None,
 ) -> dict[str, Any]:
     """Builds `source` (a mesh file, 'demo' or 'scene:NAME:TRIANGLES:SEED') into the
-    model file `output`; returns a report of counts, sizes and timings."""
+    model file `output`; returns a report of counts, sizes and timings: the input's
+    triangles as the file holds them (`input_triangles`), the degenerate ones dropped
+    (`degenerate`) and those built (`triangles`)."""
     opt = options or BuildOptions()
+    opt.check()
     out = Path(output)
     if out.exists() and not opt.overwrite:
         raise FileExistsError(f"{out} exists; pass overwrite (--force) to replace it")
     if not out.parent.is_dir():
         raise FileNotFoundError(f"{out.parent}: no such directory for the output")
-    if opt.memory < MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE:
-        need = (MIN_INCORE_TRIANGLES * INCORE_BYTES_PER_TRIANGLE + (1 << 20) - 1) >> 20
-        raise ValueError(f"memory budget too small: the builder needs at least {need} MiB")
-    src = _open_input(source, opt.chunk())
+    if parse_scene(str(source)) is None and not Path(source).is_file():
+        raise FileNotFoundError(f"{source}: no such file (or use {SOURCE_HELP})")
     scratch = Path(tempfile.mkdtemp(prefix=".vastray-build-", dir=opt.scratch_dir or out.parent))
     partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
-    builder = _Builder(src, out, opt, progress, cancel)
+    builder = _Builder(out, opt, progress, cancel)
     try:
-        report = builder.run(scratch, partial)
+        report = builder.run(source, scratch, partial)
         if cancel is not None and cancel.is_set():  # the last chance: nothing is in place yet
             raise BuildCancelledError("build cancelled")
         if out.exists() and not opt.overwrite:
@@ -669,8 +792,5 @@ def build_model(
         os.replace(partial, out)
         return report
     finally:
-        builder.compressor.shutdown(wait=True, cancel_futures=True)
-        for f in builder.level_files.values():
-            f.close()
         partial.unlink(missing_ok=True)
         shutil.rmtree(scratch, ignore_errors=True)

@@ -188,6 +188,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
     )
+    options.check()  # a bad option is a clear error before any work
     # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
     # event at every progress step and cleans up. (A KeyboardInterrupt raised wherever
     # the main thread happens to be, inside callbacks from native worker code, was not
@@ -211,10 +212,15 @@ def _cmd_build(args: argparse.Namespace) -> int:
         bars.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    phases = ", ".join(f"{k} {v:.1f} s" for k, v in report["phase_seconds"].items())
+    phases = ", ".join(f"{k} {v:.1f} s" for k, v in report["phase_seconds"].items() if v >= 0.05)
+    parts = f" in {report['input_parts']:,} named parts" if report["input_parts"] else ""
+    print(
+        f"input      {report['input_triangles']:,} triangles{parts}; "
+        f"{report['degenerate']:,} degenerate dropped (zero area or repeated corners)"
+    )
     print(
         f"built      {report['output']}: {report['triangles']:,} triangles in {report['seconds']:.1f} s "
-        f"({report['triangles_per_second'] / 1e6:.2f} Mtri/s; {phases})"
+        f"({report['input_triangles'] / max(1e-9, report['seconds']) / 1e6:.2f} Mtri/s; {phases})"
     )
     print(
         f"size       {report['file_bytes'] / 2**20:.1f} MiB, {report['bytes_per_triangle']:.1f} B/triangle, "
@@ -226,8 +232,6 @@ def _cmd_build(args: argparse.Namespace) -> int:
         f"(budget {options.memory / 2**20:.0f} MiB + {STATED_OVERHEAD_BYTES >> 20} MiB fixed overhead; "
         f"{report['parts']} in-core part(s) of <= {report['incore_limit']:,} triangles)"
     )
-    if report["degenerate"]:
-        print(f"note       dropped {report['degenerate']:,} degenerate (zero-area) triangles")
     for warning in report["warnings"]:
         print(f"warning    {warning}")
     return 0
@@ -368,8 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("build", help="build the out-of-core model the server renders from")
     b.add_argument(
         "input",
-        help="mesh file (binary PLY/STL and raw .f32 soup stream; OBJ/GLB/OFF load whole), 'demo', "
-        "or scene:NAME[:TRIANGLES[:SEED]]",
+        help="mesh file (OBJ, PLY, STL, OFF, glTF/GLB, raw .f32 soup; every format streams, any size), "
+        "'demo', or scene:NAME[:TRIANGLES[:SEED]]",
     )
     b.add_argument("-o", "--output", required=True, help="model file to write (e.g. model.vast)")
     b.add_argument("--memory", default="2G", help="memory budget, e.g. 2G or 512M (default 2G)")

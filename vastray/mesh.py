@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DegenerateTrianglesWarning", "Mesh", "MeshError", "validate"]
+__all__ = ["DegenerateTrianglesWarning", "Mesh", "MeshError", "PartName", "validate"]
 
 # Degenerate-triangle detection works in blocks so that a 10^8-triangle mesh does not
 # need several (F, 3) float64 temporaries at once.
@@ -27,17 +27,36 @@ class DegenerateTrianglesWarning(UserWarning):
     """Zero-area triangles were dropped from a mesh."""
 
 
+@dataclass(frozen=True)
+class PartName:
+    """What names a part of the input: OBJ object / group / material, an ASCII STL
+    solid (object), glTF node / mesh (and primitive) / material."""
+
+    object: str = ""
+    group: str = ""
+    material: str = ""
+
+
 @dataclass
 class Mesh:
-    """A triangle soup with optional per-triangle colours.
+    """Triangles with optional per-triangle colours and parts.
 
-    Triangle ``i`` is ``faces[i]``; ingest keeps the file's order so ids stay meaningful.
+    Face ``i`` is ``faces[i]``; ingest keeps the file's order. ``triangle_ids[i]`` is its
+    index in the input as the file holds it (after polygons and strips are triangulated
+    in file order), so dropping a degenerate triangle renumbers no other; a renderer's or
+    a built model's triangle ids are these. ``validate`` always sets it (a mesh made
+    without ids numbers its faces 0 ... F - 1); ``input_triangles`` counts the input's
+    triangles, dropped ones included.
     """
 
     vertices: np.ndarray  # (V, 3) float64
     faces: np.ndarray  # (F, 3) uint32
     face_colours: np.ndarray | None  # (F, 3) uint8, or None when the input has none
     name: str
+    triangle_ids: np.ndarray | None = None  # (F,) uint32
+    part_ids: np.ndarray | None = None  # (F,) uint32 index into parts, or None without parts
+    parts: list[PartName] | None = None
+    input_triangles: int | None = None
 
     @property
     def triangle_count(self) -> int:
@@ -74,7 +93,8 @@ def validate(mesh: Mesh, source: str) -> Mesh:
     Raises MeshError for non-finite coordinates (naming the first bad vertex), for a mesh
     without triangles, for bad shapes and for face indices out of range. Drops triangles
     whose area is exactly zero in float64 (including repeated indices), keeps
-    ``face_colours`` aligned, and warns with DegenerateTrianglesWarning giving the count.
+    ``face_colours``, ``triangle_ids`` and ``part_ids`` aligned, and warns with
+    DegenerateTrianglesWarning giving the count.
     """
     vertices = np.asarray(mesh.vertices)
     faces = np.asarray(mesh.faces)
@@ -106,6 +126,22 @@ def validate(mesh: Mesh, source: str) -> Mesh:
         )
     faces = faces.astype(np.uint32, copy=False)
 
+    n_faces = faces.shape[0]
+    ids = np.arange(n_faces, dtype=np.uint32) if mesh.triangle_ids is None else np.asarray(mesh.triangle_ids)
+    if ids.shape != (n_faces,):
+        raise MeshError(f"{source}: triangle_ids must have shape ({n_faces},), got {ids.shape}")
+    if n_faces and (ids.min() < 0 or ids.max() >= 2**32):
+        raise MeshError(f"{source}: triangle ids must fit in 32 bits")
+    ids = ids.astype(np.uint32, copy=False)
+    part_ids = None if mesh.part_ids is None else np.asarray(mesh.part_ids).astype(np.uint32, copy=False)
+    if part_ids is not None and (
+        part_ids.shape != (n_faces,)
+        or mesh.parts is None
+        or (n_faces and int(part_ids.max()) >= len(mesh.parts))
+    ):
+        raise MeshError(f"{source}: part_ids must index parts, one per face")
+    input_triangles = n_faces if mesh.input_triangles is None else int(mesh.input_triangles)
+
     colours = mesh.face_colours
     if colours is not None:
         colours = np.asarray(colours)
@@ -121,12 +157,24 @@ def validate(mesh: Mesh, source: str) -> Mesh:
         if dropped == keep.size:
             raise MeshError(f"{source}: all {dropped} triangles are degenerate (zero area)")
         faces = faces[keep]
+        ids = ids[keep]
         if colours is not None:
             colours = colours[keep]
+        if part_ids is not None:
+            part_ids = part_ids[keep]
         # stacklevel 2 points at whoever asked for validation, which is the useful place.
         warnings.warn(
             f"{source}: dropped {dropped} degenerate triangles",
             DegenerateTrianglesWarning,
             stacklevel=2,
         )
-    return Mesh(vertices=vertices, faces=faces, face_colours=colours, name=mesh.name)
+    return Mesh(
+        vertices=vertices,
+        faces=faces,
+        face_colours=colours,
+        name=mesh.name,
+        triangle_ids=ids,
+        part_ids=part_ids,
+        parts=mesh.parts,
+        input_triangles=input_triangles,
+    )

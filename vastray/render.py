@@ -71,7 +71,7 @@ class SceneRenderer:
 
 
 def scene_from_mesh(mesh: Mesh, **build_options: Any) -> native.Scene:
-    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colours, getattr(mesh, "triangle_ids", None),
+    return native.Scene(mesh.vertices, mesh.faces, mesh.face_colours, mesh.triangle_ids,
                         **build_options)  # fmt: skip
 
 

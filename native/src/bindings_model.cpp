@@ -4,16 +4,22 @@
 #include <pybind11/stl.h>
 
 #include <algorithm>
+#include <emmintrin.h>
 #include <array>
+#include <cmath>
 #include <limits>
 #include <stdexcept>
 #include <string>
 
 #include "vastray/model_decode.h"
 #include "vastray/model_writer.h"
+#include "vastray/thread_pool.h"
+#include "writer/level_files.h"
 
 namespace py = pybind11;
 using namespace vastray;
+
+void bind_ingest(py::module_& m);  // bindings_ingest.cpp
 
 namespace {
 
@@ -34,8 +40,10 @@ Box3f to_box(const std::vector<double>& lo, const std::vector<double>& hi) {
 
 class PyModelWriter {
 public:
-    PyModelWriter(bool has_colours, py::function sink, py::object progress, int leaf_size, float traversal_cost,
-                  float intersection_cost, float empty_space_ratio, int bins, int voxel_rays, unsigned threads) {
+    PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
+                  float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
+                  unsigned threads)
+        : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
         p.kd.leaf_size = leaf_size;
@@ -48,11 +56,8 @@ public:
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
         }
-        // The writer runs with the GIL released; these take it back for each call.
-        BlockSink block_sink = [sink](int level, const std::uint8_t* data, std::size_t size) {
-            py::gil_scoped_acquire gil;
-            sink(level, py::bytes(reinterpret_cast<const char*>(data), size));
-        };
+        // Blocks go straight to the level files, without the GIL.
+        BlockSink block_sink = [this](int level, StoredBlock&& block) { files_.write(level, block); };
         ProgressSink progress_sink;
         if (!progress.is_none()) {
             progress_sink = [progress](std::uint64_t refs) {
@@ -63,24 +68,17 @@ public:
         writer_ = std::make_unique<ModelWriter>(p, std::move(block_sink), std::move(progress_sink));
     }
 
-    int add_subtree(FloatArray corners, UIntArray ids, py::object colours, const std::vector<double>& lo,
+    // records: (n, stride) uint8, one builder record per row (read in place).
+    int add_subtree(const py::array_t<std::uint8_t, py::array::c_style>& records, const std::vector<double>& lo,
                     const std::vector<double>& hi, int level) {
-        const auto n = static_cast<std::size_t>(corners.size() / 9);
-        if (corners.size() % 9 != 0 || corners.ndim() < 2) throw std::invalid_argument("corners must have shape (n, 9) or (n, 3, 3)");
-        if (static_cast<std::size_t>(ids.size()) != n) throw std::invalid_argument("ids must have one entry per triangle");
-        UIntArray colour_array;
-        const std::uint32_t* colour_ptr = nullptr;
-        if (!colours.is_none()) {
-            colour_array = UIntArray::ensure(colours);
-            if (!colour_array || static_cast<std::size_t>(colour_array.size()) != n) {
-                throw std::invalid_argument("colours must be one uint32 per triangle");
-            }
-            colour_ptr = colour_array.data();
-        }
+        if (records.ndim() != 2) throw std::invalid_argument("records must be (n, stride) bytes");
+        const auto n = static_cast<std::size_t>(records.shape(0));
+        const auto stride = static_cast<std::size_t>(records.shape(1));
         if (level < 0) throw std::invalid_argument("level must be >= 0");
         const Box3f cell = to_box(lo, hi);
+        const std::uint8_t* data = records.data();
         py::gil_scoped_release release;
-        return writer_->add_subtree(corners.data(), ids.data(), colour_ptr, n, cell, level);
+        return writer_->add_subtree(data, stride, n, cell, level);
     }
 
     int add_inner_treelet(int level, const std::vector<double>& lo, const std::vector<double>& hi,
@@ -94,6 +92,19 @@ public:
     void finish(int root) {
         py::gil_scoped_release release;
         writer_->finish(root);
+        files_.close();
+    }
+
+    // {level: (file path, (n, 4) uint32 of stored size, raw size, crc32, codec)}; level
+    // -1 is the triangle level.
+    py::dict levels() const {
+        py::dict d;
+        for (const auto& [level, entries] : files_.entries()) {
+            py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{4}});
+            std::memcpy(a.mutable_data(), entries.data(), entries.size() * sizeof entries[0]);
+            d[py::int_(level)] = py::make_tuple(files_.path(level), a);
+        }
+        return d;
     }
 
     py::dict stats() const {
@@ -123,6 +134,7 @@ public:
     }
 
 private:
+    writer::LevelFiles files_;  // declared first: the writer's sink writes into it
     std::unique_ptr<ModelWriter> writer_;
 };
 
@@ -230,76 +242,380 @@ py::tuple sift8(const py::array_t<std::uint8_t, py::array::c_style>& records, co
     return py::make_tuple(out, bounds);
 }
 
-// The read phase's per-chunk work: builder records (9 float32 corners relative to the
-// centre, computed in double as the in-core Scene does; the u32 input id; the u32
-// 0x00BBGGRR colour when given) for every triangle whose float32 corners span a
-// non-zero area. Returns (records as (k, stride) bytes, dropped count, kept lo, kept hi).
-py::tuple make_records(DoubleArray corners, py::object colours, std::uint64_t first_id,
-                       const std::vector<double>& centre) {
-    if (corners.size() % 9 != 0) throw std::invalid_argument("corners must be (n, 3, 3)");
-    if (centre.size() != 3) throw std::invalid_argument("centre must have three components");
-    const auto n = static_cast<std::size_t>(corners.size() / 9);
-    py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast> rgb;
-    if (!colours.is_none()) {
-        rgb = py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast>::ensure(colours);
-        if (!rgb || static_cast<std::size_t>(rgb.size()) != 3 * n) throw std::invalid_argument("colours must be (n, 3) uint8");
+// The read phase's records: per triangle its corners as float32(vertex - centre), computed
+// in double as the in-core Scene does (bit-identical vertices on both paths), the u32 input
+// id and, when given, the u32 0x00BBGGRR colour. Triangles whose float32 corners span no
+// area are left out, as the kd build would, and counted. Runs on the pool, block by block:
+// each block writes its records where its triangles would go and the blocks then close
+// up, so the kept records are in input order at the start of the destination.
+struct Records {
+    std::size_t kept = 0, dropped = 0;
+    float lo[3], hi[3];
+    std::int64_t bad = -1;  // the first triangle whose corner fetch failed (a bad index)
+};
+
+template <typename Corners>
+Records make_records_core(std::size_t n, const Corners& corners, const std::uint8_t* colours, std::size_t colour_stride,
+                          const std::uint32_t* ids, std::uint64_t first_id, const double centre[3], std::uint8_t* dst,
+                          unsigned lanes) {
+    const std::size_t stride = 36 + 4 + (colours != nullptr ? 4 : 0);
+    constexpr std::size_t kBlock = 1 << 15;
+    const std::size_t blocks = (n + kBlock - 1) / kBlock;
+    std::vector<Records> parts(blocks);
+    ThreadPool::global().parallel_for(blocks, [&](std::size_t b, unsigned) {
+        Records& r = parts[b];
+        const std::size_t begin = b * kBlock, end = std::min(n, begin + kBlock);
+        std::uint8_t* out = dst + begin * stride;
+        __m128 lo = _mm_set1_ps(std::numeric_limits<float>::infinity()), hi = _mm_sub_ps(_mm_setzero_ps(), lo);
+        for (std::size_t i = begin; i < end; ++i) {
+            double v[9];
+            if (!corners(i, v)) {
+                r.bad = static_cast<std::int64_t>(i);
+                return;
+            }
+            float f[12] = {};
+            for (int k = 0; k < 9; ++k) f[k] = static_cast<float>(v[k] - centre[k % 3]);
+            const Vec3d a(f[0], f[1], f[2]), bb(f[3], f[4], f[5]), d(f[6], f[7], f[8]);
+            const Vec3d nrm = cross(bb - a, d - a);
+            if (nrm.x == 0 && nrm.y == 0 && nrm.z == 0) {
+                ++r.dropped;
+                continue;
+            }
+            std::memcpy(out, f, 36);
+            const auto id = ids != nullptr ? ids[i] : static_cast<std::uint32_t>(first_id + i);
+            std::memcpy(out + 36, &id, 4);
+            if (colours != nullptr) {
+                const std::uint8_t* c = colours + colour_stride * i;
+                const std::uint32_t packed = static_cast<std::uint32_t>(c[0]) | (static_cast<std::uint32_t>(c[1]) << 8) |
+                                             (static_cast<std::uint32_t>(c[2]) << 16);
+                std::memcpy(out + 40, &packed, 4);
+            }
+            for (int k = 0; k < 9; k += 3) {  // lane 3 holds the next corner's x or 0: unused
+                const __m128 p = _mm_loadu_ps(f + k);
+                lo = _mm_min_ps(lo, p);
+                hi = _mm_max_ps(hi, p);
+            }
+            out += stride;
+            ++r.kept;
+        }
+        alignas(16) float l[4], h[4];
+        _mm_store_ps(l, lo);
+        _mm_store_ps(h, hi);
+        for (int k = 0; k < 3; ++k) r.lo[k] = l[k], r.hi[k] = h[k];
+    }, lanes);
+    Records all;
+    for (int k = 0; k < 3; ++k) {
+        all.lo[k] = std::numeric_limits<float>::infinity();
+        all.hi[k] = -std::numeric_limits<float>::infinity();
     }
-    const bool with_colours = !colours.is_none();
-    const std::size_t stride = 36 + 4 + (with_colours ? 4 : 0);
-    std::vector<std::uint8_t> out(n * stride);
-    std::size_t kept = 0;
-    float lo[3] = {std::numeric_limits<float>::infinity(), std::numeric_limits<float>::infinity(),
-                   std::numeric_limits<float>::infinity()};
-    float hi[3] = {-lo[0], -lo[1], -lo[2]};
-    const double* c = corners.data();
-    const std::uint8_t* col = with_colours ? rgb.data() : nullptr;
-    {
-        py::gil_scoped_release release;
-        for (std::size_t i = 0; i < n; ++i) {
-            float f[9];
-            for (int k = 0; k < 9; ++k) f[k] = static_cast<float>(c[9 * i + static_cast<std::size_t>(k)] - centre[static_cast<std::size_t>(k % 3)]);
-            const Vec3d a(f[0], f[1], f[2]), b(f[3], f[4], f[5]), d(f[6], f[7], f[8]);
-            const Vec3d nrm = cross(b - a, d - a);
-            if (nrm.x == 0 && nrm.y == 0 && nrm.z == 0) continue;  // zero area: left out, as the kd build would
-            std::uint8_t* r = out.data() + kept * stride;
-            std::memcpy(r, f, 36);
-            const auto id = static_cast<std::uint32_t>(first_id + i);
-            std::memcpy(r + 36, &id, 4);
-            if (with_colours) {
-                const std::uint32_t packed = static_cast<std::uint32_t>(col[3 * i]) |
-                                             (static_cast<std::uint32_t>(col[3 * i + 1]) << 8) |
-                                             (static_cast<std::uint32_t>(col[3 * i + 2]) << 16);
-                std::memcpy(r + 40, &packed, 4);
-            }
-            for (int k = 0; k < 9; ++k) {
-                lo[k % 3] = std::min(lo[k % 3], f[k]);
-                hi[k % 3] = std::max(hi[k % 3], f[k]);
-            }
-            ++kept;
+    std::size_t at = 0;
+    for (std::size_t b = 0; b < blocks; ++b) {
+        const Records& r = parts[b];
+        if (r.bad >= 0) {
+            all.bad = r.bad;
+            return all;
+        }
+        if (at != b * kBlock && r.kept) std::memmove(dst + at * stride, dst + b * kBlock * stride, r.kept * stride);
+        at += r.kept;
+        all.kept += r.kept;
+        all.dropped += r.dropped;
+        for (int k = 0; k < 3; ++k) {
+            all.lo[k] = std::min(all.lo[k], r.lo[k]);
+            all.hi[k] = std::max(all.hi[k], r.hi[k]);
         }
     }
-    py::array_t<std::uint8_t> records({static_cast<py::ssize_t>(kept), static_cast<py::ssize_t>(stride)});
-    std::memcpy(records.mutable_data(), out.data(), kept * stride);
-    return py::make_tuple(records, n - kept, std::vector<float>(lo, lo + 3), std::vector<float>(hi, hi + 3));
+    return all;
+}
+
+using ByteArray = py::array_t<std::uint8_t, py::array::c_style>;
+
+// Options every record call takes: colours ((n, 3) uint8, rows may be strided), explicit
+// ids, the centre, and where the records go (`out`: at least n rows of the record size;
+// none: a new array).
+struct RecordOptions {
+    py::array_t<std::uint32_t, py::array::c_style | py::array::forcecast> id_array;
+    py::array rgb;
+    const std::uint8_t* colours = nullptr;
+    std::size_t colour_stride = 3;
+    const std::uint32_t* ids = nullptr;
+    double centre[3];
+    ByteArray out;
+    std::size_t stride;
+
+    RecordOptions(const py::object& colours_, const py::object& ids_, const std::vector<double>& centre_, std::size_t n,
+                  const py::object& out_) {
+        if (centre_.size() != 3) throw std::invalid_argument("centre must have three components");
+        for (int k = 0; k < 3; ++k) centre[k] = centre_[static_cast<std::size_t>(k)];
+        if (!colours_.is_none()) {
+            rgb = py::array::ensure(colours_);
+            if (!rgb || rgb.dtype().kind() != 'u' || rgb.itemsize() != 1 || rgb.ndim() != 2 ||
+                static_cast<std::size_t>(rgb.shape(0)) != n || rgb.shape(1) != 3 || rgb.strides(1) != 1) {
+                throw std::invalid_argument("colours must be (n, 3) uint8 with contiguous rows");
+            }
+            colours = static_cast<const std::uint8_t*>(rgb.data());
+            colour_stride = static_cast<std::size_t>(rgb.strides(0));
+        }
+        if (!ids_.is_none()) {
+            id_array = decltype(id_array)::ensure(ids_);
+            if (!id_array || static_cast<std::size_t>(id_array.size()) != n) throw std::invalid_argument("ids must be one uint32 per triangle");
+            ids = id_array.data();
+        }
+        stride = record_size(colours != nullptr);
+        if (out_.is_none()) {
+            out = ByteArray({static_cast<py::ssize_t>(n), static_cast<py::ssize_t>(stride)});
+        } else {
+            out = out_.cast<ByteArray>();
+            if (out.ndim() != 2 || static_cast<std::size_t>(out.shape(1)) != stride || static_cast<std::size_t>(out.shape(0)) < n ||
+                !out.writeable()) {
+                throw std::invalid_argument("out must be a writeable (>= n, record size) uint8 array");
+            }
+        }
+    }
+    std::uint8_t* dst() { return out.mutable_data(); }
+};
+
+// (records: the first `kept` rows of the destination, dropped, lo, hi, bad triangle or -1)
+py::tuple records_result(const Records& r, RecordOptions& o) {
+    py::object rows = o.out[py::slice(0, static_cast<py::ssize_t>(r.bad >= 0 ? 0 : r.kept), 1)];
+    return py::make_tuple(rows, r.dropped, std::vector<float>(r.lo, r.lo + 3), std::vector<float>(r.hi, r.hi + 3), r.bad);
+}
+
+// Records from corners: (n, 3, 3) float64.
+py::tuple make_records(DoubleArray corners, py::object colours, py::object ids, std::uint64_t first_id,
+                       const std::vector<double>& centre, py::object out, unsigned threads) {
+    if (corners.size() % 9 != 0) throw std::invalid_argument("corners must be (n, 3, 3)");
+    const auto n = static_cast<std::size_t>(corners.size() / 9);
+    RecordOptions o(colours, ids, centre, n, out);
+    const double* c = corners.data();
+    std::uint8_t* dst = o.dst();
+    Records r;
+    {
+        py::gil_scoped_release release;
+        r = make_records_core(
+            n, [c](std::size_t i, double* v) { std::memcpy(v, c + 9 * i, 9 * sizeof(double)); return true; },
+            o.colours, o.colour_stride, o.ids, first_id, o.centre, dst, threads);
+    }
+    return records_result(r, o);
+}
+
+// Vertex indices (n, 3) of any integer type and layout (a field of a face record array),
+// read as int64.
+struct Indices {
+    const std::uint8_t* base;
+    std::ptrdiff_t row, col;
+    char kind;
+    std::size_t size;
+
+    explicit Indices(const py::array& a) {
+        if (a.ndim() != 2 || a.shape(1) != 3) throw std::invalid_argument("indices must be (n, 3)");
+        kind = a.dtype().kind();
+        size = static_cast<std::size_t>(a.itemsize());
+        if ((kind != 'i' && kind != 'u') || (size != 1 && size != 2 && size != 4 && size != 8)) {
+            throw std::invalid_argument("indices must be integers");
+        }
+        if (a.dtype().byteorder() == '>') throw std::invalid_argument("indices must be in native byte order");
+        base = static_cast<const std::uint8_t*>(a.data());
+        row = a.strides(0);
+        col = a.strides(1);
+    }
+    std::int64_t operator()(std::size_t i, int c) const {
+        const std::uint8_t* p = base + static_cast<std::ptrdiff_t>(i) * row + c * col;
+        switch (size) {
+            case 1: return kind == 'i' ? static_cast<std::int8_t>(*p) : *p;
+            case 2: return kind == 'i' ? load_as<std::int16_t>(p) : load_as<std::uint16_t>(p);
+            case 4: return kind == 'i' ? load_as<std::int32_t>(p) : load_as<std::uint32_t>(p);
+            default: {
+                std::uint64_t u;
+                std::memcpy(&u, p, sizeof u);
+                const bool fits = kind == 'i' || u <= static_cast<std::uint64_t>(std::numeric_limits<std::int64_t>::max());
+                return fits ? static_cast<std::int64_t>(u) : std::int64_t{-1};
+            }
+        }
+    }
+    template <typename T>
+    static std::int64_t load_as(const std::uint8_t* p) {
+        T v;
+        std::memcpy(&v, p, sizeof v);
+        return static_cast<std::int64_t>(v);
+    }
+};
+
+// A table of vertex records: `count` records of `stride` bytes, coordinate k at byte
+// offsets[k], typed types[k] ("<f4", ">f4", "<f8", ">f8"): a binary PLY's vertex element
+// where it lies in the file, or a staged float64 table.
+struct VertexRecords {
+    py::buffer_info buffer;
+    const std::uint8_t* base;
+    std::size_t stride, count, offsets[3];
+    bool swap[3], wide[3];
+    bool packed;  // native-order x, y, z side by side, all one width
+
+    VertexRecords(const py::buffer& vertices, std::size_t stride_, const std::array<std::size_t, 3>& offsets_,
+                  const std::array<std::string, 3>& types, std::size_t count_)
+        : buffer(vertices.request()), stride(stride_), count(count_) {
+        if (buffer.itemsize != 1 || static_cast<std::size_t>(buffer.size) < count * stride) {
+            throw std::invalid_argument("vertices: a byte buffer of count * stride bytes");
+        }
+        base = static_cast<const std::uint8_t*>(buffer.ptr);
+        for (int k = 0; k < 3; ++k) {
+            const std::string& t = types[static_cast<std::size_t>(k)];
+            if (t.size() != 3 || (t[0] != '<' && t[0] != '>') || t[1] != 'f' || (t[2] != '4' && t[2] != '8')) {
+                throw std::invalid_argument("vertex coordinate types are <f4, >f4, <f8 or >f8");
+            }
+            wide[k] = t[2] == '8';
+            swap[k] = t[0] == '>';
+            offsets[k] = offsets_[static_cast<std::size_t>(k)];
+            if (offsets[k] + (wide[k] ? 8 : 4) > stride) throw std::invalid_argument("vertex field past its record");
+        }
+        const std::size_t width = wide[0] ? 8 : 4;
+        packed = offsets[1] == offsets[0] + width && offsets[2] == offsets[1] + width && wide[0] == wide[1] &&
+                 wide[1] == wide[2] && !swap[0] && !swap[1] && !swap[2];
+    }
+
+    double coord(const std::uint8_t* rec, int k) const {
+        std::uint8_t b[8];
+        const std::size_t w = wide[k] ? 8 : 4;
+        std::memcpy(b, rec + offsets[k], w);
+        if (swap[k]) std::reverse(b, b + w);
+        if (wide[k]) {
+            double d;
+            std::memcpy(&d, b, 8);
+            return d;
+        }
+        float f;
+        std::memcpy(&f, b, 4);
+        return f;
+    }
+
+    // Calls fn(fetch) with a fetch(vertex index, double* xyz) specialised for the layout:
+    // the common ones get their own loops, anything else goes coordinate by coordinate.
+    template <typename Fn>
+    auto with_fetch(Fn&& fn) const {
+        const std::size_t at = offsets[0];
+        if (packed && !wide[0]) {
+            return fn([this, at](std::size_t j, double* v) {
+                float f[3];
+                std::memcpy(f, base + j * stride + at, sizeof f);
+                v[0] = f[0], v[1] = f[1], v[2] = f[2];
+            });
+        }
+        if (packed) {
+            return fn([this, at](std::size_t j, double* v) { std::memcpy(v, base + j * stride + at, 3 * sizeof(double)); });
+        }
+        return fn([this](std::size_t j, double* v) {
+            for (int k = 0; k < 3; ++k) v[k] = coord(base + j * stride, k);
+        });
+    }
+};
+
+// Records from vertex indices into a table of vertex records (see VertexRecords). The
+// result's last field names the first triangle with an index outside 0 ... count - 1
+// (-1: none), and then no records are made.
+py::tuple make_indexed_records(const py::buffer& vertices, std::size_t stride, const std::array<std::size_t, 3>& offsets,
+                               const std::array<std::string, 3>& types, std::size_t count, const py::array& indices,
+                               py::object colours, py::object ids, std::uint64_t first_id,
+                               const std::vector<double>& centre, py::object out, unsigned threads) {
+    const VertexRecords table(vertices, stride, offsets, types, count);
+    const Indices idx(indices);
+    const auto n = static_cast<std::size_t>(indices.shape(0));
+    RecordOptions o(colours, ids, centre, n, out);
+    std::uint8_t* dst = o.dst();
+    Records r;
+    {
+        py::gil_scoped_release release;
+        r = table.with_fetch([&](auto&& fetch) {
+            return make_records_core(
+                n,
+                [&](std::size_t i, double* v) {
+                    for (int c = 0; c < 3; ++c) {
+                        const std::int64_t j = idx(i, c);
+                        if (j < 0 || static_cast<std::uint64_t>(j) >= count) return false;
+                        fetch(static_cast<std::size_t>(j), v + 3 * c);
+                    }
+                    return true;
+                },
+                o.colours, o.colour_stride, o.ids, first_id, o.centre, dst, threads);
+        });
+    }
+    return records_result(r, o);
+}
+
+// (lo, hi, first vertex with a non-finite coordinate or -1) of a table of vertex records,
+// on the pool: what the model centre and the root cell come from.
+py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const std::array<std::size_t, 3>& offsets,
+                        const std::array<std::string, 3>& types, std::size_t count, unsigned threads) {
+    const VertexRecords table(vertices, stride, offsets, types, count);
+    constexpr std::size_t kBlock = 1 << 16;
+    const std::size_t blocks = (count + kBlock - 1) / kBlock;
+    struct Part {
+        double lo[3], hi[3];
+        std::int64_t bad = -1;
+    };
+    std::vector<Part> parts(blocks);
+    {
+        py::gil_scoped_release release;
+        table.with_fetch([&](auto&& fetch) {
+            ThreadPool::global().parallel_for(blocks, [&](std::size_t b, unsigned) {
+                Part& p = parts[b];
+                for (int k = 0; k < 3; ++k) {
+                    p.lo[k] = std::numeric_limits<double>::infinity();
+                    p.hi[k] = -std::numeric_limits<double>::infinity();
+                }
+                const std::size_t end = std::min(count, (b + 1) * kBlock);
+                for (std::size_t j = b * kBlock; j < end; ++j) {
+                    double v[3];
+                    fetch(j, v);
+                    if (!std::isfinite(v[0]) || !std::isfinite(v[1]) || !std::isfinite(v[2])) {
+                        p.bad = static_cast<std::int64_t>(j);
+                        return;
+                    }
+                    for (int k = 0; k < 3; ++k) {
+                        p.lo[k] = std::min(p.lo[k], v[k]);
+                        p.hi[k] = std::max(p.hi[k], v[k]);
+                    }
+                }
+            }, threads);
+            return 0;
+        });
+    }
+    std::vector<double> lo(3, std::numeric_limits<double>::infinity()), hi(3, -std::numeric_limits<double>::infinity());
+    for (const Part& p : parts) {
+        if (p.bad >= 0) return py::make_tuple(lo, hi, p.bad);
+        for (int k = 0; k < 3; ++k) {
+            lo[static_cast<std::size_t>(k)] = std::min(lo[static_cast<std::size_t>(k)], p.lo[k]);
+            hi[static_cast<std::size_t>(k)] = std::max(hi[static_cast<std::size_t>(k)], p.hi[k]);
+        }
+    }
+    return py::make_tuple(lo, hi, -1);
 }
 
 }  // namespace
 
 void bind_model(py::module_& m) {
-    py::class_<PyModelWriter>(m, "ModelWriter", "Writes kd-subtrees as treelets, voxels and triangle blocks")
-        .def(py::init<bool, py::function, py::object, int, float, float, float, int, int, unsigned>(),
-             py::arg("has_colours"), py::arg("sink"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
+    py::class_<PyModelWriter>(m, "ModelWriter",
+                              "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned>(),
+             py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u)
-        .def("add_subtree", &PyModelWriter::add_subtree, py::arg("corners"), py::arg("ids"), py::arg("colours"),
-             py::arg("lo"), py::arg("hi"), py::arg("level"))
+        .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
+             py::arg("level"))
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
              py::arg("axes"), py::arg("splits"), py::arg("children"))
         .def("finish", &PyModelWriter::finish, py::arg("root"))
+        .def_property_readonly("levels", &PyModelWriter::levels)
         .def_property_readonly("stats", &PyModelWriter::stats);
-    m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("first_id"),
-          py::arg("centre"), "Builder records for a chunk of triangles, zero-area ones left out");
+    m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("ids"), py::arg("first_id"),
+          py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,
+          "Builder records for a chunk of triangles (corners), zero-area ones left out");
+    m.def("make_indexed_records", &make_indexed_records, py::arg("vertices"), py::arg("stride"), py::arg("offsets"),
+          py::arg("types"), py::arg("count"), py::arg("indices"), py::arg("colours"), py::arg("ids"),
+          py::arg("first_id"), py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,
+          "Builder records for a chunk of indexed triangles, gathered from vertex records");
+    m.def("vertex_bounds", &vertex_bounds, py::arg("vertices"), py::arg("stride"), py::arg("offsets"), py::arg("types"),
+          py::arg("count"), py::arg("threads") = 0u, "Bounds of a table of vertex records, and its first non-finite vertex");
+    bind_ingest(m);
     m.def("sift8", &sift8, py::arg("records"), py::arg("axes"), py::arg("splits"), py::arg("cell_lo"),
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),

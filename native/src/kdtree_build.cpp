@@ -8,10 +8,20 @@
 // traversal needs.
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <exception>
+#include <mutex>
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
+#include <cstring>
+#include <new>
+#include <type_traits>
 #include <thread>
 #include <utility>
+
+#include <emmintrin.h>
 
 #include "vastray/kdtree.h"
 #include "vastray/thread_pool.h"
@@ -126,33 +136,224 @@ bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, co
     return true;
 }
 
+// The references of the nodes on the current path, in one growable buffer per thread.
+// A node's references are a range [first, first + n) with free space above it: its
+// partition writes the left child's references above the range, compacts the right
+// child's in place (each reference read gives at most one to the right, so writes never
+// overtake reads) and moves the left child's down behind them. The left subtree is then
+// built above the right child's range, which it never touches. No node allocates.
+// A box's corners in SSE registers; lane 3 is whatever follows the corner in memory.
+inline __m128 load_lo(const Box3f& b) { return _mm_loadu_ps(&b.lo.x); }
+inline __m128 load_hi(const Box3f& b) {
+    alignas(16) float hi[4] = {b.hi.x, b.hi.y, b.hi.z, 0.0f};  // a Box3f ends with hi.z
+    return _mm_load_ps(hi);
+}
+inline Box3f to_box(__m128 lo, __m128 hi) {
+    alignas(16) float l[4], h[4];
+    _mm_store_ps(l, lo);
+    _mm_store_ps(h, hi);
+    Box3f b;
+    b.lo = {l[0], l[1], l[2]};
+    b.hi = {h[0], h[1], h[2]};
+    return b;
+}
+
+class RefStack {
+public:
+    RefStack() = default;
+    RefStack(const RefStack&) = delete;
+    RefStack& operator=(const RefStack&) = delete;
+    ~RefStack() { std::free(refs_); }
+
+    PrimRef* data() { return refs_; }
+    // Makes room for references up to index `top`; may move the buffer. The memory is
+    // not initialised: untouched room costs address space, not resident pages, and a
+    // large block grows by remapping rather than copying. Only the owning thread calls it.
+    void reserve(std::size_t top) {
+        if (top <= capacity_) return;
+        const std::size_t want = std::max(top, capacity_ + capacity_ / 2);
+        std::lock_guard<std::mutex> lock(move_);
+        void* grown = std::realloc(static_cast<void*>(refs_), want * sizeof(PrimRef));
+        if (grown == nullptr) throw std::bad_alloc();
+        refs_ = static_cast<PrimRef*>(grown);
+        capacity_ = want;
+    }
+    // Copies references [first, first + n) for another thread, which the owner does not
+    // touch meanwhile; the lock keeps the owner from moving the buffer under the copy.
+    void copy_out(std::size_t first, std::size_t n, PrimRef* to) {
+        std::lock_guard<std::mutex> lock(move_);
+        std::memcpy(to, refs_ + first, n * sizeof(PrimRef));
+    }
+
+private:
+    PrimRef* refs_ = nullptr;  // PrimRef is trivially copyable: realloc may move it
+    std::size_t capacity_ = 0;
+    std::mutex move_;
+};
+static_assert(std::is_trivially_copyable_v<PrimRef>, "references are moved by realloc and memmove");
+
+// Puts boxes into the bins of one cell (the binned SAH's input: per axis, how many
+// boxes start and end in each slice): bin = (x - lo) * bins / extent, clamped to
+// 0 ... bins - 1 in float before it is truncated (which is what a scalar static_cast of
+// the clamped float gives). Lane 3 of a corner is whatever follows it in memory; it is
+// scaled by 0 and clamped, and its bin is never counted.
+class Binner {
+public:
+    Binner(const Box3f& cell, int bins) : bins_(bins) {
+        float scale[3];
+        for (int a = 0; a < 3; ++a) {
+            const float ext = cell.hi[a] - cell.lo[a];
+            scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
+        }
+        lo_ = _mm_setr_ps(cell.lo.x, cell.lo.y, cell.lo.z, 0.0f);
+        scale_ = _mm_setr_ps(scale[0], scale[1], scale[2], 0.0f);
+        top_ = _mm_set1_ps(static_cast<float>(bins - 1));
+        base_ = _mm_setr_epi32(0, bins, 2 * bins, 0);
+    }
+    int bins() const { return bins_; }
+    void add(__m128 lo, __m128 hi, std::uint32_t* starts, std::uint32_t* ends) const {
+        alignas(16) std::int32_t s[4], e[4];
+        _mm_store_si128(reinterpret_cast<__m128i*>(s), _mm_add_epi32(_mm_cvttps_epi32(clamp(lo)), base_));
+        _mm_store_si128(reinterpret_cast<__m128i*>(e), _mm_add_epi32(_mm_cvttps_epi32(clamp(hi)), base_));
+        starts[s[0]]++;
+        starts[s[1]]++;
+        starts[s[2]]++;
+        ends[e[0]]++;
+        ends[e[1]]++;
+        ends[e[2]]++;
+    }
+
+private:
+    __m128 clamp(__m128 x) const {
+        return _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_sub_ps(x, lo_), scale_), _mm_setzero_ps()), top_);
+    }
+    int bins_;
+    __m128 lo_, scale_, top_;
+    __m128i base_;
+};
+
+// Fork-join over subtrees: a split with two big children offers the right one as a task
+// and builds the left one itself. An idle helper takes the oldest task on offer (the
+// biggest: the one nearest the root) and builds it into an output of its own. Back from
+// the left child, the owner builds the right one itself if nobody took it, or waits for
+// it and splices the helper's output after the left child's. Who builds what changes
+// nothing in the tree: the nodes end up in the same preorder either way.
+struct Task {
+    RefStack* stack = nullptr;  // the owner's: the child's references lie there, untouched meanwhile
+    std::size_t first = 0, n = 0;
+    Box3f cell, used;
+    int depth = 0, bad = 0;
+    enum State { Offered, Taken, Reclaimed } state = Offered;  // guarded by Tasks::mutex_
+    bool done = false;
+    std::exception_ptr error;
+    Output out;
+};
+
+class Tasks {
+public:
+    void offer(Task* t) {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            offered_.push_back(t);
+        }
+        wake_.notify_one();
+    }
+    // The owner takes its task back; false when a helper has it.
+    bool reclaim(Task* t) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        if (t->state != Task::Offered) return false;
+        t->state = Task::Reclaimed;
+        offered_.erase(std::find(offered_.begin(), offered_.end(), t));
+        return true;
+    }
+    void wait(Task* t) {
+        std::unique_lock<std::mutex> lock(mutex_);
+        finished_.wait(lock, [t] { return t->done; });
+    }
+    // A helper's next task, or null once the build is over.
+    Task* take() {
+        std::unique_lock<std::mutex> lock(mutex_);
+        wake_.wait(lock, [this] { return over_ || !offered_.empty(); });
+        if (offered_.empty()) return nullptr;
+        Task* t = offered_.front();
+        offered_.pop_front();
+        t->state = Task::Taken;
+        return t;
+    }
+    void complete(Task* t) {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            t->done = true;
+        }
+        finished_.notify_all();
+    }
+    void end() {
+        {
+            std::lock_guard<std::mutex> lock(mutex_);
+            over_ = true;
+        }
+        wake_.notify_all();
+    }
+
+private:
+    std::mutex mutex_;
+    std::condition_variable wake_, finished_;
+    std::deque<Task*> offered_;
+    bool over_ = false;
+};
+
 class Builder {
 public:
-    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, unsigned threads)
-        : soup_(soup), p_(params), max_depth_(max_depth),
-          spare_threads_(static_cast<int>(threads) - 1) {}
+    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, bool parallel)
+        : soup_(soup), p_(params), max_depth_(max_depth), parallel_(parallel) {}
 
+    // A helper thread: builds offered subtrees until the build is over.
+    void help() {
+        RefStack rs;
+        while (Task* t = tasks_.take()) {
+            try {
+                rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+                // Room for the subtree's nodes and leaf lists (address space: only what is
+                // written becomes resident), so they do not grow by copying.
+                t->out.nodes.reserve(t->n / 2 + 16);
+                t->out.tri_ids.reserve(2 * t->n + 16);
+                t->stack->copy_out(t->first, t->n, rs.data());
+                build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
+            } catch (...) {
+                t->error = std::current_exception();
+            }
+            tasks_.complete(t);
+        }
+    }
+    void end() { tasks_.end(); }
+
+    // The node whose references are rs.refs[first, first + n).
     // used: the union of the references' boxes (computed by the caller's partition pass,
     // so no node spends an extra pass over its references on it).
     // bad: splits on the path from the root that duplicated most of their references.
-    void build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad, Output& out);
+    void build(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used, int depth,
+               int bad, Output& out);
 
 private:
-    void emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out);
+    struct Side {
+        std::size_t first, n;
+        Box3f cell, used;
+    };
+    void emit_leaf(const PrimRef* refs, std::size_t n, const Box3f& cell, int depth, Output& out);
     void count_empty(int depth, Output& out);
-    void build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
-                        std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused, int depth,
-                        int bad, int axis, float split, Output& out);
-    bool try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
-                       Output& out);
-    void partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
-                   const Box3f& rcell, std::vector<PrimRef>& left, std::vector<PrimRef>& right,
-                   Box3f& lused, Box3f& rused) const;
+    void build_children(RefStack& rs, const Side& left, const Side& right, int depth, int bad, int axis,
+                        float split, Output& out);
+    bool try_empty_cut(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used,
+                       int depth, int bad, Output& out);
+    // Returns the children: the right one at [first, first + nr), the left one after it.
+    std::pair<Side, Side> partition(RefStack& rs, std::size_t first, std::size_t n, int axis, float split,
+                                    const Box3f& lcell, const Box3f& rcell) const;
 
     const TriangleSoup& soup_;
     const KdBuildParams& p_;
     const int max_depth_;
-    std::atomic<int> spare_threads_;
+    const bool parallel_;
+    Tasks tasks_;
 };
 
 void Builder::count_empty(int depth, Output& out) {
@@ -161,7 +362,7 @@ void Builder::count_empty(int depth, Output& out) {
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
 }
 
-void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int depth, Output& out) {
+void Builder::emit_leaf(const PrimRef* refs, std::size_t n, const Box3f& cell, int depth, Output& out) {
     // Reference boxes are conservative (a clipped box can touch a cell the triangle
     // misses): keep exactly the triangles that touch the cell, grown by a few ulps so
     // that nothing a ray could hit inside it is dropped.
@@ -173,10 +374,14 @@ void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int
         hi[a] += eps;
     }
     const std::size_t first = out.tri_ids.size();
-    for (const PrimRef& r : refs) {
-        if (triangle_overlaps_box(soup_.v(r.id, 0), soup_.v(r.id, 1), soup_.v(r.id, 2), lo, hi)) {
-            out.tri_ids.push_back(r.id);
-        }
+    auto inside = [&](const Vec3f& v) {
+        return lo.x <= v.x && v.x <= hi.x && lo.y <= v.y && v.y <= hi.y && lo.z <= v.z && v.z <= hi.z;
+    };
+    for (std::size_t i = 0; i < n; ++i) {
+        const std::uint32_t id = refs[i].id;
+        const Vec3f &a = soup_.v(id, 0), &b = soup_.v(id, 1), &c = soup_.v(id, 2);
+        // A corner inside the cell settles it without the separating-axis test.
+        if (inside(a) || inside(b) || inside(c) || triangle_overlaps_box(a, b, c, lo, hi)) out.tri_ids.push_back(id);
     }
     const std::size_t kept = out.tri_ids.size() - first;
     out.nodes.push_back(KdNode::leaf(static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(kept)));
@@ -188,12 +393,26 @@ void Builder::emit_leaf(const std::vector<PrimRef>& refs, const Box3f& cell, int
                         static_cast<double>(kept);
 }
 
-void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const Box3f& lcell,
-                        const Box3f& rcell, std::vector<PrimRef>& left,
-                        std::vector<PrimRef>& right, Box3f& lused, Box3f& rused) const {
-    if (left.capacity() == 0) left.reserve(refs.size() / 2 + 16);
-    if (right.capacity() == 0) right.reserve(refs.size() / 2 + 16);
-    for (const PrimRef& r : refs) {
+std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::size_t first, std::size_t n, int axis,
+                                                          float split, const Box3f& lcell, const Box3f& rcell) const {
+    const std::size_t top = first + n;
+    rs.reserve(top + n);  // the left child holds at most n
+    PrimRef* const refs = rs.data();
+    PrimRef* const left = refs + top;
+    std::size_t nl = 0, nr = 0;
+    // Boxes in SSE registers (lane 3 unused): Box3f::intersection and extend are
+    // std::max / std::min per component, which _mm_max_ps / _mm_min_ps compute exactly
+    // with the operands swapped (std::max(a, b) == maxps(b, a), also for -0 and +0).
+    const __m128 lcell_lo = load_lo(lcell), lcell_hi = load_hi(lcell), rcell_lo = load_lo(rcell), rcell_hi = load_hi(rcell);
+    const __m128 inf = _mm_set1_ps(std::numeric_limits<float>::infinity());
+    __m128 lused_lo = inf, lused_hi = _mm_sub_ps(_mm_setzero_ps(), inf), rused_lo = inf, rused_hi = lused_hi;
+    auto put = [](PrimRef& out, __m128 lo, __m128 hi, std::uint32_t id) {
+        _mm_storeu_ps(&out.box.lo.x, lo);  // its lane 3 lands on hi.x, written next
+        _mm_storeu_ps(&out.box.hi.x, hi);  // its lane 3 lands on the id, written next
+        out.id = id;
+    };
+    for (std::size_t i = first; i < top; ++i) {
+        const PrimRef r = refs[i];
         const float lo = r.box.lo[axis], hi = r.box.hi[axis];
         const bool planar = lo == split && hi == split;
         const bool in_left = lo < split || planar;
@@ -207,68 +426,89 @@ void Builder::partition(std::vector<PrimRef>& refs, int axis, float split, const
                 Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
-                (side == 0 ? lused : rused).extend(clipped);
-                (side == 0 ? left : right).push_back({clipped, r.id});
+                const __m128 clo = load_lo(clipped), chi = load_hi(clipped);
+                if (side == 0) {
+                    lused_lo = _mm_min_ps(clo, lused_lo);
+                    lused_hi = _mm_max_ps(chi, lused_hi);
+                    put(left[nl++], clo, chi, r.id);
+                } else {
+                    rused_lo = _mm_min_ps(clo, rused_lo);
+                    rused_hi = _mm_max_ps(chi, rused_hi);
+                    put(refs[first + nr++], clo, chi, r.id);
+                }
             }
         } else {
+            const __m128 blo = _mm_loadu_ps(&r.box.lo.x), bhi = _mm_loadu_ps(&r.box.hi.x);
             if (in_left) {
-                const Box3f b = Box3f::intersection(r.box, lcell);
-                lused.extend(b);
-                left.push_back({b, r.id});
+                const __m128 clo = _mm_max_ps(lcell_lo, blo), chi = _mm_min_ps(lcell_hi, bhi);
+                lused_lo = _mm_min_ps(clo, lused_lo);
+                lused_hi = _mm_max_ps(chi, lused_hi);
+                put(left[nl++], clo, chi, r.id);
             }
             if (in_right) {
-                const Box3f b = Box3f::intersection(r.box, rcell);
-                rused.extend(b);
-                right.push_back({b, r.id});
+                const __m128 clo = _mm_max_ps(rcell_lo, blo), chi = _mm_min_ps(rcell_hi, bhi);
+                rused_lo = _mm_min_ps(clo, rused_lo);
+                rused_hi = _mm_max_ps(chi, rused_hi);
+                put(refs[first + nr++], clo, chi, r.id);
             }
         }
     }
-    std::vector<PrimRef>().swap(refs);  // release the parent's list before recursing
+    const Box3f lused = to_box(lused_lo, lused_hi), rused = to_box(rused_lo, rused_hi);
+    std::memmove(refs + first + nr, left, nl * sizeof(PrimRef));
+    return {Side{first + nr, nl, lcell, lused}, Side{first, nr, rcell, rused}};
 }
 
-void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, const Box3f& lused,
-                             std::vector<PrimRef>& right, const Box3f& rcell, const Box3f& rused,
-                             int depth, int bad, int axis, float split, Output& out) {
+void Builder::build_children(RefStack& rs, const Side& left, const Side& right, int depth, int bad, int axis,
+                             float split, Output& out) {
     const std::size_t self = out.nodes.size();
-    const std::uint32_t empty_flags = (left.empty() ? KdNode::kLeftEmpty : 0u) |
-                                      (right.empty() ? KdNode::kRightEmpty : 0u);
+    const std::uint32_t empty_flags = (left.n == 0 ? KdNode::kLeftEmpty : 0u) | (right.n == 0 ? KdNode::kRightEmpty : 0u);
     out.nodes.push_back(KdNode::inner(axis, split, 0, empty_flags));
     out.stats.max_depth = std::max(out.stats.max_depth, depth);
-    if (left.empty() || right.empty()) {
+    if (left.n == 0 || right.n == 0) {
         // One child is empty: it costs nothing but a flag; the other follows directly.
         count_empty(depth + 1, out);
-        if (left.empty()) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
-        build(left.empty() ? right : left, left.empty() ? rcell : lcell, left.empty() ? rused : lused,
-              depth + 1, bad, out);
+        if (left.n == 0) out.nodes[self] = KdNode::inner(axis, split, 1, empty_flags);
+        const Side& only = left.n == 0 ? right : left;
+        build(rs, only.first, only.n, only.cell, only.used, depth + 1, bad, out);
         return;
     }
 
-    // Large subtrees build on spare threads; the right one is spliced in afterwards.
+    // Big children: the right one is offered to the helpers while this thread builds the left.
     constexpr std::size_t kParallelThreshold = 4096;
-    bool spawn = false;
-    if (right.size() >= kParallelThreshold && left.size() >= kParallelThreshold) {
-        int spare = spare_threads_.load();
-        while (spare > 0 && !spare_threads_.compare_exchange_weak(spare, spare - 1)) {
+    const bool offer = parallel_ && right.n >= kParallelThreshold && left.n >= kParallelThreshold;
+    Task task;
+    if (offer) {
+        task.stack = &rs;
+        task.first = right.first;
+        task.n = right.n;
+        task.cell = right.cell;
+        task.used = right.used;
+        task.depth = depth + 1;
+        task.bad = bad;
+    }
+    // Whatever happens to the left child, the task must be taken back or finished before
+    // this frame (which holds it) goes.
+    struct Settle {
+        Tasks* tasks;
+        Task* task;
+        bool settled = false;
+        ~Settle() {
+            if (!settled && tasks != nullptr && !tasks->reclaim(task)) tasks->wait(task);
         }
-        spawn = spare > 0;
-    }
-    Output right_out;
-    std::thread worker;
-    if (spawn) {
-        worker = std::thread([&] {
-            build(right, rcell, rused, depth + 1, bad, right_out);
-            spare_threads_.fetch_add(1);
-        });
-    }
-    build(left, lcell, lused, depth + 1, bad, out);
+    } settle{offer ? &tasks_ : nullptr, &task};
+    if (offer) tasks_.offer(&task);
+    build(rs, left.first, left.n, left.cell, left.used, depth + 1, bad, out);
     const std::size_t right_offset = out.nodes.size() - self;
     if (right_offset > KdNode::kMaxOffset) throw std::length_error("kd-tree too large for 28-bit child offsets");
     out.nodes[self] = KdNode::inner(axis, split, static_cast<std::uint32_t>(right_offset), 0);
-    if (!spawn) {
-        build(right, rcell, rused, depth + 1, bad, out);
+    settle.settled = true;
+    if (!offer || tasks_.reclaim(&task)) {
+        build(rs, right.first, right.n, right.cell, right.used, depth + 1, bad, out);
         return;
     }
-    worker.join();
+    tasks_.wait(&task);
+    if (task.error) std::rethrow_exception(task.error);
+    const Output& right_out = task.out;
     const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
     for (KdNode n : right_out.nodes) {
         if (n.is_leaf()) n = KdNode::leaf(n.first() + id_base, n.count());
@@ -284,8 +524,8 @@ void Builder::build_children(std::vector<PrimRef>& left, const Box3f& lcell, con
 
 // Paper 000 §4.1: before any other split, cut off an empty slab holding a large share
 // of the cell. Tight cells make tight LOD voxels and let rays skip empty space early.
-bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& refs_used, int depth,
-                            int bad, Output& out) {
+bool Builder::try_empty_cut(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell,
+                            const Box3f& refs_used, int depth, int bad, Output& out) {
     const Box3f used = Box3f::intersection(refs_used, cell);
     if (used.empty()) return false;
     int best_axis = -1, best_side = 0;
@@ -305,27 +545,68 @@ bool Builder::try_empty_cut(std::vector<PrimRef>& refs, const Box3f& cell, const
     rcell.lo[best_axis] = split;
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * cell.half_area();
     // Every reference lies on the occupied side of the cut (touching the plane included).
-    std::vector<PrimRef> none;
+    const Side occupied_l{first, n, lcell, refs_used}, occupied_r{first, n, rcell, refs_used};
+    const Side none_l{first, 0, lcell, Box3f{}}, none_r{first, 0, rcell, Box3f{}};
     if (best_side == 0) {
-        build_children(none, lcell, Box3f{}, refs, rcell, refs_used, depth, bad, best_axis, split, out);
+        build_children(rs, none_l, occupied_r, depth, bad, best_axis, split, out);
     } else {
-        build_children(refs, lcell, refs_used, none, rcell, Box3f{}, depth, bad, best_axis, split, out);
+        build_children(rs, occupied_l, none_r, depth, bad, best_axis, split, out);
     }
     return true;
 }
 
-void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& used, int depth, int bad,
-                    Output& out) {
-    const std::size_t n = refs.size();
+namespace {
+
+constexpr int kStackBins = 64;
+
+// Counts, per axis, the references whose box starts (ends) in each bin.
+void bin_references(const PrimRef* refs, std::size_t n, const Binner& binner, std::uint32_t* starts,
+                    std::uint32_t* ends) {
+    for (std::size_t i = 0; i < n; ++i) {
+        // lo's lane 3 is hi.x, hi's is the id: both are ignored.
+        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), starts, ends);
+    }
+}
+
+// SAH costs of the candidate planes 1 ... bins - 1 of one axis, four at a time: the
+// child areas in float and the cost in double, each operation the one the scalar
+//   Ct + ci * (double(wl * perimeter + cap) * nl + double(wr * perimeter + cap) * nr)
+// with wl = step * i, wr = ext - wl does, so the costs are bit for bit the same.
+void sah_costs(int bins, float step, float ext, float perimeter, float cap, float traversal_cost, double ci_per_area,
+               const std::uint32_t* counts_left, const std::uint32_t* counts_right, double* costs) {
+    const __m128 step4 = _mm_set1_ps(step), ext4 = _mm_set1_ps(ext), per4 = _mm_set1_ps(perimeter), cap4 = _mm_set1_ps(cap);
+    const __m128d ct = _mm_set1_pd(static_cast<double>(traversal_cost)), ci = _mm_set1_pd(ci_per_area);
+    for (int i = 1; i < bins; i += 4) {
+        const __m128 wl = _mm_mul_ps(step4, _mm_cvtepi32_ps(_mm_setr_epi32(i, i + 1, i + 2, i + 3)));
+        const __m128 wr = _mm_sub_ps(ext4, wl);
+        const __m128 al = _mm_add_ps(_mm_mul_ps(wl, per4), cap4), ar = _mm_add_ps(_mm_mul_ps(wr, per4), cap4);
+        // Counts stay below 2^31 (a part has fewer triangles), so the signed conversion holds.
+        const __m128i nl = _mm_loadu_si128(reinterpret_cast<const __m128i*>(counts_left + i));
+        const __m128i nr = _mm_loadu_si128(reinterpret_cast<const __m128i*>(counts_right + i));
+        for (int half = 0; half < 2; ++half) {
+            const __m128 al2 = half == 0 ? al : _mm_movehl_ps(al, al), ar2 = half == 0 ? ar : _mm_movehl_ps(ar, ar);
+            const __m128i nl2 = half == 0 ? nl : _mm_shuffle_epi32(nl, 0xEE), nr2 = half == 0 ? nr : _mm_shuffle_epi32(nr, 0xEE);
+            const __m128d sum = _mm_add_pd(_mm_mul_pd(_mm_cvtps_pd(al2), _mm_cvtepi32_pd(nl2)),
+                                           _mm_mul_pd(_mm_cvtps_pd(ar2), _mm_cvtepi32_pd(nr2)));
+            _mm_storeu_pd(costs + i + 2 * half, _mm_add_pd(ct, _mm_mul_pd(ci, sum)));
+        }
+    }
+}
+
+}  // namespace
+
+void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f& cell, const Box3f& used, int depth,
+                    int bad, Output& out) {
     if (n == 0 || depth >= max_depth_) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(rs.data() + first, n, cell, depth, out);
         return;
     }
-    if (try_empty_cut(refs, cell, used, depth, bad, out)) return;
+    if (try_empty_cut(rs, first, n, cell, used, depth, bad, out)) return;
     if (n <= static_cast<std::size_t>(p_.leaf_size)) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(rs.data() + first, n, cell, depth, out);
         return;
     }
+    const PrimRef* refs = rs.data() + first;
 
     // Binned SAH over the three axes, binned in one pass over the references. Small
     // nodes get fewer bins: past ~n candidates per axis the sweep costs more than the
@@ -338,51 +619,63 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     int best_axis = -1;
     float best_split = 0;
     std::size_t best_left = 0, best_right = 0;
-    std::vector<std::uint32_t> starts(3 * nb, 0u), ends(3 * nb, 0u);
-    float scale[3];
-    for (int a = 0; a < 3; ++a) {
-        const float ext = cell.hi[a] - cell.lo[a];
-        scale[a] = ext > 0 ? static_cast<float>(bins) / ext : 0.0f;
+    std::uint32_t stack_bins[2 * 3 * kStackBins];
+    std::vector<std::uint32_t> heap_bins;
+    std::uint32_t* starts = stack_bins;
+    if (bins > kStackBins) {
+        heap_bins.resize(2 * 3 * nb);
+        starts = heap_bins.data();
     }
-    auto bin_of = [&](int a, float x) {
-        const int b = static_cast<int>((x - cell.lo[a]) * scale[a]);
-        return static_cast<std::size_t>(a) * nb + static_cast<std::size_t>(std::clamp(b, 0, bins - 1));
-    };
-    for (const PrimRef& r : refs) {
-        for (int a = 0; a < 3; ++a) {
-            starts[bin_of(a, r.box.lo[a])]++;
-            ends[bin_of(a, r.box.hi[a])]++;
-        }
+    std::uint32_t* ends = starts + 3 * nb;
+    std::fill(starts, starts + 2 * 3 * nb, 0u);
+    // Padded: sah_costs works four candidates at a time.
+    alignas(16) double stack_costs[kStackBins + 4];
+    alignas(16) std::uint32_t stack_counts[2 * (kStackBins + 4)];
+    std::vector<double> heap_costs;
+    std::vector<std::uint32_t> heap_counts;
+    double* costs = stack_costs;
+    std::uint32_t* counts_left = stack_counts;
+    if (bins > kStackBins) {
+        heap_costs.resize(nb + 4);
+        heap_counts.resize(2 * (nb + 4));
+        costs = heap_costs.data();
+        counts_left = heap_counts.data();
     }
+    std::uint32_t* counts_right = counts_left + nb + 4;
+    std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
+    bin_references(refs, n, Binner(cell, bins), starts, ends);
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
-        const std::uint32_t* st = starts.data() + static_cast<std::size_t>(a) * nb;
-        const std::uint32_t* en = ends.data() + static_cast<std::size_t>(a) * nb;
-        std::size_t n_left = 0, n_right = n;
+        const std::uint32_t* st = starts + static_cast<std::size_t>(a) * nb;
+        const std::uint32_t* en = ends + static_cast<std::size_t>(a) * nb;
         const Vec3f e = cell.extent();
         const float o1 = e[(a + 1) % 3], o2 = e[(a + 2) % 3];
-        // Child half-areas are linear in the split position: w * perimeter + cap.
+        // Child half-areas are linear in the split position: w * perimeter + cap. The
+        // counts come first (a prefix sum), so the cost loop has no dependency between
+        // candidates and vectorises; the scan then keeps the first lowest, as one loop would.
         const float perimeter = o1 + o2, cap = o1 * o2, step = ext / static_cast<float>(bins);
+        std::uint32_t n_left = 0, n_right = static_cast<std::uint32_t>(n);
         for (int i = 1; i < bins; ++i) {
             n_left += st[i - 1];
             n_right -= en[i - 1];
-            const float wl = step * static_cast<float>(i), wr = ext - wl;
-            const double cost = p_.traversal_cost +
-                                ci_per_area * (static_cast<double>(wl * perimeter + cap) * static_cast<double>(n_left) +
-                                               static_cast<double>(wr * perimeter + cap) * static_cast<double>(n_right));
-            if (cost < best_cost) {
-                best_cost = cost;
+            counts_left[i] = n_left;
+            counts_right[i] = n_right;
+        }
+        sah_costs(bins, step, ext, perimeter, cap, p_.traversal_cost, ci_per_area, counts_left, counts_right, costs);
+        for (int i = 1; i < bins; ++i) {
+            if (costs[i] < best_cost) {
+                best_cost = costs[i];
                 best_axis = a;
-                best_split = lo + wl;
-                best_left = n_left;
-                best_right = n_right;
+                best_split = lo + step * static_cast<float>(i);
+                best_left = counts_left[i];
+                best_right = counts_right[i];
             }
         }
     }
     if (best_axis < 0) {
         if (n <= static_cast<std::size_t>(p_.median_fallback)) {
-            emit_leaf(refs, cell, depth, out);
+            emit_leaf(refs, n, cell, depth, out);
             return;
         }
         // SAH sees no gain but the leaf would be huge: split the longest axis in the middle.
@@ -390,20 +683,13 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
         best_axis = e.x >= e.y && e.x >= e.z ? 0 : (e.y >= e.z ? 1 : 2);
         best_split = 0.5f * (cell.lo[best_axis] + cell.hi[best_axis]);
         best_left = best_right = 0;
-        for (const PrimRef& r : refs) {
-            const float lo = r.box.lo[best_axis], hi = r.box.hi[best_axis];
+        for (std::size_t i = 0; i < n; ++i) {
+            const float lo = refs[i].box.lo[best_axis], hi = refs[i].box.hi[best_axis];
             best_left += lo < best_split || (lo == best_split && hi == best_split) ? 1 : 0;
             best_right += hi > best_split || (lo == best_split && hi == best_split) ? 1 : 0;
         }
     }
 
-    Box3f lcell = cell, rcell = cell;
-    lcell.hi[best_axis] = best_split;
-    rcell.lo[best_axis] = best_split;
-    std::vector<PrimRef> left, right;
-    // The bin counts give the child sizes (planar references aside): no regrowth.
-    left.reserve(best_left + 16);
-    right.reserve(best_right + 16);
     // The SAH cannot see duplication: where triangles meet at a vertex (fans) or run
     // through many cells, a split can copy most references to both sides and still
     // score a gain on flat cells. A path may take a few such splits, then the node
@@ -411,14 +697,15 @@ void Builder::build(std::vector<PrimRef>& refs, const Box3f& cell, const Box3f& 
     constexpr int kMaxBadSplits = 3;
     const bool duplicating = 2 * (best_left + best_right) > 3 * n;
     if (duplicating && bad >= kMaxBadSplits) {
-        emit_leaf(refs, cell, depth, out);
+        emit_leaf(refs, n, cell, depth, out);
         return;
     }
-    Box3f lused, rused;
-    partition(refs, best_axis, best_split, lcell, rcell, left, right, lused, rused);
+    Box3f lcell = cell, rcell = cell;
+    lcell.hi[best_axis] = best_split;
+    rcell.lo[best_axis] = best_split;
+    const auto [left, right] = partition(rs, first, n, best_axis, best_split, lcell, rcell);
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
-    build_children(left, lcell, lused, right, rcell, rused, depth, bad + (duplicating ? 1 : 0), best_axis,
-                   best_split, out);
+    build_children(rs, left, right, depth, bad + (duplicating ? 1 : 0), best_axis, best_split, out);
 }
 
 }  // namespace
@@ -429,7 +716,10 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     if (soup.count >= KdNode::kMaxCount) throw std::length_error("too many triangles for an in-core kd-tree");
 
     // Reference creation is embarrassingly parallel; the pool is shared with rendering.
-    std::vector<PrimRef> refs(soup.count);
+    // Room for the path's references: measured peaks are 2.3x the triangles.
+    RefStack rs;
+    rs.reserve(std::max<std::size_t>(3 * soup.count, 16));
+    PrimRef* const refs = rs.data();
     ThreadPool& pool = ThreadPool::global();
     const std::size_t chunk = 1 << 16;
     const std::size_t chunks = (soup.count + chunk - 1) / chunk;
@@ -471,9 +761,9 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
         chunk_bounds[c] = bounds;
     }, params.threads);
     const std::size_t degenerate = static_cast<std::size_t>(
-        std::count_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id == kDropped; }));
-    refs.erase(std::remove_if(refs.begin(), refs.end(), [](const PrimRef& r) { return r.id >= kOutside; }),
-               refs.end());
+        std::count_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id == kDropped; }));
+    const std::size_t root_refs = static_cast<std::size_t>(
+        std::remove_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id >= kOutside; }) - refs);
     Box3f used;
     for (const Box3f& b : chunk_bounds) used.extend(b);
     tree.bounds = cell != nullptr ? *cell : used;
@@ -485,16 +775,28 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
         max_depth = std::min(max_depth, 60);
     }
     const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
-    Builder builder(soup, params, max_depth, threads);
+    const unsigned helpers = root_refs >= (1u << 14) ? threads - 1 : 0;  // small trees: one thread
+    Builder builder(soup, params, max_depth, helpers > 0);
     Output out;
-    out.nodes.reserve(soup.count * 2);
-    out.tri_ids.reserve(soup.count * 2);
-    builder.build(refs, tree.bounds, used, 0, 0, out);
+    // Measured: about one node and three leaf references per triangle.
+    out.nodes.reserve(soup.count + soup.count / 4 + 16);
+    out.tri_ids.reserve(3 * soup.count + 16);
+    {
+        std::vector<std::thread> help;
+        struct Join {
+            Builder& builder;
+            std::vector<std::thread>& threads;
+            ~Join() {
+                builder.end();
+                for (auto& t : threads) t.join();
+            }
+        } join{builder, help};
+        for (unsigned i = 0; i < helpers; ++i) help.emplace_back([&builder] { builder.help(); });
+        builder.build(rs, 0, root_refs, tree.bounds, used, 0, 0, out);
+    }
 
     tree.nodes = std::move(out.nodes);
     tree.tri_ids = std::move(out.tri_ids);
-    tree.nodes.shrink_to_fit();
-    tree.tri_ids.shrink_to_fit();
     tree.stats = out.stats;
     tree.stats.nodes = tree.nodes.size();
     tree.stats.degenerate = degenerate;

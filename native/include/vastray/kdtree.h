@@ -86,11 +86,16 @@ struct KdTree {
     }
 };
 
-// A triangle soup in model-local float coordinates (three vertices per triangle).
+// A triangle soup in model-local float coordinates: triangle t's three corners are the
+// nine floats at vertices + stride * t (stride 9: packed; more: records with other fields
+// after the corners, as the builder's are).
 struct TriangleSoup {
-    const Vec3f* vertices = nullptr;  // 3 * count vertices
+    const Vec3f* vertices = nullptr;
     std::size_t count = 0;
-    const Vec3f& v(std::size_t tri, int k) const { return vertices[3 * tri + static_cast<std::size_t>(k)]; }
+    std::size_t stride = 9;  // in floats
+    const Vec3f& v(std::size_t tri, int k) const {
+        return reinterpret_cast<const Vec3f*>(reinterpret_cast<const float*>(vertices) + stride * tri)[k];
+    }
 };
 
 // cell: the root cell when the tree is one subtree of a larger one (out-of-core build);

@@ -18,7 +18,6 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <unordered_map>
 #include <vector>
 
 #include "vastray/format.h"
@@ -42,17 +41,31 @@ struct ModelWriterStats {
     std::uint64_t stored_vertices = 0;
     std::uint64_t degenerate = 0;           // zero-area triangles left out
     std::uint64_t triangle_blocks = 0;
-    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels
+    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels (raw bytes)
     std::vector<std::uint64_t> level_nodes, level_voxels;  // nodes and LOD voxels per node level
-    std::uint64_t triangle_bytes = 0;
+    std::uint64_t triangle_bytes = 0;       // raw bytes of the triangle blocks
     double kd_build_ms = 0, emit_ms = 0;
     int max_depth = 0;
 };
 
-// Receives each finished raw block: level >= 0 is a node level, -1 the triangle level.
-using BlockSink = std::function<void(int level, const std::uint8_t* data, std::size_t size)>;
+// A finished block as the file stores it (docs/FORMAT.md §6): LZ4-compressed unless
+// that does not make it smaller, with the CRC-32 of the stored bytes.
+struct StoredBlock {
+    std::vector<std::uint8_t> bytes;
+    std::uint32_t raw_size = 0, crc32 = 0, codec = 0;
+};
+// Compresses and checksums one raw block.
+StoredBlock store_block(const std::vector<std::uint8_t>& raw);
+
+// Receives each finished block, in the order of its level: level >= 0 is a node level,
+// -1 the triangle level. Blocks of parts emitted in parallel are compressed on the
+// threads that made them; the sink is called from one thread at a time.
+using BlockSink = std::function<void(int level, StoredBlock&& block)>;
 // Reports leaf triangle references written so far (for progress bars).
 using ProgressSink = std::function<void(std::uint64_t references)>;
+
+// Bytes of one builder record (vastray/build.py writes them).
+inline std::size_t record_size(bool has_colours) { return 36 + 4 + (has_colours ? 4 : 0); }
 
 class ModelWriter {
 public:
@@ -61,12 +74,12 @@ public:
     ModelWriter(const ModelWriter&) = delete;
     ModelWriter& operator=(const ModelWriter&) = delete;
 
-    // Builds a kd-tree over n triangles (9 floats each, model-local) inside `cell`,
-    // whose root sits at depth 3 * level, and writes all of it except its root treelet,
-    // which stays pending under the returned handle. ids: input triangle indices;
-    // colours: 0x00BBGGRR per triangle or null.
-    int add_subtree(const float* corners, const std::uint32_t* ids, const std::uint32_t* colours,
-                    std::size_t n, const Box3f& cell, int level);
+    // Builds a kd-tree over n triangle records (record_size bytes each: nine f32 corners,
+    // model-local; the u32 input id; the u32 colour 0x00BBGGRR when the model has
+    // colours) inside `cell`, whose root sits at depth 3 * level, and writes all of it
+    // except its root treelet, which stays pending under the returned handle. The
+    // records are read in place (no copy) until the call returns.
+    int add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level);
 
     // A treelet of three median-split levels above eight pending children. Nodes are in
     // heap order (0 root, 1-2 its children, 3-6 grandchildren); child slot 2j + s

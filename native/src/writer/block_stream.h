@@ -1,0 +1,15 @@
+// Where a writer's finished raw blocks go: straight to the model's sink, or into a
+// buffer that a parallel part's merge hands on later.
+#pragma once
+
+#include <functional>
+
+#include "vastray/model_writer.h"
+
+namespace vastray::writer {
+
+// level >= 0: a node level; -1: the triangle level. Blocks arrive compressed
+// (store_block), on the thread that finished them.
+using BlockStream = std::function<void(int level, StoredBlock&& block)>;
+
+}  // namespace vastray::writer

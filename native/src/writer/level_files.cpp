@@ -1,0 +1,41 @@
+#include "writer/level_files.h"
+
+#include <cerrno>
+#include <cstring>
+#include <stdexcept>
+
+namespace vastray::writer {
+
+LevelFiles::~LevelFiles() {
+    for (auto& [level, f] : files_) std::fclose(f);
+}
+
+std::string LevelFiles::path(int level) const {
+    return dir_ + "/" + (level < 0 ? std::string("triangles.blk") : "level" + std::to_string(level) + ".blk");
+}
+
+void LevelFiles::write(int level, const StoredBlock& block) {
+    auto it = files_.find(level);
+    if (it == files_.end()) {
+        std::FILE* f = std::fopen(path(level).c_str(), "wb");
+        if (f == nullptr) throw std::runtime_error(path(level) + ": cannot create: " + std::strerror(errno));
+        std::setvbuf(f, nullptr, _IOFBF, 1 << 20);
+        it = files_.emplace(level, f).first;
+    }
+    if (std::fwrite(block.bytes.data(), 1, block.bytes.size(), it->second) != block.bytes.size()) {
+        throw std::runtime_error(path(level) + ": write failed: " + std::strerror(errno));
+    }
+    entries_[level].push_back({static_cast<std::uint32_t>(block.bytes.size()), block.raw_size, block.crc32, block.codec});
+}
+
+void LevelFiles::close() {
+    std::string failure;
+    for (auto& [level, f] : files_) {
+        if (std::fflush(f) != 0 && failure.empty()) failure = path(level) + ": write failed: " + std::strerror(errno);
+        std::fclose(f);
+    }
+    files_.clear();
+    if (!failure.empty()) throw std::runtime_error(failure);
+}
+
+}  // namespace vastray::writer

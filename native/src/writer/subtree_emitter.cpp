@@ -1,0 +1,142 @@
+#include "writer/subtree_emitter.h"
+
+#include <cstring>
+#include <stdexcept>
+#include <utility>
+
+#include "writer/voxel_sampling.h"
+
+namespace vastray::writer {
+
+using namespace format;
+
+void ProgressCounter::add(std::uint64_t n) {
+    std::lock_guard<std::mutex> lock(mutex);
+    references += n;
+    if (sink && references - reported >= (1u << 16)) {
+        reported = references;
+        sink(references);
+    }
+}
+
+SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
+    : p_(params), counter_(counter), out_(std::move(out)), defer_(defer), nodes(out_, stats),
+      triangles(params.has_colours, out_, stats) {}
+
+void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
+    const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,
+                                       p_.voxel_rays_per_axis);
+    const QuantisedVoxel q = quantise_voxel(s, p_.one_sample_colour, p_.one_sample_normal);
+    std::copy(q.samples, q.samples + q.count, node.samples);
+    node.sample_count = q.count;
+    (q.count == 1 ? stats.voxels_one : stats.voxels_six)++;
+    self.proxies.push_back({node.cell, q.seen});
+    if (defer_) {
+        Unit u{level + 1, {}};
+        for (const Pending* t : {a, b}) {
+            if (t == nullptr) continue;
+            for (const Patch& patch : t->patches) {
+                u.data.patches.push_back({static_cast<std::uint32_t>(u.data.bytes.size()) + patch.offset, patch.unit});
+            }
+            u.data.bytes.insert(u.data.bytes.end(), t->bytes.begin(), t->bytes.end());
+        }
+        node.unit = static_cast<int>(units_.size());
+        units_.push_back(std::move(u));
+    } else {
+        const auto [block, off] = nodes.place(level + 1, a, b);
+        node.child_block = block;
+        node.child_off8 = static_cast<std::uint32_t>(off / 8);
+    }
+    node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
+    const Vec3f e = node.cell.extent();
+    node.radius = 0.5f * length(e);
+}
+
+Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs) {
+    std::vector<TreeletNode> treelet;
+    treelet.reserve(7);
+    collect_kd_treelet(*tree_, root, cell, treelet);
+    Pending self;
+    auto child = [&](std::uint32_t kd_node, const Box3f& child_cell) {
+        Pending t;
+        if (jobs == nullptr || !(*jobs)(kd_node, t)) t = emit_kd_treelet(kd_node, child_cell, level + 1, jobs);
+        return t;
+    };
+    for (TreeletNode& n : treelet) {
+        if (n.kind == TreeletNode::Lod) {
+            const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
+            Pending l, r;
+            if (has_l) l = child(n.kd_left, child_cell(n.cell, n.axis, n.split, 0));
+            if (has_r) r = child(n.kd_right, child_cell(n.cell, n.axis, n.split, 1));
+            finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
+        } else if (n.kind == TreeletNode::Leaf) {
+            const KdNode& k = tree_->nodes[n.kd_node];
+            const std::uint32_t* tris = tree_->tri_ids.data() + k.first();
+            n.count = k.count();
+            if (n.count > kMaxLeafTriangles) throw std::length_error("kd-tree leaf too large for the format");
+            const auto [block, first] = triangles.add_leaf(tris, n.count, src_);
+            n.tri_block = block;
+            n.first = first;
+            self.proxies.push_back(leaf_proxy(src_, tris, n.count, n.cell));
+            stats.references += n.count;
+            counter_.add(n.count);
+        }
+    }
+    serialise(treelet, level, self);
+    return self;
+}
+
+void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& triangle_blocks, Pending& root) {
+    triangles.flush();
+    const std::uint32_t tri_base = triangles.blocks();
+    for (StoredBlock& block : triangle_blocks) {
+        stats.triangle_blocks++;
+        stats.triangle_bytes += block.raw_size;
+        triangles.skip_block();
+        out_(-1, std::move(block));
+    }
+    triangle_blocks.clear();
+    std::vector<std::pair<std::uint32_t, std::size_t>> placed(part.units_.size());
+    auto resolve = [&](Pending& t) {
+        for (const Patch& q : t.patches) {
+            std::uint8_t* at = t.bytes.data() + q.offset;
+            std::uint32_t w;
+            if (q.unit < 0) {
+                std::memcpy(&w, at, 4);
+                w += tri_base;
+                std::memcpy(at, &w, 4);
+                continue;
+            }
+            const auto [block, off] = placed[static_cast<std::size_t>(q.unit)];
+            std::memcpy(&w, at, 4);
+            w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(off / 8) << 17);
+            std::memcpy(at, &w, 4);
+            std::memcpy(at + 12, &block, 4);
+        }
+        t.patches.clear();
+    };
+    for (std::size_t u = 0; u < part.units_.size(); ++u) {
+        Unit& unit = part.units_[u];
+        resolve(unit.data);
+        placed[u] = nodes.place(unit.level, &unit.data, nullptr);
+    }
+    part.units_.clear();
+    resolve(root);
+    const ModelWriterStats& s = part.stats;
+    stats.basic_nodes += s.basic_nodes;
+    stats.lod_nodes += s.lod_nodes;
+    stats.leaves += s.leaves;
+    stats.empty_children += s.empty_children;
+    stats.voxels_one += s.voxels_one;
+    stats.voxels_six += s.voxels_six;
+    stats.references += s.references;
+    stats.stored_triangles += s.stored_triangles;
+    stats.stored_vertices += s.stored_vertices;
+    for (std::size_t level = 0; level < s.level_nodes.size(); ++level) {
+        ensure_level(stats, level);
+        stats.level_nodes[level] += s.level_nodes[level];
+        stats.level_voxels[level] += s.level_voxels[level];
+    }
+}
+
+}  // namespace vastray::writer

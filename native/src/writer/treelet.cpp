@@ -1,0 +1,115 @@
+#include "writer/treelet.h"
+
+#include <cstring>
+#include <stdexcept>
+
+namespace vastray::writer {
+
+using namespace format;
+
+void ensure_level(ModelWriterStats& stats, std::size_t level) {
+    if (stats.level_nodes.size() > level) return;
+    stats.level_blocks.resize(level + 1, 0);
+    stats.level_bytes.resize(level + 1, 0);
+    stats.level_nodes.resize(level + 1, 0);
+    stats.level_voxels.resize(level + 1, 0);
+}
+
+namespace {
+
+void collect(const KdTree& tree, std::uint32_t index, const Box3f& cell, int depth, std::vector<TreeletNode>& nodes) {
+    const KdNode& k = tree.nodes[index];
+    TreeletNode n;
+    n.cell = cell;
+    if (k.is_leaf()) {
+        n.kind = TreeletNode::Leaf;
+        n.kd_node = index;
+        nodes.push_back(n);
+        return;
+    }
+    n.axis = k.axis();
+    n.split = k.split();
+    n.empty = (k.left_empty() ? kLeftEmpty : 0u) | (k.right_empty() ? kRightEmpty : 0u);
+    const std::uint32_t left = index + 1, right = index + k.right_offset();
+    if (depth == kTreeletHeight - 1) {
+        n.kind = TreeletNode::Lod;
+        n.kd_left = left;
+        n.kd_right = right;
+        nodes.push_back(n);
+        return;
+    }
+    const std::size_t self = nodes.size();
+    nodes.push_back(n);
+    if (!k.left_empty()) {
+        nodes[self].left = static_cast<int>(nodes.size());
+        collect(tree, left, child_cell(cell, n.axis, n.split, 0), depth + 1, nodes);
+    }
+    if (!k.right_empty()) {
+        nodes[self].right = static_cast<int>(nodes.size());
+        collect(tree, right, child_cell(cell, n.axis, n.split, 1), depth + 1, nodes);
+    }
+}
+
+}  // namespace
+
+void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cell, std::vector<TreeletNode>& nodes) {
+    collect(tree, root, cell, 0, nodes);
+}
+
+void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out) {
+    ensure_level(stats, level);
+    stats.level_nodes[level] += nodes.size();
+    std::size_t cursor = 0;
+    for (TreeletNode& n : nodes) {
+        n.offset = cursor;
+        cursor += n.kind == TreeletNode::Lod ? 16 : 8;
+        std::uint64_t& kind_count = n.kind == TreeletNode::Lod    ? stats.lod_nodes
+                                    : n.kind == TreeletNode::Leaf ? stats.leaves
+                                                                  : stats.basic_nodes;
+        ++kind_count;
+        stats.empty_children += (n.empty & kLeftEmpty ? 1 : 0) + (n.empty & kRightEmpty ? 1 : 0);
+    }
+    std::size_t voxel_at[7] = {};
+    if (nodes.size() > 7) throw std::logic_error("a treelet has at most seven nodes");
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+        if (nodes[i].kind != TreeletNode::Lod) continue;
+        voxel_at[i] = cursor;
+        cursor += 4 * static_cast<std::size_t>(nodes[i].sample_count);
+    }
+    cursor = (cursor + 7) & ~std::size_t{7};
+    out.bytes.assign(cursor, 0);
+    auto put = [&](std::size_t at, std::uint32_t w) { std::memcpy(out.bytes.data() + at, &w, 4); };
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+        const TreeletNode& n = nodes[i];
+        switch (n.kind) {
+            case TreeletNode::Basic: {
+                const std::uint32_t right8 =
+                    n.right >= 0 ? static_cast<std::uint32_t>((nodes[static_cast<std::size_t>(n.right)].offset - n.offset) / 8) : 0;
+                put(n.offset, basic_word(n.axis, n.empty, right8));
+                put(n.offset + 4, float_bits(n.split));
+                break;
+            }
+            case TreeletNode::Lod: {
+                stats.level_voxels[level]++;
+                const auto voxel4 = static_cast<std::uint32_t>((voxel_at[i] - n.offset) / 4);
+                if (voxel4 > 127 || n.right_from_left8 > 63 || n.child_off8 > 8191) {
+                    throw std::logic_error("LOD node field overflow");
+                }
+                put(n.offset, lod_word(n.axis, n.empty, voxel4, n.right_from_left8, n.child_off8));
+                put(n.offset + 4, float_bits(n.split));
+                put(n.offset + 8, float_bits(n.radius));
+                put(n.offset + 12, n.child_block);
+                if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});
+                for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
+                break;
+            }
+            case TreeletNode::Leaf:
+                put(n.offset, leaf_word(n.first, n.count));
+                put(n.offset + 4, n.tri_block);
+                out.patches.push_back({static_cast<std::uint32_t>(n.offset + 4), -1});
+                break;
+        }
+    }
+}
+
+}  // namespace vastray::writer

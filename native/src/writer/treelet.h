@@ -1,0 +1,68 @@
+// The writer's in-memory form of a treelet (docs/FORMAT.md §7-8): up to seven nodes of
+// height 3 as they will be laid out, before and after serialisation.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "vastray/format.h"
+#include "vastray/kdtree.h"
+#include "vastray/model_writer.h"
+#include "writer/voxel_sampling.h"
+
+namespace vastray::writer {
+
+// A reference that the merge of a part emitted in parallel must resolve. unit < 0: the
+// u32 at `offset` is a triangle block id local to the part. unit >= 0: `offset` is a LOD
+// node whose child treelets are the part's placement unit `unit`, not yet in a block.
+struct Patch {
+    std::uint32_t offset;
+    int unit;
+};
+
+// A finished treelet waiting for its parent to place it.
+struct Pending {
+    std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes
+    std::vector<Proxy> proxies;       // what the LOD node above samples its voxel from
+    std::vector<Patch> patches;       // ids to resolve when a parallel part is merged
+};
+
+struct TreeletNode {
+    enum Kind { Basic, Lod, Leaf } kind = Basic;
+    int axis = 0;
+    float split = 0;
+    Box3f cell;
+    std::uint32_t empty = 0;                  // format::kLeftEmpty | format::kRightEmpty
+    int left = -1, right = -1;                // basic: indices of the children in the treelet
+    std::uint32_t kd_left = 0, kd_right = 0;  // LOD (in-core): kd-tree indices of the children
+    int child_handles[2] = {-1, -1};          // LOD (out of core): pending children
+    float radius = 0;
+    std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;
+    std::uint32_t samples[6] = {};
+    int sample_count = 0;
+    std::uint32_t kd_node = 0;  // leaf (in-core): its kd node
+    std::uint32_t tri_block = 0, first = 0, count = 0;
+    int unit = -1;  // LOD (deferred placement): the children's placement unit
+    std::size_t offset = 0;
+};
+
+inline Box3f child_cell(const Box3f& cell, int axis, float split, int side) {
+    Box3f c = cell;
+    (side == 0 ? c.hi : c.lo)[axis] = split;
+    return c;
+}
+
+// Grows the per-level statistics to hold node level `level`.
+void ensure_level(ModelWriterStats& stats, std::size_t level);
+
+// The nodes of the treelet rooted at kd node `root` (preorder; LOD nodes at depth 2
+// keep the kd indices of their children, which root the next level's treelets).
+void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cell, std::vector<TreeletNode>& nodes);
+
+// Lays out a finished treelet: nodes in preorder, then the voxels of its LOD nodes, padded
+// to 8 bytes. Leaves' triangle block ids are recorded as patches (a parallel part's ids
+// are local until it is merged). Counts every node in `stats`.
+void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out);
+
+}  // namespace vastray::writer

@@ -1,0 +1,142 @@
+// Triangle blocks (docs/FORMAT.md §11): leaf triangle lists packed into 64 KB blocks of
+// list entries, triangle records and vertices shared within the block (paper 000 §4.6).
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <cstring>
+#include <stdexcept>
+#include <utility>
+#include <vector>
+
+#include "vastray/format.h"
+#include "vastray/model_writer.h"
+#include "writer/block_stream.h"
+#include "writer/voxel_sampling.h"
+
+namespace vastray::writer {
+
+// Open addressing for the per-block dedup tables (at most a few thousand entries, so
+// a fixed table cleared through its used-slot list beats a node-based map).
+template <typename Key, typename Hash>
+class SmallMap {
+public:
+    explicit SmallMap(std::size_t capacity_log2)
+        : mask_((std::size_t{1} << capacity_log2) - 1), keys_(mask_ + 1), values_(mask_ + 1, kFree) {}
+    // Returns the value for key, inserting `fresh` if absent.
+    std::uint32_t find_or_insert(const Key& key, std::uint32_t fresh, bool& inserted) {
+        std::size_t i = Hash{}(key) & mask_;
+        for (;;) {
+            if (values_[i] == kFree) {
+                // Callers bound what a block can hold well below this; never loop forever.
+                if (4 * (used_.size() + 1) > 3 * (mask_ + 1)) throw std::length_error("block dedup table full");
+                keys_[i] = key;
+                values_[i] = fresh;
+                used_.push_back(i);
+                inserted = true;
+                return fresh;
+            }
+            if (keys_[i] == key) {
+                inserted = false;
+                return values_[i];
+            }
+            i = (i + 1) & mask_;
+        }
+    }
+    void clear() {
+        for (std::size_t i : used_) values_[i] = kFree;
+        used_.clear();
+    }
+
+private:
+    static constexpr std::uint32_t kFree = 0xffffffffu;
+    std::size_t mask_;
+    std::vector<Key> keys_;
+    std::vector<std::uint32_t> values_;
+    std::vector<std::size_t> used_;
+};
+
+struct IdHash {
+    std::size_t operator()(std::uint32_t v) const { return static_cast<std::size_t>(v * 0x9E3779B1u) >> 7; }
+};
+struct VertexKey {
+    std::uint32_t bits[3];  // the exact float bits of x, y, z
+    bool operator==(const VertexKey& o) const { return bits[0] == o.bits[0] && bits[1] == o.bits[1] && bits[2] == o.bits[2]; }
+};
+struct VertexHash {
+    std::size_t operator()(const VertexKey& k) const {
+        std::uint64_t h = k.bits[0] * 0x9E3779B97F4A7C15ull;
+        h ^= (h >> 29) + k.bits[1] * 0xBF58476D1CE4E5B9ull;
+        h ^= (h >> 31) + k.bits[2] * 0x94D049BB133111EBull;
+        return static_cast<std::size_t>(h ^ (h >> 32));
+    }
+};
+
+// The triangles a part's leaves refer to, indexed by the kd-tree's triangle ids: the
+// builder's records (docs/FORMAT.md, "Building a model"), `stride` bytes each: nine f32
+// corners (model-local), the u32 input id, and the u32 colour 0x00BBGGRR when the model
+// has colours; and one facet per triangle.
+struct TriangleSource {
+    const std::uint8_t* records = nullptr;
+    std::size_t stride = 40;
+    bool has_colours = false;
+    const Facet* facets = nullptr;
+
+    const Vec3f* corners(std::size_t t) const { return reinterpret_cast<const Vec3f*>(records + stride * t); }
+    std::uint32_t id(std::size_t t) const { return word(t, 36); }
+    std::uint32_t colour(std::size_t t) const { return word(t, 40); }
+
+private:
+    std::uint32_t word(std::size_t t, std::size_t at) const {
+        std::uint32_t w;
+        std::memcpy(&w, records + stride * t + at, 4);
+        return w;
+    }
+};
+
+class TriangleBlocks {
+public:
+    TriangleBlocks(bool has_colours, BlockStream& out, ModelWriterStats& stats)
+        : has_colours_(has_colours), out_(out), stats_(stats) {}
+
+    // Blocks closed so far: the id the next block gets.
+    std::uint32_t blocks() const { return blocks_; }
+    // A triangle block emitted elsewhere took the next id (parallel merge).
+    void skip_block() { ++blocks_; }
+
+    // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
+    // A leaf's list normally lies in one block. A leaf too big for one (a fan of
+    // thousands of triangles around a vertex, which no split can separate) continues
+    // at entry 0 of the following triangle blocks.
+    std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
+                                                     const TriangleSource& src);
+
+    // Closes the current block (if it holds anything) and emits it.
+    void flush();
+
+private:
+    format::TriangleBlockLayout layout() const {
+        return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_);
+    }
+    void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
+    // Inserts triangles into the current block; false when it stopped because the block
+    // certainly cannot hold them.
+    bool insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+
+    static constexpr std::size_t kMaxVertices = (format::kBlockSize - 16) / 12;
+    static constexpr std::size_t kMaxTriangles = (format::kBlockSize - 16) / 12;
+
+    bool has_colours_;
+    BlockStream& out_;
+    ModelWriterStats& stats_;
+    std::uint32_t blocks_ = 0;
+    std::vector<std::uint16_t> list_, tri_verts_;
+    std::vector<std::uint32_t> ids_, colours_;
+    std::vector<Vec3f> verts_;
+    // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
+    SmallMap<std::uint32_t, IdHash> id_map_{13};
+    SmallMap<VertexKey, VertexHash> vertex_map_{13};
+};
+
+}  // namespace vastray::writer
