@@ -25,6 +25,11 @@ import pytest
 
 from vastray import native
 
+# Child Pythons the tests start run from the repository root, where the source folder
+# `vastray/` (without the compiled module) would shadow the installed package: the tests
+# exercise the package as installed, so no child puts its working directory first.
+os.environ["PYTHONSAFEPATH"] = "1"
+
 FLOAT32_EPS = float(np.finfo(np.float32).eps)
 
 REPO_ROOT = Path(__file__).resolve().parent.parent

@@ -41,8 +41,10 @@ def chromium_path() -> str:
     return path
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
+    """Per module: Playwright's sync API keeps an event loop running on the main thread
+    while it is open, and tests after the browser tests call asyncio.run."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
