@@ -45,6 +45,7 @@ RENDER_PARAM_FIELDS: tuple[str, ...] = (
     "sample_index",
     "request_limit",
     "sections",
+    "highlight",
 )
 
 # Section planes: (nx, ny, nz, offset) each; geometry where n . p + offset < 0 is cut away.

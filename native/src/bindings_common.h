@@ -48,12 +48,43 @@ inline PlaneTuples from_sections(const std::vector<SectionPlane>& planes) {
     return out;
 }
 
+// Highlight runs as Python gives them: an (N, 2) integer array or a list of pairs.
+inline std::vector<TriangleRange> to_ranges(const py::object& ranges) {
+    using Int64Array = py::array_t<std::int64_t, py::array::c_style | py::array::forcecast>;
+    const auto arr = Int64Array::ensure(ranges);
+    if (!arr) throw std::invalid_argument("highlight must be an (N, 2) array of triangle id runs");
+    if (arr.size() == 0) return {};
+    if (arr.ndim() != 2 || arr.shape(1) != 2) {
+        throw std::invalid_argument("highlight must be an (N, 2) array of triangle id runs [first, end)");
+    }
+    std::vector<TriangleRange> out(static_cast<std::size_t>(arr.shape(0)));
+    const std::int64_t* v = arr.data();
+    for (std::size_t i = 0; i < out.size(); ++i) {
+        const std::int64_t first = v[2 * i], end = v[2 * i + 1];
+        if (first < 0 || end > std::int64_t{0xFFFFFFFF}) {
+            throw std::invalid_argument("highlight runs must hold triangle ids in [0, 2^32)");
+        }
+        out[i] = {static_cast<std::uint32_t>(first), static_cast<std::uint32_t>(end)};
+    }
+    return out;
+}
 // Hands a vector to numpy without a copy; the capsule frees it with the array.
 template <typename T>
 py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
     auto* heap = new std::vector<T>(std::move(v));
     py::capsule owner(heap, [](void* p) { delete static_cast<std::vector<T>*>(p); });
     return py::array_t<T>(shape, heap->data(), owner);
+}
+
+inline py::array_t<std::int64_t> from_ranges(const std::vector<TriangleRange>& ranges) {
+    std::vector<std::int64_t> flat;
+    flat.reserve(2 * ranges.size());
+    for (const auto& r : ranges) {
+        flat.push_back(r.first);
+        flat.push_back(r.end);
+    }
+    const auto n = static_cast<py::ssize_t>(ranges.size());
+    return to_numpy(std::move(flat), {n, 2});
 }
 
 // A frame as (image (H,W,3) uint8, depth (H,W) float32, prim (H,W) int32, FrameStats).

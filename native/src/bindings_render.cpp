@@ -119,13 +119,18 @@ void bind_render_types(py::module_& m) {
             "sections", [](const RenderParams& p) { return bindings::from_sections(p.sections); },
             [](RenderParams& p, const bindings::PlaneTuples& planes) { p.sections = bindings::to_sections(planes); },
             "section planes as (nx, ny, nz, offset): geometry where n . p + offset < 0 is cut away")
+        .def_property(
+            "highlight", [](const RenderParams& p) { return bindings::from_ranges(p.highlight); },
+            [](RenderParams& p, const py::object& ranges) { p.highlight = bindings::to_ranges(ranges); },
+            "highlighted triangles: sorted, disjoint runs [first, end) of input triangle ids, as an "
+            "(N, 2) integer array or a list of pairs")
         .def("validate", &RenderParams::validate, "ValueError naming the field and its range")
         .def("__copy__", [](const RenderParams& p) { return p; })
         .def(py::pickle([](const RenderParams& p) {
                             return py::make_tuple(std::string(shading_name(p.shading)), p.ao_samples, p.ao_distance,
                                                   to_list(p.sun_direction), p.threads, p.tile_size, p.packets,
                                                   p.pixels_of_error, p.solid_angle, p.sample_index, p.request_limit,
-                                                  bindings::from_sections(p.sections));
+                                                  bindings::from_sections(p.sections), bindings::from_ranges(p.highlight));
                         },
                         [](const py::tuple& t) {
                             RenderParams p;
@@ -141,6 +146,7 @@ void bind_render_types(py::module_& m) {
                             p.sample_index = t[9].cast<int>();
                             p.request_limit = t[10].cast<int>();
                             p.sections = bindings::to_sections(t[11].cast<bindings::PlaneTuples>());
+                            if (t.size() > 12) p.highlight = bindings::to_ranges(t[12]);
                             return p;
                         }));
 

@@ -67,6 +67,19 @@ void RenderParams::validate() const {
     if (sample_index < 0) throw std::invalid_argument("sample_index must be >= 0");
     if (request_limit < 0) throw std::invalid_argument("request_limit must be >= 0 (0: the cache's bound)");
     validate_sections(sections);
+    validate_highlight(highlight);
+}
+
+void validate_highlight(const std::vector<TriangleRange>& ranges) {
+    if (ranges.size() > kMaxHighlightRanges) {
+        throw std::invalid_argument("at most " + std::to_string(kMaxHighlightRanges) + " highlight ranges");
+    }
+    for (std::size_t i = 0; i < ranges.size(); ++i) {
+        if (ranges[i].first >= ranges[i].end) throw std::invalid_argument("a highlight range [first, end) must not be empty");
+        if (i > 0 && ranges[i].first < ranges[i - 1].end) {
+            throw std::invalid_argument("highlight ranges must be sorted and disjoint");
+        }
+    }
 }
 
 void validate_sections(const std::vector<SectionPlane>& planes) {

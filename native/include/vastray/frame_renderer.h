@@ -97,6 +97,12 @@ private:
 
 // A cut solid's cap: flat, in a colour no model part has by default, lit from the eye.
 inline Vec3f cap_colour() { return {0.86f, 0.38f, 0.26f}; }
+// Highlighted triangles: blended towards a blue no default model colour has (the cap is
+// orange), strongly enough to find a small part, weakly enough to keep its shading.
+inline Vec3f highlighted(const Vec3f& colour) {
+    constexpr float kMix = 0.6f;
+    return colour * (1 - kMix) + Vec3f(0.15f, 0.55f, 1.0f) * kMix;
+}
 
 // Rays traced by one lane; node and triangle counts live in the backend's lane.
 struct LaneRays {
@@ -155,6 +161,7 @@ private:
         Vec3f n[P], colour[P];
         int entered[P];         // the section plane a ray entered the kept side through, or -1
         std::uint32_t lit = 0;  // pixels that see the model
+        std::uint32_t marked = 0;  // pixels that see a highlighted triangle
     };
 
     template <int Side>
@@ -231,13 +238,22 @@ private:
             if (params_.shading != Shading::Normal && dot(b.n[i], dir) > 0) {
                 b.n[i] = -b.n[i];  // shade the side the viewer sees
             }
+            if (in_ranges(params_.highlight, frame_.prim[px])) {
+                b.marked |= 1u << i;
+                b.colour[i] = highlighted(b.colour[i]);  // the albedo, so every mode lights it
+            }
         }
         if (!b.lit) return;
         float light[P];
         switch (params_.shading) {
             case Shading::Normal:
                 for (int i = 0; i < P; ++i) {
-                    if (b.lit >> i & 1u) store(b, i, (b.n[i] + Vec3f(1, 1, 1)) * 0.5f);
+                    if (!(b.lit >> i & 1u)) continue;
+                    if (b.marked >> i & 1u) {
+                        store(b, i, highlighted((b.n[i] + Vec3f(1, 1, 1)) * 0.5f));
+                    } else {
+                        store(b, i, (b.n[i] + Vec3f(1, 1, 1)) * 0.5f);
+                    }
                 }
                 return;
             case Shading::Headlight:

@@ -43,6 +43,26 @@ constexpr std::size_t kMaxSectionPlanes = 6;
 // Throws std::invalid_argument for a zero or non-finite normal or offset, or too many.
 void validate_sections(const std::vector<SectionPlane>& planes);
 
+// A run of input triangle ids [first, end): how a highlight set reaches the renderer (a
+// part is one or more runs; vastray/parts.py turns part ids into runs).
+struct TriangleRange {
+    std::uint32_t first = 0, end = 0;
+};
+constexpr std::size_t kMaxHighlightRanges = std::size_t{1} << 22;
+// Throws std::invalid_argument unless the runs are non-empty, sorted and disjoint.
+void validate_highlight(const std::vector<TriangleRange>& ranges);
+// Whether input triangle `prim` lies in one of the sorted runs.
+inline bool in_ranges(const std::vector<TriangleRange>& ranges, std::int32_t prim) {
+    if (prim < 0 || ranges.empty()) return false;
+    const auto id = static_cast<std::uint32_t>(prim);
+    std::size_t lo = 0, hi = ranges.size();  // first run whose end lies past id
+    while (lo < hi) {
+        const std::size_t mid = (lo + hi) / 2;
+        if (ranges[mid].end <= id) lo = mid + 1; else hi = mid;
+    }
+    return lo < ranges.size() && ranges[lo].first <= id;
+}
+
 struct RenderParams {
     Shading shading = Shading::Headlight;
     int ao_samples = 8;
@@ -74,6 +94,10 @@ struct RenderParams {
     // Section planes (at most kMaxSectionPlanes): rays, primary and secondary, see only
     // what lies on the kept side of every plane.
     std::vector<SectionPlane> sections;
+    // Highlighted triangles (sorted, disjoint runs of input triangle ids): their surface
+    // colour is blended towards the highlight colour in every shading mode. A LOD voxel
+    // stands for many triangles and is never highlighted.
+    std::vector<TriangleRange> highlight;
 
     // Throws std::invalid_argument naming the field and its allowed range.
     void validate() const;

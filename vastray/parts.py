@@ -1,0 +1,51 @@
+"""Parts as the renderer and the server use them: a model's part of every input triangle
+is a table of runs over input triangle ids (`docs/FORMAT.md`, the parts section), and
+a highlight set of parts reaches the renderer as runs of triangle ids
+(`RenderParams.highlight`), so the native code needs no part table of its own."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+__all__ = ["highlight_ranges", "runs_from_ids"]
+
+
+def runs_from_ids(triangle_ids: np.ndarray, part_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs (first triangle id, part) of a mesh whose triangle `i` has input id
+    `triangle_ids[i]` and part `part_ids[i]`; ids missing from the mesh (dropped as
+    degenerate) join the run before them, which is harmless: no hit can name them."""
+    order = np.argsort(triangle_ids, kind="stable")
+    ids = np.asarray(triangle_ids, dtype=np.int64)[order]
+    parts = np.asarray(part_ids, dtype=np.int64)[order]
+    if ids.size == 0:
+        return np.zeros(0, np.uint32), np.zeros(0, np.int32)
+    starts = np.flatnonzero(np.r_[True, parts[1:] != parts[:-1]])
+    firsts = ids[starts]
+    firsts[0] = 0
+    return firsts.astype(np.uint32), parts[starts].astype(np.int32)
+
+
+def highlight_ranges(
+    firsts: np.ndarray, parts: np.ndarray, input_triangles: int, selected: Iterable[int]
+) -> np.ndarray:
+    """Sorted, disjoint runs [first, end) of the input triangle ids whose part is in
+    `selected`, as an (N, 2) int64 array for `RenderParams.highlight`; adjacent runs are
+    merged, so a part given as many runs costs the renderer no more than it must."""
+    chosen = np.fromiter((int(p) for p in selected), dtype=np.int64)
+    if chosen.size == 0 or len(firsts) == 0:
+        return np.zeros((0, 2), np.int64)
+    firsts = np.asarray(firsts, dtype=np.int64)
+    ends = np.r_[firsts[1:], np.int64(input_triangles)]
+    keep = np.isin(np.asarray(parts, dtype=np.int64), chosen) & (ends > firsts)
+    lo, hi = firsts[keep], ends[keep]
+    if lo.size == 0:
+        return np.zeros((0, 2), np.int64)
+    # Runs are in id order; a run that starts where the previous kept one ends joins it.
+    new = np.r_[True, lo[1:] != hi[:-1]]
+    group = np.cumsum(new) - 1
+    out = np.empty((int(group[-1]) + 1, 2), np.int64)
+    out[:, 0] = lo[new]
+    out[:, 1] = np.maximum.reduceat(hi, np.flatnonzero(new))
+    return out
