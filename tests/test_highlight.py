@@ -93,7 +93,11 @@ def test_highlight_ranges_match_brute_force() -> None:
 
 @pytest.mark.parametrize(
     ("ranges", "message"),
-    [([[5, 5]], "must not be empty"), ([[4, 9], [8, 12]], "sorted and disjoint"), ([[-1, 3]], r"\[0, 2\^32\)")],
+    [
+        ([[5, 5]], "must not be empty"),
+        ([[4, 9], [8, 12]], "sorted and disjoint"),
+        ([[-1, 3]], r"\[0, 2\^32\)"),
+    ],
 )
 def test_bad_highlights_are_refused(ranges: list[list[int]], message: str) -> None:
     with pytest.raises(ValueError, match=message):
