@@ -20,8 +20,8 @@ DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 COMPOSE = ROOT / "docker-compose.yml"
 
 
-def instructions() -> list[tuple[str, str]]:
-    """(INSTRUCTION, arguments) of the runtime stage, continuation lines joined."""
+def stages() -> list[list[tuple[str, str]]]:
+    """(INSTRUCTION, arguments) of each stage, continuation lines joined."""
     text = DOCKERFILE.read_text().replace("\\\n", " ")
     stages: list[list[tuple[str, str]]] = []
     for line in text.splitlines():
@@ -33,7 +33,17 @@ def instructions() -> list[tuple[str, str]]:
             stages.append([])
         stages[-1].append((word.upper(), rest.strip()))
     assert len(stages) == 2, "a build stage and a runtime stage"
-    return stages[1]
+    return stages
+
+
+def instructions() -> list[tuple[str, str]]:
+    """The runtime stage's instructions."""
+    return stages()[1]
+
+
+def apt_packages(stage: list[tuple[str, str]]) -> set[str]:
+    words = [w for word, rest in stage if word == "RUN" for w in shlex.split(rest)]
+    return {w for w in words if w[0].isalpha() and w not in {"apt-get", "install", "update", "rm", "pip"}}
 
 
 def env_of(runtime: list[tuple[str, str]]) -> dict[str, str]:
@@ -50,6 +60,26 @@ def exec_form(rest: str) -> list[str]:
     if rest.startswith("CMD "):
         rest = rest[4:]
     return json.loads(rest)
+
+
+def test_the_runtime_stage_has_every_library_the_native_module_links() -> None:
+    """The shared libraries the installed native module needs (ldd) beyond the C and C++
+    runtimes come from Debian packages the runtime stage installs, and their -dev
+    packages are in the build stage."""
+    import vastray.native
+
+    ldd = subprocess.run(["ldd", vastray.native.__file__], capture_output=True, text=True, check=True).stdout
+    paths = {line.split()[0]: line.split()[2] for line in ldd.splitlines() if "=>" in line}
+    base = ("libc.so", "libm.so", "libstdc++", "libgcc_s", "libpthread", "ld-linux", "libdl", "linux-vdso")
+    extra = {lib: path for lib, path in paths.items() if not lib.startswith(base)}
+    build, runtime = (apt_packages(stage) for stage in stages())
+    for lib, path in extra.items():
+        dpkg = subprocess.run(["dpkg", "-S", os.path.realpath(path)], capture_output=True, text=True)
+        owner = dpkg.stdout.split(":")[0]
+        assert owner in runtime, f"{lib} is Debian's {owner}, which the runtime stage lacks"
+        stem = owner.rstrip("0123456789.").removesuffix("-")
+        assert f"{stem}-dev" in build, f"no {stem}-dev in the build stage"
+    assert {"liblz4-1", "libdeflate0"} <= runtime and extra, "the codecs are linked from the distribution"
 
 
 def test_what_the_build_stage_copies_exists() -> None:
