@@ -198,7 +198,7 @@ def test_register_a_model_in_place(server: ServerProcess, api: httpx.Client, tmp
     assert path.is_file()
     assert api.get(f"/api/models/{model['id']}").status_code == 404
     # A mesh in the data directory starts a build (202).
-    shutil.copyfile(Path(scenes.__file__).parent.parent.parent / "README.md", folder / "notes.txt")
+    shutil.copyfile(Path(__file__).resolve().parents[2] / "README.md", folder / "notes.txt")  # any text
     r = api.post("/api/models", json={"path": "mine/notes.txt"})
     assert r.status_code == 415 and "unsupported file type" in r.json()["error"]["message"]
 
