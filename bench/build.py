@@ -612,7 +612,7 @@ def one_build(
             **{f"{p}_s": float(phases.get(p, 0.0)) for p in ("scan", "read", "split", "build", "write")},
             "kd_build_s": report["kd_build_ms"] / 1000.0,
             "emit_s": report["emit_ms"] / 1000.0,
-            "parts": report["parts"],
+            "parts": report.get("incore_parts", report["parts"]),  # in-core pieces (older reports: "parts")
             "ooc_levels": report["out_of_core_levels"],
             "incore_limit": report["incore_limit"],
             "peak_rss_bytes": int(report["peak_rss_bytes"]),

@@ -5,12 +5,15 @@ native/include/vastray/format.h alone, without the native decoder: treelets from
 root (level 0, block 0, offset 0), node cells from the root cell and the split planes,
 leaves with their triangles (input ids, float32 vertices, colours) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
-order (left before right).
+order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
+from the file's bytes alone, checking that it follows the last block to the file's end.
 """
 
 from __future__ import annotations
 
+import os
 import struct
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
@@ -207,3 +210,67 @@ class Walker:
 def walk(model: ModelFile) -> Iterator[Node]:
     """Every node of `model`, depth first, left before right."""
     return Walker(model).walk()
+
+
+@dataclass
+class PartsSection:
+    """The parts section as this walker reads it from the bytes alone (FORMAT.md §4a)."""
+
+    names: list[str]
+    lo: np.ndarray  # (P, 3) float64
+    hi: np.ndarray
+    triangles: np.ndarray  # (P,) uint64
+    run_firsts: np.ndarray  # (R,) uint32
+    run_parts: np.ndarray  # (R,) uint32, 0xFFFFFFFF for none
+
+
+def read_parts(path: str | os.PathLike[str]) -> PartsSection | None:
+    """Reads the header's parts fields and the parts section without ModelFile, checks
+    the file layout around it (the blocks end where it starts, it ends at file_size) and
+    its checksum; None when the file has no parts section."""
+    data = open(path, "rb").read()
+    version, _, flags = struct.unpack_from("<III", data, 8)
+    level_count = struct.unpack_from("<I", data, 28)[0]
+    block_count, index_offset, data_offset, _, file_size = struct.unpack_from("<5Q", data, 152)
+    if file_size != len(data):
+        raise WalkError("file_size differs from the file")
+    parts_offset, parts_size, parts_crc, part_count = (
+        struct.unpack_from("<QQII", data, 200) if version >= 2 else (0, 0, 0, 0)
+    )
+    # The blocks, in order, end where the parts section (or the file) starts.
+    entry_at = index_offset + 24 * level_count
+    end = data_offset
+    for i in range(block_count):
+        offset, stored = struct.unpack_from("<QI", data, entry_at + 24 * i)
+        if offset != end:
+            raise WalkError(f"block {i} does not follow the one before")
+        end = offset + stored
+    if not flags & 4:
+        if (parts_offset, parts_size, parts_crc, part_count) != (0, 0, 0, 0) or end != file_size:
+            raise WalkError("no parts flag, but parts fields or bytes after the blocks")
+        return None
+    if end != parts_offset or parts_offset + parts_size != file_size:
+        raise WalkError("the parts section does not follow the last block to the end of the file")
+    section = data[parts_offset:]
+    if zlib.crc32(section) != parts_crc:
+        raise WalkError("parts section checksum mismatch")
+    parts, runs = struct.unpack_from("<II", section, 0)
+    if parts != part_count:
+        raise WalkError("part counts differ")
+    names_at = 8 + 64 * parts + 8 * runs
+    lo, hi, tris, names = [], [], [], []
+    for i in range(parts):
+        rec = struct.unpack_from("<3d3dQII", section, 8 + 64 * i)
+        lo.append(rec[0:3])
+        hi.append(rec[3:6])
+        tris.append(rec[6])
+        names.append(section[names_at + rec[7] : names_at + rec[7] + rec[8]].decode("utf-8"))
+    table = struct.unpack_from(f"<{2 * runs}I", section, 8 + 64 * parts)
+    return PartsSection(
+        names,
+        np.array(lo, dtype=np.float64).reshape(-1, 3),
+        np.array(hi, dtype=np.float64).reshape(-1, 3),
+        np.array(tris, dtype=np.uint64),
+        np.array(table[0::2], dtype=np.uint32),
+        np.array(table[1::2], dtype=np.uint32),
+    )

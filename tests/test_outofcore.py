@@ -703,7 +703,7 @@ def test_full_detail_equals_in_core(built: Callable[[str], Built], name: str, sh
     depths, with the same colours."""
     model_built = built(name)
     if name == "out-of-core":
-        assert model_built.report["parts"] > 1 and model_built.report["out_of_core_levels"] >= 1
+        assert model_built.report["incore_parts"] > 1 and model_built.report["out_of_core_levels"] >= 1
     with ModelFile(model_built.path) as f:
         assert f.has_colours == (name != "bunny")
     for direction in ((1.0, 0.7, 1.3), (-0.6, -0.5, -1.0)):

@@ -148,7 +148,7 @@ class _Input:
     # Bounds of the input's vertices when known without a pass over its triangles
     # (indexed formats). The model centre is their midpoint, as in the in-core Scene.
     bounds: Callable[[], tuple[np.ndarray, np.ndarray] | None] = lambda: None
-    parts: int = 0  # named parts in the input (not stored in the model yet)
+    parts: int = 0  # named parts in the input (counted once the triangles have been read)
     source: Any = None  # the TriangleSource, whose counts become exact once it is read
 
 
@@ -175,8 +175,6 @@ def _open_input(source: str | os.PathLike[str], scratch: Path, scan: Callable[[i
     if is_model_file(path):
         raise ValueError(f"{path} is already a built model; build takes a mesh")
     stream = open_triangles(path, stage_dir=scratch, progress=scan)
-    parts = stream.parts if stream.parts else []
-    named = sum(1 for p in parts if p.object or p.group or p.material)
     return _Input(
         path.stem,
         stream.has_colours,
@@ -186,9 +184,141 @@ def _open_input(source: str | os.PathLike[str], scratch: Path, scan: Callable[[i
         True,
         stream.vertices,
         stream.vertex_bounds,
-        named,
+        0,
         stream,
     )
+
+
+def _input_part_names(src: _Input) -> list[str] | None:
+    """The display name of each of the input's parts (after its triangles were read: an
+    ASCII STL knows its solids only then), or None when it has none: no part list, or a
+    single unnamed part (an OBJ without o, g or usemtl), as vastray.ingest decides."""
+    parts = getattr(src.source, "parts", None)
+    if not parts or (len(parts) == 1 and not (parts[0].object or parts[0].group or parts[0].material)):
+        return None
+    return [modelfile.part_name(p.object, p.group, p.material) for p in parts]
+
+
+class _PartStats:
+    """What the read pass learns of the input's parts: per part (the reader's index) the
+    kept triangles and the bounds of their float32 local corners, and the runs of equal
+    part over input triangle ids (docs/FORMAT.md §4a). Vectorised per chunk; a chunk
+    without parts costs nothing."""
+
+    def __init__(self) -> None:
+        self.count = np.zeros(0, np.int64)
+        self.lo = np.zeros((0, 3), np.float32)
+        self.hi = np.zeros((0, 3), np.float32)
+        self.firsts: list[np.ndarray] = []
+        self.parts: list[np.ndarray] = []
+        self.last_part = -2  # no run yet
+        self.next_id = 0
+
+    def _grow(self, n: int) -> None:
+        if n > len(self.count):
+            k = n - len(self.count)
+            self.count = np.concatenate([self.count, np.zeros(k, np.int64)])
+            self.lo = np.concatenate([self.lo, np.full((k, 3), np.inf, np.float32)])
+            self.hi = np.concatenate([self.hi, np.full((k, 3), -np.inf, np.float32)])
+
+    def _runs(self, ids: np.ndarray, p: np.ndarray) -> None:
+        prev_next = np.empty_like(ids)
+        prev_next[0] = self.next_id
+        prev_next[1:] = ids[:-1] + 1
+        if ids[0] < self.next_id or (len(ids) > 1 and (ids[1:] <= ids[:-1]).any()):
+            raise RuntimeError("input triangle ids are not increasing")
+        prev_p = np.empty_like(p)
+        prev_p[0] = self.last_part
+        prev_p[1:] = p[:-1]
+        gap = ids != prev_next
+        change = (p != prev_p) | gap
+        first, part = ids[change], p[change]
+        if gap.any():  # ids the input left out are in no part
+            first = np.concatenate([first, prev_next[gap]])
+            part = np.concatenate([part, np.full(int(gap.sum()), -1, np.int64)])
+            order = np.argsort(first, kind="stable")
+            first, part = first[order], part[order]
+        self.last_part = int(p[-1])
+        self.next_id = int(ids[-1]) + 1
+        if len(part) == 0:  # the run goes on
+            return
+        before = np.empty_like(part)
+        before[0] = prev_p[0]
+        before[1:] = part[:-1]
+        keep = part != before
+        self.firsts.append(first[keep])
+        self.parts.append(part[keep])
+
+    def add(self, chunk: TriangleChunk, records: np.ndarray) -> None:
+        """records: the chunk's kept records, a structured view with fields c and id."""
+        if chunk.count == 0:
+            return
+        if chunk.parts is None and chunk.ids is None:
+            # No part for these ids, nor for any the input skipped before them.
+            if chunk.first < self.next_id:
+                raise RuntimeError("input triangle ids are not increasing")
+            if self.last_part != -1:
+                self.firsts.append(np.array([self.next_id], np.int64))
+                self.parts.append(np.array([-1], np.int64))
+            self.last_part, self.next_id = -1, chunk.first + chunk.count
+            return
+        ids = chunk.triangle_ids.astype(np.int64)
+        p = np.full(chunk.count, -1, np.int64) if chunk.parts is None else chunk.parts.astype(np.int64)
+        self._runs(ids, p)
+        if chunk.parts is None or len(records) == 0:
+            return
+        kept = records["id"].astype(np.int64)
+        pos = kept - chunk.first if chunk.ids is None else np.searchsorted(ids, kept)
+        pk = p[pos]
+        corners = records["c"].reshape(-1, 3, 3)
+        tlo, thi = corners.min(axis=1), corners.max(axis=1)
+        starts = np.concatenate([[0], np.flatnonzero(pk[1:] != pk[:-1]) + 1])
+        seg_part = pk[starts]
+        seg_lo = np.minimum.reduceat(tlo, starts, axis=0)
+        seg_hi = np.maximum.reduceat(thi, starts, axis=0)
+        seg_n = np.diff(np.concatenate([starts, [len(pk)]]))
+        named = seg_part >= 0
+        if not named.any():
+            return
+        seg_part, seg_lo, seg_hi, seg_n = seg_part[named], seg_lo[named], seg_hi[named], seg_n[named]
+        self._grow(int(seg_part.max()) + 1)
+        if len(seg_part) == 1:
+            k = int(seg_part[0])
+            self.count[k] += int(seg_n[0])
+            self.lo[k] = np.minimum(self.lo[k], seg_lo[0])
+            self.hi[k] = np.maximum(self.hi[k], seg_hi[0])
+        else:
+            np.add.at(self.count, seg_part, seg_n)
+            np.minimum.at(self.lo, seg_part, seg_lo)
+            np.maximum.at(self.hi, seg_part, seg_hi)
+
+    def table(self, names: list[str], centre: np.ndarray) -> modelfile.PartTable | None:
+        """The parts section: parts with kept triangles, in order of first use, their
+        bounds in world coordinates (centre + float32 local, in double)."""
+        self._grow(len(names))
+        firsts = np.concatenate(self.firsts) if self.firsts else np.zeros(1, np.int64)
+        parts = np.concatenate(self.parts) if self.parts else np.full(1, -1, np.int64)
+        if (parts >= len(names)).any():
+            raise RuntimeError("a triangle's part is outside the input's part list")
+        used = self.count[: len(names)] > 0
+        if not used.any():
+            return None
+        first_run = np.full(len(names), len(parts), np.int64)
+        named = parts >= 0
+        np.minimum.at(first_run, parts[named], np.flatnonzero(named))
+        order = [int(k) for k in np.argsort(first_run, kind="stable") if used[k]]
+        new = np.full(len(names), -1, np.int64)
+        new[order] = np.arange(len(order))
+        parts = np.where(named, new[np.where(named, parts, 0)], -1)
+        keep = np.concatenate([[True], parts[1:] != parts[:-1]])  # dropped parts join their neighbours
+        return modelfile.PartTable(
+            names=[names[k] for k in order],
+            lo=centre[None, :] + self.lo[order].astype(np.float64),
+            hi=centre[None, :] + self.hi[order].astype(np.float64),
+            triangles=self.count[order],
+            run_firsts=firsts[keep].astype(np.uint32),
+            run_parts=parts[keep],
+        )
 
 
 def _record_dtype(colours: bool) -> np.dtype:
@@ -432,6 +562,7 @@ class _Builder:
         table = self.src.vertices
         table_bytes = table.buffer() if table is not None else None
         centre_list = centre.tolist()
+        self.part_stats = _PartStats()
         try:
             for chunk in chunks(self.opt.chunk()):
                 ids = None if chunk.ids is None else chunk.ids.astype(np.uint32)
@@ -460,6 +591,7 @@ class _Builder:
                     rec, _, lo_k, hi_k, _ = native.make_records(
                         chunk.corners, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads
                     )
+                self.part_stats.add(chunk, rec.view(self.dtype).reshape(-1))
                 if len(rec):
                     box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
                     box_hi = np.maximum(box_hi, np.asarray(hi_k, dtype=np.float32))
@@ -568,6 +700,10 @@ class _Builder:
         lo, hi, chunks = self.bounds(scratch)
         t = self.timed("scan", t)
         records, first_split, count, total, centre, lo, hi = self.read(scratch, lo, hi, chunks)
+        names = _input_part_names(self.src)
+        part_table = self.part_stats.table(names, centre) if names is not None else None
+        self.src.parts = sum(1 for n in names if n != "(unnamed)") if names is not None else 0
+        del self.part_stats
         t = self.timed("read", t)
 
         limit = self.opt.incore_limit()
@@ -657,7 +793,7 @@ class _Builder:
                 path.unlink()
 
         with open(partial, "wb") as out:
-            size = modelfile.write_model_file(out, fields, levels, entries, blocks())
+            size = modelfile.write_model_file(out, fields, levels, entries, blocks(), part_table)
             out.flush()
             os.fsync(out.fileno())
         t = self.timed("write", t)
@@ -676,7 +812,8 @@ class _Builder:
             "bytes_per_triangle": size / count,
             "node_levels": node_levels,
             "blocks": len(entries),
-            "parts": len(parts),
+            "parts": len(part_table.names) if part_table is not None else 0,
+            "incore_parts": len(parts),
             "out_of_core_levels": _depth(tree),
             "incore_limit": limit,
             "seconds": time.perf_counter() - self.start,

@@ -214,12 +214,14 @@ def _cmd_build(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
     phases = ", ".join(f"{k} {v:.1f} s" for k, v in report["phase_seconds"].items() if v >= 0.05)
     parts = f" in {report['input_parts']:,} named parts" if report["input_parts"] else ""
+    stored = f", {report['parts']:,} parts stored" if report["parts"] else ""
     print(
         f"input      {report['input_triangles']:,} triangles{parts}; "
         f"{report['degenerate']:,} degenerate dropped (zero area or repeated corners)"
     )
     print(
-        f"built      {report['output']}: {report['triangles']:,} triangles in {report['seconds']:.1f} s "
+        f"built      {report['output']}: {report['triangles']:,} triangles{stored} "
+        f"in {report['seconds']:.1f} s "
         f"({report['input_triangles'] / max(1e-9, report['seconds']) / 1e6:.2f} Mtri/s; {phases})"
     )
     print(
@@ -230,7 +232,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
     print(
         f"memory     peak RSS {report['peak_rss_bytes'] / 2**20:.0f} MiB "
         f"(budget {options.memory / 2**20:.0f} MiB + {STATED_OVERHEAD_BYTES >> 20} MiB fixed overhead; "
-        f"{report['parts']} in-core part(s) of <= {report['incore_limit']:,} triangles)"
+        f"{report['incore_parts']} in-core part(s) of <= {report['incore_limit']:,} triangles)"
     )
     for warning in report["warnings"]:
         print(f"warning    {warning}")
@@ -259,6 +261,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         f"{stats['degenerate']:,} degenerate dropped), colours: {'yes' if stats['colours'] else 'no'}"
     )
     print(f"bounds     {_fmt(lo)} .. {_fmt(hi)}")
+    print(f"parts      {stats['part_count']:,}" + ("" if stats["part_count"] else " (the input named none)"))
     print(
         f"nodes      {stats['nodes']:,} ({stats['basic_nodes']:,} basic, {stats['lod_nodes']:,} LOD, "
         f"{stats['leaves']:,} leaves), {stats['references']:,} triangle references"

@@ -1,10 +1,11 @@
-"""The built-model file: header, block index and checksummed LZ4 blocks (docs/FORMAT.md).
+"""The built-model file: header, block index, checksummed LZ4 blocks and, when the input
+named parts, a parts section (docs/FORMAT.md).
 
-`ModelFile` opens a model, verifies its header and index, reads and verifies any
-block, reports statistics per LOD level, and decodes the whole model into an in-core
-scene for full-detail renders. The block contents (treelets, voxels, triangle blocks)
-are produced and walked by the native core; their bit layouts are in
-native/include/vastray/format.h.
+`ModelFile` opens a model, verifies its header, index and parts section, reads and
+verifies any block, reports statistics per LOD level, tells the part of any input
+triangle, and decodes the whole model into an in-core scene for full-detail renders.
+The block contents (treelets, voxels, triangle blocks) are produced and walked by the
+native core; their bit layouts are in native/include/vastray/format.h.
 """
 
 from __future__ import annotations
@@ -17,12 +18,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import numpy as np
+
 from vastray import native
 
 # The format's constants have one home, native/include/vastray/format.h.
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
-VERSION: int = _F["version"]
+VERSION: int = _F["version"]  # what the writer writes
+OLDEST_VERSION: int = _F["oldest_version"]  # version 1: version 2 without parts
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -30,7 +34,8 @@ CODEC_LZ4: int = _F["codec_lz4"]  # LZ4 block format, no frame
 CODEC_FAMILY_LZ4: int = _F["codec_family_lz4"]
 FLAG_COLOURS: int = _F["flag_colours"]
 FLAG_TRIANGLE_IDS: int = _F["flag_triangle_ids"]
-FLAG_PART_IDS: int = _F["flag_part_ids"]  # reserved: no input reader keeps part ids yet
+FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (version 2)
+NO_PART: int = _F["no_part"]  # a run's part for triangles in no part
 
 # Header fields in file order; the struct format is derived from this table so the two
 # cannot drift apart. (name, struct code)
@@ -61,19 +66,77 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
     ("file_size", "Q"),
     ("index_crc32", "I"),
     ("header_crc32", "I"),
+    # version 2: the parts section (all zero without one; padding in version 1)
+    ("parts_offset", "Q"),
+    ("parts_size", "Q"),
+    ("parts_crc32", "I"),
+    ("part_count", "I"),
 )
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
-_HEADER_CRC_AT = _HEADER_STRUCT.size - 4
+_HEADER_CRC_AT = _HEADER_STRUCT.size - 28
 assert _HEADER_STRUCT.size <= HEADER_SIZE and _HEADER_CRC_AT == _F["header_crc_at"]
+assert _HEADER_STRUCT.size - 24 == _F["parts_offset_at"]
 # first block, block count, then what the level holds: node levels count their nodes
 # and LOD voxels, the triangle level its triangle records and vertices.
 _LEVEL = struct.Struct("<IIQQ")
 _ENTRY = struct.Struct("<QIIII")  # offset, stored size, raw size, crc32 of stored bytes, codec
 assert _LEVEL.size == _F["level_record"] and _ENTRY.size == _F["entry_record"]
+# The parts section: part count and run count, then per part its world bounds (f64),
+# kept triangles and name (offset, length into the names blob), then the runs (first
+# input triangle id, part), then the names blob (UTF-8).
+_PARTS_HEAD = struct.Struct("<II")
+_PART = np.dtype([("lo", "<f8", (3,)), ("hi", "<f8", (3,)), ("triangles", "<u8"), ("name_offset", "<u4"),
+                  ("name_length", "<u4")])  # fmt: skip
+_RUN = np.dtype([("first", "<u4"), ("part", "<u4")])
+assert _PARTS_HEAD.size == _F["parts_head"] and _PART.itemsize == _F["part_record"]
+assert _RUN.itemsize == _F["run_record"]
 
 
 class ModelError(ValueError):
     """A model file that is not a model, is damaged, or has an unsupported version."""
+
+
+@dataclass(frozen=True)
+class ModelPart:
+    """One part of the input as stored in the model: `id` is its index in the part
+    table, `lo`/`hi` the world bounds of its kept triangles, `triangles` how many."""
+
+    id: int
+    name: str
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    triangles: int
+
+
+@dataclass(frozen=True)
+class PartTable:
+    """What the builder stores as a parts section (docs/FORMAT.md §4a)."""
+
+    names: list[str]
+    lo: np.ndarray  # (P, 3) float64 world bounds of each part's kept triangles
+    hi: np.ndarray
+    triangles: np.ndarray  # (P,) kept triangles per part
+    run_firsts: np.ndarray  # (R,) first input triangle id of each run, strictly increasing from 0
+    run_parts: np.ndarray  # (R,) part of each run, NO_PART (or -1) for none
+
+    def pack(self) -> bytes:
+        blob = bytearray()
+        records = np.zeros(len(self.names), _PART)
+        for i, name in enumerate(self.names):
+            data = name.encode("utf-8")
+            records[i]["name_offset"], records[i]["name_length"] = len(blob), len(data)
+            blob += data
+        records["lo"], records["hi"], records["triangles"] = self.lo, self.hi, self.triangles
+        runs = np.zeros(len(self.run_firsts), _RUN)
+        runs["first"] = self.run_firsts
+        runs["part"] = np.where(np.asarray(self.run_parts, np.int64) < 0, NO_PART, self.run_parts)
+        return _PARTS_HEAD.pack(len(records), len(runs)) + records.tobytes() + runs.tobytes() + bytes(blob)
+
+
+def part_name(obj: str, group: str, material: str) -> str:
+    """A part's display name: object, group and material joined by " / ", empty ones
+    left out; "(unnamed)" when all are empty."""
+    return " / ".join(n for n in (obj, group, material) if n) or "(unnamed)"
 
 
 @dataclass
@@ -113,10 +176,12 @@ def write_model_file(
     levels: list[tuple[int, int, int, int]],
     entries: list[tuple[int, int, int, int]],
     block_data: Iterator[bytes],
+    parts: PartTable | None = None,
 ) -> int:
-    """Writes header, index and blocks. `entries` are (stored size, raw size, crc, codec)
-    in block order; `block_data` yields the stored bytes in the same order (it may yield
-    them in larger runs). Returns the file size."""
+    """Writes header, index, blocks and (when `parts` is given) the parts section.
+    `entries` are (stored size, raw size, crc, codec) in block order; `block_data`
+    yields the stored bytes in the same order (it may yield them in larger runs).
+    Returns the file size."""
     index_size = _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
     data_offset = HEADER_SIZE + index_size
     index = bytearray()
@@ -126,7 +191,12 @@ def write_model_file(
     for stored, raw, crc, codec in entries:
         index += _ENTRY.pack(offset, stored, raw, crc, codec)
         offset += stored
+    section = parts.pack() if parts is not None else b""
     header = dict(fields)
+    if parts is not None:
+        header["flags"] = header["flags"] | FLAG_PART_IDS
+    else:
+        header["flags"] = header["flags"] & ~FLAG_PART_IDS
     header.update(
         magic=MAGIC,
         version=VERSION,
@@ -138,9 +208,13 @@ def write_model_file(
         index_offset=HEADER_SIZE,
         data_offset=data_offset,
         raw_bytes=sum(e[1] for e in entries),
-        file_size=offset,
+        file_size=offset + len(section),
         index_crc32=zlib.crc32(index),
         header_crc32=0,
+        parts_offset=offset if section else 0,
+        parts_size=len(section),
+        parts_crc32=zlib.crc32(section) if section else 0,
+        part_count=len(parts.names) if parts is not None else 0,
     )
     out.write(_pack_header(header))
     out.write(index)
@@ -150,7 +224,23 @@ def write_model_file(
         written += len(chunk)
     if written != offset:
         raise RuntimeError(f"wrote {written} bytes but the index describes {offset}")
-    return offset
+    out.write(section)
+    return offset + len(section)
+
+
+def part_of(firsts: np.ndarray, parts: np.ndarray, triangle_ids: Any, input_triangles: int) -> np.ndarray:
+    """The part of each triangle id from runs (`ModelFile.part_runs`): int32, -1 for
+    none, for ids < 0 and for ids >= input_triangles."""
+    ids = np.asarray(triangle_ids)
+    if ids.dtype.kind not in "iu":
+        raise TypeError(f"triangle ids must be integers, got {ids.dtype}")
+    ids = ids.astype(np.int64)
+    if len(firsts) == 0:
+        return np.full(ids.shape, -1, np.int32)
+    run = np.searchsorted(firsts.astype(np.int64), ids, side="right") - 1
+    out = parts[np.clip(run, 0, len(parts) - 1)].astype(np.int32)
+    out[(ids < 0) | (ids >= input_triangles) | (run < 0)] = -1
+    return out
 
 
 class ModelFile:
@@ -176,10 +266,10 @@ class ModelFile:
         if len(head) < HEADER_SIZE:
             raise self._fail(f"truncated: {size} bytes, shorter than the {HEADER_SIZE}-byte header")
         h = _unpack_header(head)
-        if h["version"] != VERSION:
+        if not OLDEST_VERSION <= h["version"] <= VERSION:
             raise self._fail(
-                f"format version {h['version']} is not supported (this vastray reads version {VERSION}); "
-                "rebuild the model with this version"
+                f"format version {h['version']} is not supported (this vastray reads versions "
+                f"{OLDEST_VERSION} to {VERSION}); rebuild the model with this version"
             )
         crc = zlib.crc32(head[:_HEADER_CRC_AT] + bytes(4) + head[_HEADER_CRC_AT + 4 :])
         if crc != h["header_crc32"]:
@@ -192,11 +282,15 @@ class ModelFile:
             raise self._fail("unsupported block or header size")
         if h["codec"] != CODEC_FAMILY_LZ4:
             raise self._fail(f"unsupported block codec family {h['codec']}")
-        if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~(FLAG_COLOURS | FLAG_TRIANGLE_IDS):
+        known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
+        if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
+        if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
+            h.update(parts_offset=0, parts_size=0, parts_crc32=0, part_count=0)
         self.header = h
+        blocks_end = self._open_parts(h, size)
         index_size = _LEVEL.size * h["level_count"] + _ENTRY.size * h["block_count"]
-        if h["index_offset"] + index_size != h["data_offset"] or h["data_offset"] > size:
+        if h["index_offset"] + index_size != h["data_offset"] or h["data_offset"] > blocks_end:
             raise self._fail("index does not fit the file")
         self._file.seek(h["index_offset"])
         index = self._file.read(index_size)
@@ -218,8 +312,79 @@ class ModelFile:
         if expected != len(self.blocks):
             raise self._fail("levels do not cover every block")
         for i, e in enumerate(self.blocks):
-            if e.offset < h["data_offset"] or e.offset + e.stored_size > size or e.raw_size > BLOCK_SIZE:
+            outside = e.offset < h["data_offset"] or e.offset + e.stored_size > blocks_end
+            if outside or e.raw_size > BLOCK_SIZE:
                 raise self._fail(f"block {i} lies outside the file or is oversized")
+
+    def _open_parts(self, h: dict[str, Any], size: int) -> int:
+        """Reads and checks the parts section (docs/FORMAT.md §4a, §13 checks 12-17);
+        returns where the blocks must end."""
+        self._parts: list[ModelPart] = []
+        self._run_firsts = np.zeros(0, np.uint32)
+        self._run_parts = np.zeros(0, np.int32)
+        fields = (h["parts_offset"], h["parts_size"], h["parts_crc32"], h["part_count"])
+        if not h["flags"] & FLAG_PART_IDS:
+            if any(fields):
+                raise self._fail("parts fields set without the part-ids flag")
+            return size
+        offset, length, crc, count = fields
+        if count == 0 or length < _PARTS_HEAD.size or offset > size or offset + length != size:
+            raise self._fail("parts section does not fit the file")
+        self._file.seek(offset)
+        data = self._file.read(length)
+        if len(data) != length or zlib.crc32(data) != crc:
+            raise self._fail("parts section damaged (checksum mismatch)")
+        parts, runs = _PARTS_HEAD.unpack_from(data)
+        names_at = _PARTS_HEAD.size + _PART.itemsize * parts + _RUN.itemsize * runs
+        if parts != count or runs == 0 or names_at > length:
+            raise self._fail("parts section does not match its counts")
+        records = np.frombuffer(data, _PART, parts, _PARTS_HEAD.size)
+        table = np.frombuffer(data, _RUN, runs, _PARTS_HEAD.size + _PART.itemsize * parts)
+        firsts = table["first"].copy()
+        if firsts[0] != 0 or (runs > 1 and not (np.diff(firsts.astype(np.int64)) > 0).all()):
+            raise self._fail("part runs are out of order")
+        if int(firsts[-1]) >= max(1, h["input_triangles"]):
+            raise self._fail("a part run starts past the last input triangle")
+        run_parts = table["part"]
+        if ((run_parts >= parts) & (run_parts != NO_PART)).any():
+            raise self._fail("a part run names a part outside the part table")
+        if int(records["triangles"].sum()) > h["triangle_count"]:
+            raise self._fail("the parts hold more triangles than the model")
+        blob = data[names_at:]
+        out: list[ModelPart] = []
+        for i, r in enumerate(records):
+            start, n = int(r["name_offset"]), int(r["name_length"])
+            if start + n > len(blob):
+                raise self._fail(f"part {i}: its name lies outside the names blob")
+            try:
+                name = blob[start : start + n].decode("utf-8")
+            except UnicodeDecodeError:
+                raise self._fail(f"part {i}: its name is not UTF-8") from None
+            lo = tuple(float(x) for x in r["lo"])
+            hi = tuple(float(x) for x in r["hi"])
+            out.append(ModelPart(i, name, lo, hi, int(r["triangles"])))  # type: ignore[arg-type]
+        self._parts = out
+        self._run_firsts = firsts
+        self._run_parts = np.where(run_parts == NO_PART, -1, run_parts).astype(np.int32)
+        return offset
+
+    # -- parts -----------------------------------------------------------------------------
+
+    @property
+    def parts(self) -> list[ModelPart]:
+        """The part table (empty when the input had no parts); `id` is the index."""
+        return list(self._parts)
+
+    @property
+    def part_runs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(first input triangle id of each run, uint32; its part, int32, -1 for none).
+        A run covers ids up to the next run's first - 1 (the last: up to input_triangles - 1)."""
+        return self._run_firsts.copy(), self._run_parts.copy()
+
+    def part_of(self, triangle_ids: np.ndarray) -> np.ndarray:
+        """The part (int32; -1 for none, for ids < 0 and past the input) of each input
+        triangle id."""
+        return part_of(self._run_firsts, self._run_parts, triangle_ids, self.header["input_triangles"])
 
     # -- properties ----------------------------------------------------------------------
 
@@ -325,6 +490,11 @@ class ModelFile:
             "input_triangles": h["input_triangles"],
             "degenerate": h["degenerate"],
             "colours": self.has_colours,
+            "part_count": len(self._parts),
+            "parts": [
+                {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}
+                for p in self._parts
+            ],
             "bounds": self.bounds,
             "centre": list(h["centre"]),
             "nodes": h["basic_nodes"] + h["lod_nodes"] + h["leaves"],

@@ -25,8 +25,10 @@ of the corners' vertex colours (PLY, OBJ `v x y z r g b`, OFF, glTF COLOR_0), el
 colour of the triangle's material when it is one explicit colour without a texture (OBJ
 `Kd`, glTF `baseColorFactor`); triangles without any in a file that has some are white
 (glTF's default for a primitive without material). Parts: OBJ `o`/`g`/`usemtl`, the
-solids of an ASCII STL and glTF's node/mesh/material give each triangle a part index
-into `parts` (a `PartName` per part, in order of first use).
+solids of an ASCII STL, glTF's node/mesh/material and a PLY integer face property
+(`part`, `part_id`, `object_id` or `group`; a part per value, named "part <value>")
+give each triangle a part index into `parts` (a `PartName` per part, in order of first
+use).
 """
 
 from __future__ import annotations
@@ -58,6 +60,8 @@ _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }  # fmt: skip
 _WHITE = np.array([255, 255, 255], dtype=np.uint8)
+# Integer PLY face properties that give a triangle's part, the first one present wins.
+PLY_PART_PROPERTIES = ("part", "part_id", "object_id", "group")
 
 
 class VertexTable:
@@ -530,6 +534,10 @@ class PlySource(TriangleSource):
         self._vertex = vertex
         self._vertex_colour = self._colour_props(vertex)
         self._face_colour = {e.name: self._colour_props(e) for e in self._faces}
+        self._part_prop = {e.name: self._part_property(e) for e in self._faces}
+        self._part_index: dict[int | None, int] = {}  # a part property's value (None: none) -> its part
+        if any(self._part_prop.values()):
+            self.parts = []
         self.has_colours = self._vertex_colour is not None or any(
             c is not None for c in self._face_colour.values()
         )
@@ -601,6 +609,53 @@ class PlySource(TriangleSource):
             if all(p is not None for p in props):
                 return names, any(p[0] in ("float", "float32", "double", "float64") for p in props if p)
         return None
+
+    @staticmethod
+    def _part_property(e: _PlyElement) -> str | None:
+        """The integer face property that gives each face's part, or None."""
+        for name in PLY_PART_PROPERTIES:
+            prop = next((p for p in e.props if p[0] != "list" and p[1] == name), None)
+            if prop is not None and np.dtype(_PLY_TYPES[prop[0]]).kind in "iu":
+                return name
+        return None
+
+    def _parts_of(self, values: np.ndarray) -> np.ndarray:
+        """Part indices (uint32) of part-property values, new values getting the next
+        index in order of first use."""
+        values = np.asarray(values).astype(np.int64)
+        if len(values) == 0:
+            return np.zeros(0, np.uint32)
+        unique, first, inverse = np.unique(values, return_index=True, return_inverse=True)
+        assert self.parts is not None
+        for k in np.argsort(first, kind="stable"):
+            v = int(unique[k])
+            if v not in self._part_index:
+                self._part_index[v] = len(self.parts)
+                self.parts.append(PartName(object=f"part {v}"))
+        lut = np.array([self._part_index[int(v)] for v in unique], dtype=np.uint32)
+        return lut[inverse.reshape(-1)]
+
+    def _unnamed(self, count: int) -> np.ndarray | None:
+        """Parts of faces of an element without the part property (in a file where
+        another has it): one unnamed part. None when the file has no part property."""
+        if self.parts is None:
+            return None
+        index = self._part_index.get(None)
+        if index is None:
+            index = self._part_index[None] = len(self.parts)
+            self.parts.append(PartName())
+        return np.full(count, index, np.uint32)
+
+    def _row_parts(self, e: _PlyElement, rows: dict[str, Any], row: np.ndarray) -> np.ndarray | None:
+        """Per triangle (rows: each triangle's face row) its part, or None."""
+        name = self._part_prop.get(e.name)
+        if name is None:
+            return self._unnamed(len(row))
+        scalars = [p[1] for p in e.props if p[0] != "list"]
+        values = rows["scalars"][:, scalars.index(name)]
+        if len(values) and not np.isfinite(values).all():
+            raise self.fail(f"{e.name} property {name!r} is not an integer")
+        return self._parts_of(np.asarray(values)[row])
 
     def _least_row_bytes(self, e: _PlyElement) -> int:
         """The fewest bytes a binary row of `e` takes (a face lists at least three vertices)."""
@@ -707,6 +762,10 @@ class PlySource(TriangleSource):
                 f"triangle {first + bad} refers to vertex {int(tris[bad].min())}, which no file has"
             )
         stage.append("tri", tris.astype("<u4"))
+        if self.parts is not None:
+            part = self._row_parts(e, rows, row)
+            assert part is not None
+            stage.append("part", part)
         if self.has_colours:
             rgb = face_colours[row] if face_colours is not None else np.zeros((len(row), 3), np.uint8)
             flag = np.full(len(row), face_colours is not None, dtype=np.uint8)
@@ -820,7 +879,11 @@ class PlySource(TriangleSource):
                                 rgb[:, c] = _to_u8(block[n][:k], is_float)
                             rgb[:, 3] = 1
                         colours = self._colours(tris, rgb)
-                    yield TriangleChunk(first, k, indices=tris, vertices=self.vertices, colours=colours)
+                    name = self._part_prop.get(e.name)
+                    parts = self._parts_of(block[name][:k]) if name is not None else self._unnamed(k)
+                    yield TriangleChunk(
+                        first, k, indices=tris, vertices=self.vertices, colours=colours, parts=parts
+                    )
                     first += k
                     done += k
                 if k < len(block):
@@ -845,12 +908,13 @@ class PlySource(TriangleSource):
                 if face_colours is not None:
                     rgb = np.concatenate([face_colours[row], np.ones((len(row), 1), np.uint8)], axis=1)
                 colours = self._colours(tris, rgb)
+            parts = self._row_parts(e, rows, row)
             for at_tri in range(0, len(tris), size):  # polygons give several triangles a row
                 stop = min(len(tris), at_tri + size)
                 part_colours = None if colours is None else colours[at_tri:stop]
                 yield TriangleChunk(
                     first + at_tri, stop - at_tri, indices=tris[at_tri:stop], vertices=self.vertices,
-                    colours=part_colours,
+                    colours=part_colours, parts=None if parts is None else parts[at_tri:stop],
                 )  # fmt: skip
             first += len(tris)
         end[0] = stream.position
@@ -1108,11 +1172,11 @@ def _staged_chunks(stage: _Stage, source: TriangleSource, size: int) -> Iterator
     table = source.vertices
     assert table is not None
     first = 0
-    for tris, rgb in stage.rows(["tri", "rgb"], size):
+    for tris, rgb, part in stage.rows(["tri", "rgb", "part"], size):
         assert tris is not None
         indices = tris.astype(np.int64)
         colours = _triangle_colours(table, indices, rgb) if source.has_colours else None
-        yield TriangleChunk(first, len(tris), indices=indices, vertices=table, colours=colours)
+        yield TriangleChunk(first, len(tris), indices=indices, vertices=table, colours=colours, parts=part)
         first += len(tris)
 
 

@@ -227,6 +227,7 @@ PYBIND11_MODULE(native, m) {
     py::dict fmt;
     fmt["magic"] = py::bytes(reinterpret_cast<const char*>(format::kMagic), sizeof format::kMagic);
     fmt["version"] = format::kVersion;
+    fmt["oldest_version"] = format::kOldestVersion;
     fmt["header_size"] = format::kHeaderSize;
     fmt["header_crc_at"] = format::kHeaderCrcAt;
     fmt["block_size"] = format::kBlockSize;
@@ -238,6 +239,11 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_part_ids"] = format::kFlagPartIds;
     fmt["level_record"] = format::kLevelRecord;
     fmt["entry_record"] = format::kEntryRecord;
+    fmt["parts_offset_at"] = format::kPartsOffsetAt;
+    fmt["parts_head"] = format::kPartsHead;
+    fmt["part_record"] = format::kPartRecord;
+    fmt["run_record"] = format::kRunRecord;
+    fmt["no_part"] = format::kNoPart;
     m.attr("FORMAT") = fmt;
 
     m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),

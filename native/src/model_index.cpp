@@ -58,8 +58,10 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
             throw fail("truncated: shorter than the 256-byte header");
         }
         const auto version = load<std::uint32_t>(h + 8);
-        if (version != kVersion) {
-            throw fail("format version " + std::to_string(version) + " is not supported (this vastray reads version " + std::to_string(kVersion) + ")");
+        if (version < kOldestVersion || version > kVersion) {
+            throw fail("format version " + std::to_string(version) + " is not supported (this vastray reads versions " +
+                       std::to_string(kOldestVersion) + " to " + std::to_string(kVersion) +
+                       "); rebuild the model with this version");
         }
         std::uint8_t zeroed[kHeaderSize];
         std::memcpy(zeroed, h, kHeaderSize);
@@ -74,8 +76,28 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         }
         if (load<std::uint32_t>(h + 24) != kCodecFamilyLz4) throw fail("unsupported block codec family");
         const auto flags = load<std::uint32_t>(h + 16);
-        if (!(flags & kFlagTriangleIds) || (flags & ~(kFlagColours | kFlagTriangleIds))) {
+        const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u);
+        if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
+        }
+        // The parts section (version 2; docs/FORMAT.md §4a): the blocks end where it starts.
+        std::uint64_t blocks_end = size;
+        if (version >= 2) {
+            const auto parts_offset = load<std::uint64_t>(h + kPartsOffsetAt);
+            const auto parts_size = load<std::uint64_t>(h + kPartsSizeAt);
+            const auto parts_crc = load<std::uint32_t>(h + kPartsCrcAt);
+            part_count_ = load<std::uint32_t>(h + kPartCountAt);
+            if (!(flags & kFlagPartIds)) {
+                if (parts_offset || parts_size || parts_crc || part_count_) throw fail("parts fields set without the part-ids flag");
+            } else {
+                if (part_count_ == 0 || parts_size < kPartsHead || parts_offset > size || parts_size != size - parts_offset) {
+                    throw fail("parts section does not fit the file");
+                }
+                std::vector<std::uint8_t> section(parts_size);
+                if (!read_exact(fd_, section.data(), section.size(), parts_offset)) throw fail("cannot read the parts section");
+                if (crc32(section.data(), section.size()) != parts_crc) throw fail("parts section damaged (checksum mismatch)");
+                blocks_end = parts_offset;
+            }
         }
         has_colours_ = (flags & kFlagColours) != 0;
         const auto level_count = load<std::uint32_t>(h + 28);
@@ -91,7 +113,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         const auto data_offset = load<std::uint64_t>(h + 168);
         if (level_count < 2 || block_count == 0 || block_count > (1ull << 32)) throw fail("implausible level or block count");
         const std::uint64_t index_size = kLevelRecord * level_count + kEntryRecord * block_count;
-        if (index_offset + index_size != data_offset || data_offset > size) throw fail("index does not fit the file");
+        if (index_offset + index_size != data_offset || data_offset > blocks_end) throw fail("index does not fit the file");
         std::vector<std::uint8_t> index(index_size);
         if (!read_exact(fd_, index.data(), index.size(), index_offset)) throw fail("cannot read the block index");
         if (crc32(index.data(), index.size()) != load<std::uint32_t>(h + 192)) {
@@ -116,7 +138,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
             b.raw_size = load<std::uint32_t>(e + 12);
             b.crc32 = load<std::uint32_t>(e + 16);
             b.codec = load<std::uint32_t>(e + 20);
-            if (b.offset < data_offset || b.offset + b.stored_size > size || b.raw_size > kBlockSize ||
+            if (b.offset < data_offset || b.offset + b.stored_size > blocks_end || b.raw_size > kBlockSize ||
                 b.stored_size > kBlockSize + kBlockSize / 255 + 16) {
                 throw fail("block " + std::to_string(i) + " lies outside the file or is oversized");
             }

@@ -25,15 +25,21 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 1;
+constexpr std::uint32_t kVersion = 2;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: version 1 is version 2 without parts
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
 constexpr std::uint32_t kCodecFamilyLz4 = 1;  // the header's codec field
 constexpr std::uint32_t kFlagColours = 1u << 0;
 constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
-constexpr std::uint32_t kFlagPartIds = 1u << 2;  // reserved: no reader keeps part ids yet
+constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
+// The parts section (version 2): header fields at these offsets (zero without parts),
+// then u32 part_count, u32 run_count, part records, runs and the names blob.
+constexpr std::size_t kPartsOffsetAt = 200, kPartsSizeAt = 208, kPartsCrcAt = 216, kPartCountAt = 220;
+constexpr std::size_t kPartsHead = 8, kPartRecord = 64, kRunRecord = 8;
+constexpr std::uint32_t kNoPart = 0xFFFFFFFFu;  // a run of triangles in no part
 
 // ---- node word 0 ---------------------------------------------------------------------
 // inner nodes (bit 31 set):  bits 0-1 split axis, bit 2 left child empty, bit 3 right

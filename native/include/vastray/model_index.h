@@ -32,6 +32,7 @@ public:
     std::uint64_t triangle_count() const { return triangle_count_; }
     std::uint64_t input_triangles() const { return input_triangles_; }
     std::uint64_t file_size() const { return file_size_; }
+    std::uint32_t part_count() const { return part_count_; }  // 0 without a parts section
     std::size_t block_count() const { return entries_.size(); }
     std::size_t level_count() const { return level_first_.size() - 1; }
     // First global block id of each level; one extra entry holds block_count.
@@ -52,6 +53,7 @@ private:
     Vec3d centre_;
     Box3f root_cell_;
     std::uint64_t triangle_count_ = 0, input_triangles_ = 0, file_size_ = 0;
+    std::uint32_t part_count_ = 0;
     std::vector<std::uint32_t> level_first_;
     std::vector<BlockEntry> entries_;
 };
