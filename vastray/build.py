@@ -270,12 +270,20 @@ class _PartStats:
         kept = records["id"].astype(np.int64)
         pos = kept - chunk.first if chunk.ids is None else np.searchsorted(ids, kept)
         pk = p[pos]
-        corners = records["c"].reshape(-1, 3, 3)
-        tlo, thi = corners.min(axis=1), corners.max(axis=1)
+        # Per segment of equal part (few: parts are contiguous in most inputs), the
+        # bounds of its nine corner coordinates, then of its three corners.
         starts = np.concatenate([[0], np.flatnonzero(pk[1:] != pk[:-1]) + 1])
+        c = records["c"]
+        if len(starts) > 64 and len(starts) > len(pk) // 64:
+            # Interleaved parts (a PLY face property can be): group the records by part.
+            order = np.argsort(pk, kind="stable")
+            pk, c = pk[order], c[order]
+            starts = np.concatenate([[0], np.flatnonzero(pk[1:] != pk[:-1]) + 1])
         seg_part = pk[starts]
-        seg_lo = np.minimum.reduceat(tlo, starts, axis=0)
-        seg_hi = np.maximum.reduceat(thi, starts, axis=0)
+        lo9 = np.minimum.reduceat(c, starts, axis=0)
+        hi9 = np.maximum.reduceat(c, starts, axis=0)
+        seg_lo = np.minimum(np.minimum(lo9[:, 0:3], lo9[:, 3:6]), lo9[:, 6:9])
+        seg_hi = np.maximum(np.maximum(hi9[:, 0:3], hi9[:, 3:6]), hi9[:, 6:9])
         seg_n = np.diff(np.concatenate([starts, [len(pk)]]))
         named = seg_part >= 0
         if not named.any():
