@@ -14,7 +14,7 @@ from urllib.parse import parse_qs, urlsplit, urlunsplit
 import httpx
 
 from vastray.client.frames import Frame, decode_image
-from vastray.schemas import TERMINAL_JOB_STATES, JobInfo, ModelInfo, PickHit, TokenInfo, UploadInfo
+from vastray.schemas import TERMINAL_JOB_STATES, JobInfo, ModelInfo, PartInfo, PickHit, TokenInfo, UploadInfo
 
 UPLOAD_CHUNK = 1 << 20
 
@@ -101,6 +101,13 @@ class AsyncClient:
 
     async def model(self, model: str | ModelInfo) -> ModelInfo:
         return ModelInfo(**await self._json("GET", f"/api/models/{_model_id(model)}"))
+
+    async def parts(self, model: str | ModelInfo, query: str = "", *, limit: int = 20_000) -> list[PartInfo]:
+        """The model's parts whose name contains `query` (ignoring case)."""
+        found = await self._json(
+            "GET", f"/api/models/{_model_id(model)}/parts", params={"q": query, "limit": limit}
+        )
+        return [PartInfo(**p) for p in found["parts"]]
 
     async def upload(self, path: str | Path, *, name: str | None = None, register: bool = True) -> UploadInfo:
         """Uploads a mesh or a built model, streamed from disk. With `register` a built

@@ -254,6 +254,16 @@ class AsyncView:
         """shading, pixels_of_error, ao_samples, jpeg_quality, refine, target_fps, ..."""
         await self._send({"type": "quality", **changes})
 
+    async def set_sections(self, planes: list[tuple[float, float, float, float]]) -> None:
+        """Section planes (nx, ny, nz, offset): geometry where n . p + offset < 0 is cut."""
+        await self._send(
+            {"type": "sections", "planes": [{"normal": list(p[:3]), "offset": p[3]} for p in planes]}
+        )
+
+    async def set_highlight(self, parts: list[int]) -> None:
+        """Parts to highlight (ids of the model's part table; `Client.parts` lists them)."""
+        await self._send({"type": "highlight", "parts": [int(p) for p in parts]})
+
     # -- frames ----------------------------------------------------------------------------
 
     async def next_frame(self, timeout: float | None = 30.0) -> Frame:
@@ -281,13 +291,30 @@ class AsyncView:
                 return frame
 
     async def screenshot(self, timeout: float = 120.0) -> Frame:
-        """A lossless PNG of the view once it is finished."""
+        """A lossless PNG of the view once it is finished. Frames that arrive meanwhile
+        are taken and acknowledged (and not returned by `next_frame`): the server sends
+        the finished view only when the frames before it were acknowledged."""
         self._counter += 1
         shot_id = f"s{self._counter}"
         future: asyncio.Future[Frame] = asyncio.get_running_loop().create_future()
         self._shots[shot_id] = future
         await self._send({"type": "screenshot", "id": shot_id})
-        return await asyncio.wait_for(future, timeout)
+        deadline = time.monotonic() + timeout
+        while not future.done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"no screenshot within {timeout} s")
+            taking = asyncio.ensure_future(self._frames.get())
+            await asyncio.wait({future, taking}, timeout=left, return_when=asyncio.FIRST_COMPLETED)
+            if not taking.done():
+                taking.cancel()
+                continue
+            frame = taking.result()
+            if frame.image is None:
+                raise self._failure or VastrayError(0, "closed", "the view closed")
+            assert frame.header is not None
+            await self._ack(frame.header.frame)
+        return future.result()
 
     async def pick(self, points: Sequence[tuple[float, float]], timeout: float = 10.0) -> list[PickHit]:
         """Full-detail hits of image points (pixels of the viewport) of the current camera."""

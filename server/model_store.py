@@ -21,6 +21,7 @@ from typing import Any
 
 from vastray.modelfile import FLAG_COLOURS, FLAG_PART_IDS, ModelError, ModelFile
 from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.parts import PartTable
 from vastray.schemas import LevelInfo, ModelInfo
 from vastray.server.errors import ApiError
 from vastray.server.registry import JobRow, ModelRow, Registry
@@ -38,6 +39,7 @@ def describe_file(path: Path) -> dict[str, Any]:
     with ModelFile(path) as f:
         stats = f.stats()
         flags = f.header["flags"]
+        part_count = len(f.parts)
     lo, hi = stats["bounds"]
     return {
         "triangles": stats["triangles"],
@@ -48,6 +50,7 @@ def describe_file(path: Path) -> dict[str, Any]:
         "lod_levels": len(stats["levels"]) - 1,
         "colours": bool(flags & FLAG_COLOURS),
         "part_ids": bool(flags & FLAG_PART_IDS),
+        "part_count": part_count,
         "format_version": stats["version"],
         "levels": [
             {k: lv.get(k) for k in ("level", "blocks", "raw_bytes", "stored_bytes", "nodes", "voxels")}
@@ -65,6 +68,7 @@ class ModelStore:
         self.cache = make_cache(cache_bytes, fetchers)
         self._lock = threading.Lock()
         self._open: dict[str, OutOfCoreModel] = {}
+        self._parts: dict[str, PartTable] = {}
         self._leases: dict[str, int] = {}
 
     # -- reading ---------------------------------------------------------------------------
@@ -89,6 +93,7 @@ class ModelStore:
             lod_levels=i.get("lod_levels"),
             colours=i.get("colours"),
             part_ids=i.get("part_ids"),
+            part_count=i.get("part_count", 0),
             levels=[LevelInfo(**lv) for lv in i.get("levels", [])] or None,
             build=i.get("build"),
             in_use=in_use,
@@ -120,6 +125,8 @@ class ModelStore:
             if model is None:
                 try:
                     model = OutOfCoreModel(self.data_dir / str(row.file), self.cache)
+                    with ModelFile(self.data_dir / str(row.file)) as f:
+                        self._parts[model_id] = PartTable.of_file(f)
                 except ModelError as exc:
                     raise ApiError(
                         500, "model_damaged", f"model {model_id} cannot be opened: {exc}"
@@ -127,6 +134,11 @@ class ModelStore:
                 self._open[model_id] = model
             self._leases[model_id] = self._leases.get(model_id, 0) + 1
             return model
+
+    def parts(self, model_id: str) -> PartTable:
+        """The part table of a model this caller holds a lease on."""
+        with self._lock:
+            return self._parts[model_id]
 
     def release(self, model_id: str) -> None:
         with self._lock:
@@ -226,6 +238,7 @@ class ModelStore:
             if self._leases.get(row.id):
                 return
             model = self._open.pop(row.id, None)
+            self._parts.pop(row.id, None)
         if model is not None:
             model.close()
         if row.file and row.info.get("owned", True):

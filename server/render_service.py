@@ -17,6 +17,7 @@ import numpy as np
 
 from vastray.camera import Camera, resolve_camera
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, RenderCancelledError
+from vastray.parts import PartTable
 from vastray.renderer import Frame, Renderer
 from vastray.schemas import (
     CameraSpec,
@@ -151,7 +152,12 @@ class RenderService:
                 origins.append(rays[:, 0])
                 directions.append(rays[:, 1])
             return self.pick_rays(
-                model, np.concatenate(origins), np.concatenate(directions), request.timeout, request.sections
+                model,
+                np.concatenate(origins),
+                np.concatenate(directions),
+                request.timeout,
+                request.sections,
+                parts=self.store.parts(model_id),
             )
 
     def pick_rays(
@@ -161,13 +167,17 @@ class RenderService:
         directions: np.ndarray,
         timeout: float,
         sections: list[SectionPlane] | None = None,
+        *,
+        parts: PartTable | None = None,
     ) -> PickResponse:
         """Full-detail hits of world rays, as the wire has them (on the render executor)."""
         start = time.perf_counter()
         hits = model.pick(origins, directions, timeout=timeout, sections=native_sections(sections or []))
+        part_of = parts.part_of(hits.prim) if parts is not None else np.full(len(hits.t), -1)
         out = []
         for i in range(len(hits.t)):
             found = bool(hits.prim[i] >= 0)
+            part = int(part_of[i])
             out.append(
                 PickHit(
                     hit=found,
@@ -176,6 +186,8 @@ class RenderService:
                     position=tuple(float(x) for x in hits.position[i]) if found else None,  # type: ignore[arg-type]
                     normal=tuple(float(x) for x in hits.normal[i]) if found else None,  # type: ignore[arg-type]
                     triangle=int(hits.prim[i]) if found else None,
+                    part_id=part if part >= 0 else None,
+                    part=parts.name(part) if parts is not None and part >= 0 else None,
                 )
             )
         elapsed = time.perf_counter() - start

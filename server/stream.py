@@ -48,7 +48,7 @@ from vastray.protocol import (
     Welcome,
     parse_client_message,
 )
-from vastray.schemas import describe_errors
+from vastray.schemas import PartInfo, describe_errors
 from vastray.server.errors import ApiError
 from vastray.server.reviews import REVIEW_MESSAGES, Participant, ReviewSession
 from vastray.server.views import RenderedFrame, View, default_camera
@@ -57,6 +57,7 @@ log = logging.getLogger("vastray.stream")
 router = APIRouter(tags=["stream"])
 
 MAX_IN_FLIGHT = 2  # frames sent and not yet acknowledged
+WELCOME_PARTS = 20_000  # parts listed in a welcome (all of them in GET .../parts)
 AUTO_ACCURACY_AFTER = 1.0  # seconds a view stays still and finished before it is measured
 # Messages that change what a view shows: in a review, only its driver's count.
 DRIVING = ("camera", "viewport", "quality", "sections", "highlight")
@@ -296,6 +297,7 @@ class Connection:
             viewport,
             quality,
             render_threads=self.state.settings.render_threads,
+            parts=self.state.store.parts(self.model_id),
         )
         view.sections = list(sections or [])
         view.highlight = list(highlight or [])
@@ -460,6 +462,10 @@ class Connection:
         assert view is not None
         row = await asyncio.to_thread(self.state.store.row, hello.model)
         info = self.state.store.info(row).model_dump()
+        # The page's parts panel searches these itself; a bigger table is searched over
+        # GET /api/models/{id}/parts.
+        table = self.state.store.parts(hello.model)
+        info["parts"] = [PartInfo.of(p).model_dump() for p in table.parts[:WELCOME_PARTS]]
         limits = {
             "max_pixels": self.state.settings.max_pixels,
             "max_in_flight": MAX_IN_FLIGHT,
@@ -643,7 +649,7 @@ class Connection:
 
         def run() -> Any:
             origins, directions = camera.image_rays(np.asarray(msg.points, dtype=np.float64))
-            return renders.pick_rays(view.model, origins, directions, 5.0, view.sections)
+            return renders.pick_rays(view.model, origins, directions, 5.0, view.sections, parts=view.parts)
 
         try:
             result = await asyncio.get_running_loop().run_in_executor(renders.executor, run)

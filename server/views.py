@@ -26,6 +26,7 @@ import numpy as np
 from vastray import native
 from vastray.camera import Camera
 from vastray.outofcore import OutOfCoreModel
+from vastray.parts import PartTable
 from vastray.protocol import (
     FLAG_COMPLETE,
     FLAG_FINAL,
@@ -129,6 +130,7 @@ class View:
         quality: StreamQuality,
         *,
         render_threads: int,
+        parts: PartTable | None = None,
     ) -> None:
         self.id = view_id
         self.model_id = model_id
@@ -151,6 +153,8 @@ class View:
         self.controller = QualityController()
         self.sections: list[SectionPlane] = []
         self.highlight: list[int] = []
+        self.parts = parts if parts is not None else PartTable([], np.zeros(0), np.zeros(0), 0)
+        self._highlight_runs: tuple[tuple[int, ...], np.ndarray] | None = None
         self.subscribers: set[Subscriber] = set()
         self.busy = False
         self.vtime = 0.0
@@ -187,6 +191,14 @@ class View:
         self.highlight = parts
         self.version += 1
         self._restart("refining")
+
+    def highlight_runs(self) -> np.ndarray:
+        """The highlighted parts as the renderer takes them (runs of triangle ids),
+        worked out once per highlight set, not per frame."""
+        key = tuple(self.highlight)
+        if self._highlight_runs is None or self._highlight_runs[0] != key:
+            self._highlight_runs = (key, self.parts.ranges(key))
+        return self._highlight_runs[1]
 
     def state(self) -> dict[str, Any]:
         """What a saved view keeps."""
@@ -254,6 +266,7 @@ class View:
         params = q.to_native(threads=self.render_threads)
         params.pixels_of_error = poe
         params.sections = native_sections(self.sections)
+        params.highlight = self.highlight_runs()
         # Each refinement pass draws new AO and diffuse directions, so the average of the
         # passes has their samples together, not the same noise again.
         params.sample_index = max(0, pass_number - 1)
@@ -373,6 +386,7 @@ class View:
         camera = Camera(c.eye, c.target, c.up, c.fov, vp.width, vp.height)
         chosen = self.quality.to_native(threads=self.render_threads)
         chosen.sections = native_sections(self.sections)
+        chosen.highlight = self.highlight_runs()
         exact = copy.copy(chosen)
         exact.pixels_of_error = 0.0
         shown = self.model.render_complete(camera, chosen, timeout=timeout)

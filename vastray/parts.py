@@ -6,10 +6,11 @@ a highlight set of parts reaches the renderer as runs of triangle ids
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 import numpy as np
 
-__all__ = ["highlight_ranges", "runs_from_ids"]
+__all__ = ["PartTable", "highlight_ranges", "runs_from_ids"]
 
 
 def runs_from_ids(triangle_ids: np.ndarray, part_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,3 +50,49 @@ def highlight_ranges(
     out[:, 0] = lo[new]
     out[:, 1] = np.maximum.reduceat(hi, np.flatnonzero(new))
     return out
+
+
+class PartTable:
+    """A model's parts (`ModelFile.parts`) with the runs that give every input
+    triangle's part: what a server keeps per open model to name picks and highlight."""
+
+    def __init__(
+        self, parts: list[Any], firsts: np.ndarray, part_ids: np.ndarray, input_triangles: int
+    ) -> None:
+        self.parts = parts
+        self.firsts = np.asarray(firsts, dtype=np.int64)
+        self.part_ids = np.asarray(part_ids, dtype=np.int32)
+        self.input_triangles = int(input_triangles)
+
+    @classmethod
+    def of_file(cls, model_file: Any) -> PartTable:
+        """The table of an open `vastray.modelfile.ModelFile` (empty without parts)."""
+        parts = list(model_file.parts)
+        if not parts:
+            return cls([], np.zeros(0, np.int64), np.zeros(0, np.int32), 0)
+        firsts, part_ids = model_file.part_runs
+        return cls(parts, firsts, part_ids, int(model_file.header["input_triangles"]))
+
+    def __len__(self) -> int:
+        return len(self.parts)
+
+    def part_of(self, triangle_ids: np.ndarray) -> np.ndarray:
+        """The part of each input triangle id (int32; -1 for none, and for ids < 0)."""
+        ids = np.asarray(triangle_ids, dtype=np.int64)
+        if not self.parts:
+            return np.full(ids.shape, -1, np.int32)
+        at = np.searchsorted(self.firsts, ids, side="right") - 1
+        out = self.part_ids[np.clip(at, 0, None)]
+        return np.where((ids >= 0) & (at >= 0) & (ids < self.input_triangles), out, -1).astype(np.int32)
+
+    def name(self, part: int) -> str | None:
+        return self.parts[part].name if 0 <= part < len(self.parts) else None
+
+    def search(self, query: str = "") -> list[Any]:
+        """The parts whose name contains `query`, ignoring case, in table order."""
+        q = query.strip().casefold()
+        return [p for p in self.parts if q in p.name.casefold()] if q else list(self.parts)
+
+    def ranges(self, selected: Iterable[int]) -> np.ndarray:
+        """`RenderParams.highlight` for a set of part ids (unknown ids are ignored)."""
+        return highlight_ranges(self.firsts, self.part_ids, self.input_triangles, selected)

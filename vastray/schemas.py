@@ -169,6 +169,25 @@ class PickHit(BaseModel):
     position: tuple[float, float, float] | None = None
     normal: tuple[float, float, float] | None = None
     triangle: int | None = None  # the input's own triangle id
+    part_id: int | None = None  # its part, an id of the model's part table
+    part: str | None = None  # that part's name
+
+
+class PartInfo(BaseModel):
+    id: int
+    name: str
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]]  # world coordinates
+    triangles: int
+
+    @classmethod
+    def of(cls, part: Any) -> PartInfo:
+        """From a `vastray.modelfile.ModelPart`."""
+        return cls(id=part.id, name=part.name, bounds=(part.lo, part.hi), triangles=part.triangles)
+
+
+class PartList(BaseModel):
+    total: int  # parts that match the query
+    parts: list[PartInfo]
 
 
 class PickResponse(BaseModel):
@@ -214,6 +233,7 @@ class ModelInfo(BaseModel):
     lod_levels: int | None = None
     colours: bool | None = None
     part_ids: bool | None = None
+    part_count: int = 0  # named parts stored in the model (GET .../parts lists them)
     levels: list[LevelInfo] | None = None
     build: dict[str, Any] | None = None  # build parameters and report
     in_use: int = 0  # viewers, renders and jobs using it now

@@ -6,7 +6,16 @@ from __future__ import annotations
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 
-from vastray.schemas import ModelCreated, ModelInfo, ModelRequest, TokenInfo, TokenRequest, UploadInfo
+from vastray.schemas import (
+    ModelCreated,
+    ModelInfo,
+    ModelRequest,
+    PartInfo,
+    PartList,
+    TokenInfo,
+    TokenRequest,
+    UploadInfo,
+)
 from vastray.server.app import State
 from vastray.server.auth import credential
 from vastray.server.deps import Admin, state_of
@@ -90,6 +99,21 @@ def get_model(model_id: str, request: Request) -> ModelInfo:
     state = state_of(request)
     state.auth.require_model_view(request, model_id)
     return state.store.info(state.store.row(model_id))
+
+
+@router.get("/models/{model_id}/parts", summary="Parts (name, bounds, triangles), searched by name")
+def list_parts(
+    model_id: str,
+    request: Request,
+    q: str = Query("", max_length=200, description="part names containing this, ignoring case"),
+    offset: int = Query(0, ge=0),
+    limit: int = Query(1000, ge=1, le=20_000),
+) -> PartList:
+    state = state_of(request)
+    state.auth.require_model_view(request, model_id)
+    with state.store.lease(model_id):
+        found = state.store.parts(model_id).search(q)
+    return PartList(total=len(found), parts=[PartInfo.of(p) for p in found[offset : offset + limit]])
 
 
 @router.delete(

@@ -1,0 +1,65 @@
+"""The parts panel in a real Chromium: a model built from an OBJ with three named
+objects lists them; a search highlights what it finds (the server's frames turn those
+parts blue, the others stay as they were); a click on a part frames it; a pick names
+the part under the cursor."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from assembly import BOXES, build_assembly
+
+
+@pytest.fixture(scope="module")
+def assembly_model(api: Any, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    return build_assembly(api, tmp_path_factory.mktemp("obj"))
+
+
+def test_parts_are_listed_searched_highlighted_framed_and_picked(
+    open_viewer: Any, server: Any, assembly_model: dict[str, Any], tmp_path: Path
+) -> None:
+    v = open_viewer(f"{server.open_url}&model={assembly_model['id']}")
+    n = v.wait_final()
+    v.js("() => window.vastray.setCamera({eye: [2.5, 0.5, 9], target: [2.5, 0.5, 0.5], up: [0, 1, 0]})")
+    n = v.wait_final(n, v.js("window.vastray.seq"))
+    page = v.page
+    page.locator("#parts-panel summary").click()
+    texts = page.locator("#parts li").all_inner_texts()
+    assert len(texts) == len(BOXES) and all(any(t.startswith(b[0]) for t in texts) for b in BOXES), texts
+    shown = v.shown()
+    w, h = shown["width"], shown["height"]
+    # Columns of the image where each box shows (the camera looks at x = 2.5 along -z).
+    row = [(x + 0.5, h / 2) for x in range(0, int(w), 4)]
+    before = v.pixels_at(row).astype(int)
+    v.shot("before")
+
+    page.locator("#parts-search").fill("valve")
+    v.wait_for("() => document.querySelectorAll('#parts li').length === 1")
+    sent = [m for m in v.sent if m["type"] == "highlight"]
+    valve = next(p for p in v.js("window.vastray.panels.parts") if p["name"] == "Valve")
+    assert sent and sent[-1]["parts"] == [valve["id"]]
+    v.wait_final(n)
+    n = v.frames()
+    v.shot("valve-highlighted")
+    after = v.pixels_at(row).astype(int)
+    changed = np.abs(after - before).sum(axis=1) > 12
+    xs = np.array([x for x, _ in row])
+    assert changed.sum() >= 3, "the valve's pixels turn blue"
+    assert xs[changed].min() > 0.6 * w, "only the valve (the right-hand box) changes"
+    gain = (after[:, 2] - after[:, 0]) - (before[:, 2] - before[:, 0])
+    assert (gain[changed] > 0).mean() > 0.8  # (edge pixels blend with the background)
+
+    # Clicking the part frames it: the camera turns to the valve's centre.
+    page.locator("#parts li").first.click()
+    v.wait_final(n, v.js("window.vastray.seq"))
+    target = v.js("window.vastray.camera.target")
+    np.testing.assert_allclose(target, [4.5, 0.5, 0.5], atol=1e-6)
+    v.shot("valve-framed")
+
+    # A pick on the image centre (now the valve) names it.
+    v.click_image(w / 2, h / 2)
+    v.wait_for("() => document.getElementById('pick').innerText.includes('part:')")
+    assert "part: Valve" in page.locator("#pick").inner_text()
