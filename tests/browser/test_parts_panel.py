@@ -59,6 +59,13 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     np.testing.assert_allclose(target, [4.5, 0.5, 0.5], atol=1e-6)
     v.shot("valve-framed")
 
+    # A table bigger than the welcome lists is searched on the server (GET .../parts):
+    # make the page believe it has only the first part of many.
+    v.js("() => { const p = window.vastray.panels; p.parts = p.parts.slice(0, 1); p.partsTotal = 50000; }")
+    page.locator("#parts-search").fill("impeller")
+    v.wait_for("() => document.querySelector('#parts li')?.innerText.startsWith('pump impeller')")
+    assert page.locator("#parts li").count() == 1
+
     # A pick on the image centre (now the valve) names it.
     v.click_image(w / 2, h / 2)
     v.wait_for("() => document.getElementById('pick').innerText.includes('part:')")

@@ -43,6 +43,9 @@ export class Api {
 
   models() { return this.request("GET", "/api/models"); }
   model(id) { return this.request("GET", `/api/models/${id}`); }
+  parts(id, query, limit = 500) {
+    return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams({ q: query, limit })}`);
+  }
   review(id) { return this.request("GET", `/api/reviews/${id}`); }
   createReview(model, title) { return this.request("POST", "/api/reviews", { model, title }); }
 

@@ -110,6 +110,8 @@ export class Panels {
     $("accuracy").textContent = "–";
     delete $("accuracy").dataset.measured;
     this.parts = w.model.parts ?? [];
+    // The welcome lists the first parts of a big table; searches then go to the server.
+    this.partsTotal = Math.max(w.model.part_count ?? 0, this.parts.length);
     // What the view highlights now; the parts panel sends what the page wants if it differs
     // (after a restart, what the page had).
     this.lastHighlight = (w.highlight ?? []).join(",");
@@ -287,13 +289,37 @@ export class Panels {
 
   #renderParts() {
     const query = $("parts-search").value.trim().toLowerCase();
-    const list = $("parts");
     if (!this.parts.length) {
-      list.replaceChildren(li("this model has no part structure", {}));
+      $("parts").replaceChildren(li("this model has no part structure", {}));
       return;
     }
-    const shown = this.parts.filter((p) => !query || p.name.toLowerCase().includes(query)).slice(0, 500);
-    list.replaceChildren(...shown.map((part) => {
+    if (query && this.partsTotal > this.parts.length) {
+      this.#searchServer(query);
+      return;
+    }
+    const found = this.parts.filter((p) => !query || p.name.toLowerCase().includes(query));
+    this.#showParts(found.slice(0, 500), found.length, query ? found.map((p) => p.id) : null);
+  }
+
+  // A big table's search: on the server, once typing pauses; a newer search wins.
+  async #searchServer(query) {
+    const seq = (this.partSearch = (this.partSearch ?? 0) + 1);
+    await new Promise((resolve) => setTimeout(resolve, 200));
+    if (seq !== this.partSearch) return;
+    let found;
+    try {
+      found = await this.app.api.parts(this.app.modelId, query, 500);
+    } catch {
+      return;  // (the connection state shows why)
+    }
+    if (seq !== this.partSearch) return;
+    this.#showParts(found.parts, found.total, found.parts.map((p) => p.id));
+  }
+
+  // `matches`: what a search highlights (null: no search, the picked parts stay).
+  #showParts(shown, total, matches) {
+    const list = $("parts");
+    const items = shown.map((part) => {
       const item = li(part.name, {
         extra: `${part.triangles.toLocaleString()} △`,
         title: "click: frame and highlight",
@@ -301,9 +327,10 @@ export class Panels {
       });
       if (this.highlight.has(part.id)) item.classList.add("active");
       return item;
-    }));
-    const matches = query ? this.parts.filter((p) => p.name.toLowerCase().includes(query)).map((p) => p.id) : [];
-    this.#sendHighlight(query ? matches : [...this.highlight]);
+    });
+    if (total > shown.length) items.push(li(`… ${(total - shown.length).toLocaleString()} more: refine the search`, {}));
+    list.replaceChildren(...items);
+    this.#sendHighlight(matches ?? [...this.highlight]);
   }
 
   #framePart(part) {
