@@ -243,3 +243,29 @@ def test_written_scene_has_ordinary_file_permissions(tmp_path: Path) -> None:
     umask = os.umask(0)
     os.umask(umask)
     assert out.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_a_built_plant_stores_its_systems_and_structures_as_parts(tmp_path: Path) -> None:
+    """`vastray build scene:plant:...` keeps the plant's parts (pipe systems and kinds of
+    structure): every triangle in one, fixed-colour structures exactly, pipes (and their
+    darker flanges) by their system's hue."""
+    from vastray.build import BuildOptions, build_model
+    from vastray.modelfile import ModelFile
+    from vastray.scenes.plant import PART_NAMES
+
+    path = tmp_path / "plant.vast"
+    build_model("scene:plant:30000:4", path, BuildOptions(memory=64 << 20))
+    mesh = scenes.to_mesh("plant", 30_000, 4)
+    with ModelFile(path) as model:
+        parts = model.parts
+        part = model.part_of(np.arange(len(mesh.faces)))
+    names = {p.name for p in parts}
+    assert {"steel frame", "bolts", "steam pipes"} <= names <= set(PART_NAMES)
+    assert sum(p.triangles for p in parts) == len(mesh.faces) and (part >= 0).all()
+    by_name = {p.name: p.id for p in parts}
+    colours = mesh.face_colours.astype(float)
+    assert (colours[part == by_name["steel frame"]] == (96, 108, 124)).all()
+    steam = colours[part == by_name["steam pipes"]]
+    hue = steam / np.linalg.norm(steam, axis=1, keepdims=True)
+    reference = np.array([196, 52, 40]) / np.linalg.norm([196, 52, 40])
+    assert (hue @ reference > 0.99).all() and len(steam) > 100

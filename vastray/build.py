@@ -42,12 +42,13 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from vastray import modelfile, native
-from vastray.mesh import MeshError
+from vastray.mesh import MeshError, PartName
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 from vastray.triangle_readers import TriangleChunk, VertexTable
 
@@ -160,14 +161,17 @@ def _open_input(source: str | os.PathLike[str], scratch: Path, scan: Callable[[i
     scene = parse_scene(text)
     if scene is not None:
 
+        spec = scenes.SCENES[scene.name]
+
         def generated(_size: int = 0) -> Iterator[TriangleChunk]:
             first = 0
             for vertices, faces, colours in scenes.generate(scene.name, scene.triangles, scene.seed):
-                yield TriangleChunk(first, len(faces), corners=vertices[faces], colours=colours)
+                parts = spec.part_of(colours) if spec.part_of is not None and colours is not None else None
+                yield TriangleChunk(first, len(faces), corners=vertices[faces], colours=colours, parts=parts)
                 first += len(faces)
 
-        coloured = scenes.SCENES[scene.name].coloured
-        return _Input(scene.label, coloured, scene.triangles, False, generated, False)
+        named = SimpleNamespace(parts=[PartName(object=name) for name in spec.part_names] or None)
+        return _Input(scene.label, spec.coloured, scene.triangles, False, generated, False, source=named)
 
     path = Path(text)
     if not path.is_file():
@@ -513,6 +517,9 @@ class _Builder:
         staged: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [("c", "<f8", (9,))]
         if self.src.has_colours:
             staged.append(("rgb", "u1", (3,)))
+        has_parts = bool(getattr(self.src.source, "parts", None))
+        if has_parts:
+            staged.append(("part", "<u4"))
         dtype = np.dtype(staged)
         path = scratch / "input.f64"
         with open(path, "wb") as f:
@@ -524,6 +531,8 @@ class _Builder:
                 rec["c"] = corners.reshape(-1, 9)
                 if chunk.colours is not None:
                     rec["rgb"] = chunk.colours
+                if has_parts:
+                    rec["part"] = chunk.parts
                 rec.tofile(f)
                 total += chunk.count
                 self.report("scan", total, max(total, self.src.estimate), message="generating")
@@ -534,7 +543,10 @@ class _Builder:
             first = 0
             for rec in _read_records(path, dtype, size):
                 colours = rec["rgb"] if self.src.has_colours else None
-                yield TriangleChunk(first, len(rec), corners=rec["c"].reshape(-1, 3, 3), colours=colours)
+                parts = rec["part"] if has_parts else None
+                yield TriangleChunk(
+                    first, len(rec), corners=rec["c"].reshape(-1, 3, 3), colours=colours, parts=parts
+                )
                 first += len(rec)
             path.unlink()
 

@@ -22,6 +22,8 @@ import numpy as np
 from vastray.mesh import Mesh, validate
 from vastray.scenes._geom import CHUNK_TRIANGLES, Chunk
 from vastray.scenes.mandelbulb import mandelbulb
+from vastray.scenes.plant import PART_NAMES as PLANT_PARTS
+from vastray.scenes.plant import part_of_colours as plant_part_of
 from vastray.scenes.plant import plant
 from vastray.scenes.spheres import spheres
 
@@ -47,6 +49,11 @@ class SceneSpec:
     description: str
     coloured: bool
     generator: Callable[[int, int], Iterator[Chunk]]
+    # Parts, for scenes that have them: their names, and the part of each triangle from
+    # its colour (what `vastray build scene:...` stores; files written by write_scene
+    # carry colours only).
+    part_names: tuple[str, ...] = ()
+    part_of: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 SCENES: dict[str, SceneSpec] = {
@@ -63,6 +70,8 @@ SCENES: dict[str, SceneSpec] = {
             "industrial plant: thin pipes with elbows, flanges and bolts in steel frames",
             True,
             plant,
+            PLANT_PARTS,
+            plant_part_of,
         ),
         SceneSpec(
             "mandelbulb",

@@ -25,7 +25,7 @@ import numpy as np
 
 from vastray.scenes._geom import Chunk, ChunkBuffer, boxes, cylinders, elbows
 
-__all__ = ["MODULE_TRIANGLES", "plant"]
+__all__ = ["MODULE_TRIANGLES", "PART_NAMES", "part_of_colours", "plant"]
 
 MODULE_TRIANGLES = 250_000
 _STEP = 1.0  # lattice pitch (m)
@@ -54,6 +54,40 @@ _SKID = (50, 100, 150)
 _BOLT = (48, 48, 52)
 _SHOE = (128, 128, 128)
 _WHEEL = (180, 30, 30)
+
+# The plant's parts, as a plant's design review knows them: a pipe system or a kind of
+# structure, across all modules (what "highlight the fuel gas system" finds).
+PART_NAMES = (
+    "steam pipes",
+    "cooling water pipes",
+    "fuel gas pipes",
+    "instrument air pipes",
+    "lube oil pipes",
+    "process chemical pipes",
+    "fire water pipes",
+    "steel frame",
+    "gratings",
+    "concrete slabs",
+    "vessels",
+    "equipment skids",
+    "bolts",
+    "pipe supports",
+    "valve hand wheels",
+)
+_FIXED = (_STEEL, _GRATING, _CONCRETE, _VESSEL, _SKID, _BOLT, _SHOE, _WHEEL)
+
+
+def part_of_colours(colours: np.ndarray) -> np.ndarray:
+    """The part (an index of PART_NAMES) of each triangle from its colour: the structure
+    colours are fixed; a pipe's colour (and its flanges' darker one) is its system's,
+    scaled, so the system is the one whose colour points the same way."""
+    rgb = np.asarray(colours, dtype=np.float64).reshape(-1, 3)
+    unit = _SYSTEMS / np.linalg.norm(_SYSTEMS, axis=1, keepdims=True)
+    out = np.argmax(rgb @ unit.T, axis=1).astype(np.uint32)
+    for k, fixed in enumerate(_FIXED):
+        out[np.all(rgb == fixed, axis=1)] = len(_SYSTEMS) + k
+    return out
+
 
 _RADII = np.array([0.025, 0.04, 0.06, 0.09, 0.13, 0.18, 0.25])
 _RADII_P = np.array([0.2, 0.22, 0.2, 0.15, 0.11, 0.08, 0.04])
