@@ -45,12 +45,10 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     n = v.frames()
     v.shot("valve-highlighted")
     after = v.pixels_at(row).astype(int)
-    changed = np.abs(after - before).sum(axis=1) > 12
+    blue = (after[:, 2] - after[:, 0]) > 40
     xs = np.array([x for x, _ in row])
-    assert changed.sum() >= 3, "the valve's pixels turn blue"
-    assert xs[changed].min() > 0.6 * w, "only the valve (the right-hand box) changes"
-    gain = (after[:, 2] - after[:, 0]) - (before[:, 2] - before[:, 0])
-    assert (gain[changed] > 0).mean() > 0.8  # (edge pixels blend with the background)
+    assert blue.sum() >= 3 and not ((before[:, 2] - before[:, 0]) > 40).any(), "the valve turns blue"
+    assert xs[blue].min() > 0.6 * w, "only the valve (the right-hand box) turns blue"
 
     # Clicking the part frames it: the camera turns to the valve's centre.
     page.locator("#parts li").first.click()

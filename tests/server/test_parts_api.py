@@ -65,10 +65,12 @@ def test_a_highlighted_part_changes_only_its_own_pixels(client: Client, model: d
         before = view.screenshot().image.astype(int)
         view.set_highlight([valve.id])
         after = view.screenshot().image.astype(int)
-    changed = np.abs(after - before).sum(axis=2) > 0
-    assert changed.sum() > 100
+    blue_before = (before[..., 2] - before[..., 0]) > 40
+    blue = (after[..., 2] - after[..., 0]) > 40
+    assert blue.sum() > 100 and not blue_before.any(), "the highlighted part turns blue"
     # The valve is the right-hand box (x in [4, 5]; the camera looks at x = 2.5).
-    columns = np.flatnonzero(changed.any(axis=0))
-    assert columns.min() > 240 * 0.6, "pixels of the other parts changed"
-    gain = (after[..., 2] - after[..., 0]) - (before[..., 2] - before[..., 0])
-    assert (gain[changed] > 0).mean() > 0.9, "highlighted pixels turn towards blue"
+    columns = np.flatnonzero(blue.any(axis=0))
+    assert columns.min() > 240 * 0.6, "pixels of other parts turned blue"
+    spread = after.max(axis=2) - after.min(axis=2)
+    left = (before.sum(axis=2) != after.sum(axis=2)) & (np.arange(240) < 240 * 0.5)
+    assert (spread[left] <= 1).mean() > 0.8, "the other parts are ghosted grey (edges blend with the sky)"

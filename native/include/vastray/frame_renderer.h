@@ -97,11 +97,18 @@ private:
 
 // A cut solid's cap: flat, in a colour no model part has by default, lit from the eye.
 inline Vec3f cap_colour() { return {0.86f, 0.38f, 0.26f}; }
-// Highlighted triangles: blended towards a blue no default model colour has (the cap is
-// orange), strongly enough to find a small part, weakly enough to keep its shading.
+// With a highlight set, as CAD viewers ghost the rest: highlighted triangles are blended
+// towards a saturated blue, strongly enough to find a small part, weakly enough to keep
+// its shading; everything else (LOD voxels too) turns a light, flat grey, since a model's
+// own colours (blue pipes, say) would otherwise hide the highlight among them.
 inline Vec3f highlighted(const Vec3f& colour) {
-    constexpr float kMix = 0.6f;
-    return colour * (1 - kMix) + Vec3f(0.15f, 0.55f, 1.0f) * kMix;
+    constexpr float kMix = 0.7f;
+    return colour * (1 - kMix) + Vec3f(0.1f, 0.45f, 1.0f) * kMix;
+}
+inline Vec3f ghosted(const Vec3f& colour) {
+    const float luma = 0.3f * colour.x + 0.59f * colour.y + 0.11f * colour.z;
+    const float grey = 0.55f + 0.3f * luma;
+    return {grey, grey, grey};
 }
 
 // Rays traced by one lane; node and triangle counts live in the backend's lane.
@@ -238,9 +245,13 @@ private:
             if (params_.shading != Shading::Normal && dot(b.n[i], dir) > 0) {
                 b.n[i] = -b.n[i];  // shade the side the viewer sees
             }
-            if (in_ranges(params_.highlight, frame_.prim[px])) {
-                b.marked |= 1u << i;
-                b.colour[i] = highlighted(b.colour[i]);  // the albedo, so every mode lights it
+            if (!params_.highlight.empty()) {  // (the albedo changes, so every mode lights it)
+                if (in_ranges(params_.highlight, frame_.prim[px])) {
+                    b.marked |= 1u << i;
+                    b.colour[i] = highlighted(b.colour[i]);
+                } else {
+                    b.colour[i] = ghosted(b.colour[i]);
+                }
             }
         }
         if (!b.lit) return;
@@ -249,10 +260,11 @@ private:
             case Shading::Normal:
                 for (int i = 0; i < P; ++i) {
                     if (!(b.lit >> i & 1u)) continue;
-                    if (b.marked >> i & 1u) {
-                        store(b, i, highlighted((b.n[i] + Vec3f(1, 1, 1)) * 0.5f));
+                    const Vec3f c = (b.n[i] + Vec3f(1, 1, 1)) * 0.5f;
+                    if (params_.highlight.empty()) {
+                        store(b, i, c);
                     } else {
-                        store(b, i, (b.n[i] + Vec3f(1, 1, 1)) * 0.5f);
+                        store(b, i, (b.marked >> i & 1u) ? highlighted(c) : ghosted(c));
                     }
                 }
                 return;
