@@ -1,27 +1,37 @@
 """The parts panel in a real Chromium: a model built from an OBJ with three named
 objects lists them; a search highlights what it finds (the server's frames turn those
-parts blue, the others stay as they were); a click on a part frames it; a pick names
-the part under the cursor."""
+parts blue, the others grey); a click on a part frames it; a pick names
+the part under the cursor. Its own server: the session's server shows the other browser
+tests' model by default, and must not get a newer one."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 from assembly import BOXES, build_assembly
+from serverproc import ServerProcess
 
 
 @pytest.fixture(scope="module")
-def assembly_model(api: Any, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    return build_assembly(api, tmp_path_factory.mktemp("obj"))
+def parts_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    with ServerProcess(tmp_path_factory.mktemp("parts") / "data", "--no-demo", "--cache", "64M") as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def assembly_model(parts_server: ServerProcess, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    with parts_server.client() as api:
+        return build_assembly(api, tmp_path_factory.mktemp("obj"))
 
 
 def test_parts_are_listed_searched_highlighted_framed_and_picked(
-    open_viewer: Any, server: Any, assembly_model: dict[str, Any], tmp_path: Path
+    open_viewer: Any, parts_server: ServerProcess, assembly_model: dict[str, Any], tmp_path: Path
 ) -> None:
-    v = open_viewer(f"{server.open_url}&model={assembly_model['id']}")
+    v = open_viewer(f"{parts_server.open_url}&model={assembly_model['id']}")
     n = v.wait_final()
     v.js("() => window.vastray.setCamera({eye: [2.5, 0.5, 9], target: [2.5, 0.5, 0.5], up: [0, 1, 0]})")
     n = v.wait_final(n, v.js("window.vastray.seq"))
