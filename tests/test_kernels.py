@@ -143,6 +143,7 @@ def test_every_path_renders_identical_frames(plant_model: Path) -> None:
         assert not differ, f"{isa} differs from {first} in {differ}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("isa", [i for i in native.supported_isas() if i != native.isa()])
 def test_renderer_tests_pass_on_every_path(isa: str) -> None:
     """The renderer's own tests, again on each path that is not the default one."""

@@ -95,6 +95,7 @@ def test_voxels_respect_occlusion_between_two_stacked_planes(tmp_path: Path) -> 
         assert below_normal[1] < -1 + NORMAL_TOL and above_normal[1] > 1 - NORMAL_TOL
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("memory", [2 << 30, 5 << 20], ids=["in-core", "out-of-core"])
 def test_output_does_not_depend_on_the_thread_count(models_folder: Path, tmp_path: Path, memory: int) -> None:
     source = models_folder / "stanford-bunny.obj"
@@ -105,6 +106,7 @@ def test_output_does_not_depend_on_the_thread_count(models_folder: Path, tmp_pat
     assert two["triangles"] == one["triangles"] > 0
 
 
+@pytest.mark.slow
 def test_a_fan_too_big_for_one_block_continues_into_the_next(tmp_path: Path) -> None:
     # 20,000 thin triangles around one vertex (a finely tessellated disc): no split can
     # separate them near the centre, so some leaf holds more than a 64 KB block fits.

@@ -55,6 +55,7 @@ def two_models(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return a, b
 
 
+@pytest.mark.slow
 def test_cache_stress_is_race_free_under_thread_sanitizer(
     stress_binary: Path, two_models: tuple[Path, Path]
 ) -> None:
