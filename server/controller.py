@@ -3,8 +3,11 @@ by lowering the resolution scale and, once the scale is at its floor, by raising
 pixels of error. It acts on measured frame times (render and encode), not estimates.
 
 Frame time is close to proportional to the pixel count, so the scale moves by the square
-root of the time ratio; steps are damped (a frame time is noisy on a shared machine) and
-bounded, so one slow frame does not throw the picture to its coarsest.
+root of the time ratio. A frame over its budget brings the scale down at once by that
+whole ratio (when eight viewers start together, or the budget shrinks because more views
+move, damped steps would spend seconds on frames far over budget); a frame under it
+raises the scale by damped, bounded steps (a frame time is noisy on a shared machine, and
+a picture that grows slowly is better than one that jumps back and forth).
 """
 
 from __future__ import annotations
@@ -41,8 +44,10 @@ class QualityController:
         if frame_seconds <= 0 or budget_seconds <= 0:
             return
         ratio = (HEADROOM * budget_seconds) / frame_seconds
-        step = math.exp(DAMPING * 0.5 * math.log(ratio))  # sqrt: time ~ pixels ~ scale^2
-        step = min(MAX_STEP, max(1 / MAX_STEP, step))
+        if ratio < 1.0:
+            step = math.sqrt(ratio)  # time ~ pixels ~ scale^2: the scale that would have fitted
+        else:
+            step = min(MAX_STEP, math.exp(DAMPING * 0.5 * math.log(ratio)))
         if step < 1.0:
             if self.scale > min_scale + 1e-9:
                 self.scale = max(min_scale, self.scale * step)

@@ -78,6 +78,11 @@ class Scheduler:
     def add(self, view: View) -> None:
         others = [v.vtime for v in self.views]
         view.vtime = min(others) if others else 0.0
+        # A new view of a model others move through starts at the coarsest of their
+        # moving scales, not at full resolution: its first frames then fit its share.
+        scales = [v.controller.scale for v in self.views if v.model_id == view.model_id]
+        if scales:
+            view.controller.scale = min(scales)
         self.views.add(view)
         self.notify()
 
