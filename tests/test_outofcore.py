@@ -755,6 +755,22 @@ def test_priority_by_projected_size_gives_the_same_image(built: Callable[[str], 
     np.testing.assert_array_equal(frame.prim, reference(plant, camera).prim)
 
 
+@pytest.mark.parametrize("priority", ["count", "size"])
+def test_fetch_order_gives_the_same_image(built: Callable[[str], Built], priority: str) -> None:
+    """Fetching blocks of about equal priority in file order (the default) or strictly by
+    priority changes when blocks arrive, not the complete frame."""
+    plant = built("plant")
+    camera = plant.camera()
+    frames = []
+    for file_order in (True, False):
+        cache = native.BlockCache(BIG, 1, priority, file_order=file_order)
+        with OutOfCoreModel(plant.path, cache, preload_levels=1) as model:
+            frames.append(model.render_complete(camera, pixels_of_error=0.0))
+        check_totals(cache)
+    np.testing.assert_array_equal(frames[0].image, frames[1].image)
+    np.testing.assert_array_equal(frames[0].prim, reference(plant, camera).prim)
+
+
 @pytest.mark.parametrize("poe", [0.0, 2.0])
 def test_discovery_frames_change_only_what_loads_first(
     built: Callable[[str], Built], monkeypatch: pytest.MonkeyPatch, poe: float
