@@ -166,7 +166,7 @@ def study_poe(args: argparse.Namespace) -> list[dict[str, Any]]:
                     )
                     if reference is None:
                         reference = frame
-                    s = frame.stats
+                    s = frame.stats.as_dict()
                     rows.append(
                         {
                             "view": view,
@@ -225,7 +225,11 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
                 for shading in ("sun", "indirect"):
                     if shading not in SHADINGS:
                         continue
-                    model.render_complete(camera, pixels_of_error=poe, shading=shading)
+                    try:
+                        model.render_complete(camera, pixels_of_error=poe, shading=shading)
+                    except CacheTooSmallError:  # secondary rays reach more of the model
+                        row[f"lod_{shading}_ms"] = math.nan
+                        continue
                     row[f"lod_{shading}_ms"], _ = frame_ms(model, camera, args.repeats, pixels_of_error=poe,
                                                            shading=shading)  # fmt: skip
                 row["lod_sun_over_headlight"] = row.get("lod_sun_ms", math.nan) / row["lod_fastest_ms"]

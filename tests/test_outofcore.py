@@ -54,12 +54,12 @@ from test_extremes import CAMERA, TRANSFORMS, degenerate_scene, view_directions
 from views import render_camera, render_view
 
 import vastray.render as vrender
-from vastray import native
+from vastray import native, outofcore
 from vastray.build import BuildOptions, build_model
 from vastray.camera import Camera, frame_bounds
 from vastray.modelfile import HEADER_SIZE, VERSION, ModelError, ModelFile
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
-from vastray.renderer import PRIM_VOXEL, Frame
+from vastray.renderer import PRIM_VOXEL, Frame, render_params
 
 if TYPE_CHECKING:
     from conftest import ModelMesh
@@ -753,6 +753,50 @@ def test_priority_by_projected_size_gives_the_same_image(built: Callable[[str], 
     with OutOfCoreModel(plant.path, make_cache(BIG, priority="size")) as model:
         frame = model.render_complete(camera, pixels_of_error=0.0)
     np.testing.assert_array_equal(frame.prim, reference(plant, camera).prim)
+
+
+@pytest.mark.parametrize("priority", ["count", "size"])
+def test_fetch_order_gives_the_same_image(built: Callable[[str], Built], priority: str) -> None:
+    """Fetching blocks of about equal priority in file order (the default) or strictly by
+    priority changes when blocks arrive, not the complete frame."""
+    plant = built("plant")
+    camera = plant.camera()
+    frames = []
+    for file_order in (True, False):
+        cache = native.BlockCache(BIG, 1, priority, file_order=file_order)
+        with OutOfCoreModel(plant.path, cache, preload_levels=1) as model:
+            frames.append(model.render_complete(camera, pixels_of_error=0.0))
+        check_totals(cache)
+    np.testing.assert_array_equal(frames[0].image, frames[1].image)
+    np.testing.assert_array_equal(frames[0].prim, reference(plant, camera).prim)
+
+
+@pytest.mark.parametrize("poe", [0.0, 2.0])
+def test_discovery_frames_change_only_what_loads_first(
+    built: Callable[[str], Built], monkeypatch: pytest.MonkeyPatch, poe: float
+) -> None:
+    """render_complete finds a cold view's blocks with coarse frames whose rays have the
+    full frame's LOD cones, then renders full frames: the frame it returns is the one
+    full frames alone give, pixel for pixel (at PoE 0 the in-core render)."""
+    plant = built("big-plant")
+    camera = plant.camera(130, 97)
+    coarse, params = outofcore.discovery_pass(camera.to_native(), render_params(pixels_of_error=poe))
+    assert (coarse.width, coarse.height) == (33, 25)
+    # cone = PoE x pixel angle, pixel angle = 2 tan(fov/2) / height
+    assert params.pixels_of_error / coarse.height == pytest.approx(poe / camera.height)
+    frames = {}
+    for discovery in (True, False):
+        if not discovery:
+            monkeypatch.setattr(outofcore, "DISCOVERY_MIN_SIDE", 1 << 30)
+        with OutOfCoreModel(plant.path, make_cache(BIG)) as model:
+            frames[discovery] = model.render_complete(camera, pixels_of_error=poe)
+        assert frames[discovery].complete
+    for name in ("image", "depth", "prim"):
+        np.testing.assert_array_equal(getattr(frames[True], name), getattr(frames[False], name))
+    if poe == 0.0:
+        np.testing.assert_array_equal(frames[True].prim, reference(plant, camera).prim)
+    else:
+        assert frames[True].stats.voxel_hits > 0
 
 
 def test_cache_too_small_for_the_view(built: Callable[[str], Built]) -> None:

@@ -35,6 +35,14 @@ OPEN_PRELOAD_LEVELS = 3
 # Blocks a render_complete frame may queue (the cache caps it at its max_pending): a
 # full-detail render waits for its data, so it asks for all it finds missing at once.
 FULL_DETAIL_REQUEST_LIMIT = 4096
+# render_complete first finds the view's blocks with frames of 1/DISCOVERY_SCALE the
+# width and height whose rays have the full frame's LOD cone (pixels of error scaled by
+# the pixel size): each frame finds what is missing one tree level deeper, so a cold view
+# takes about a frame per level, and these frames cost a sixteenth of a full one. Full
+# frames then pick up what only their finer rays reach. Images smaller than
+# DISCOVERY_MIN_SIDE on a side skip it.
+DISCOVERY_SCALE = 4
+DISCOVERY_MIN_SIDE = 64
 
 
 class CacheTooSmallError(RuntimeError):
@@ -68,6 +76,20 @@ def shared_cache() -> native.BlockCache:
             fetchers = int(os.environ.get("VASTRAY_FETCHERS", DEFAULT_FETCHERS))
             _shared = make_cache(budget, fetchers)
         return _shared
+
+
+def discovery_pass(
+    camera: native.Camera, params: native.RenderParams
+) -> tuple[native.Camera, native.RenderParams]:
+    """A camera of 1/DISCOVERY_SCALE the image sides, and params whose LOD cones equal
+    those of `camera`'s rays: the cone is pixels_of_error x the pixel angle (2 tan(fov/2)
+    / height), so the pixels of error shrink with the height (an explicit solid angle is
+    absolute and stays)."""
+    width = max(1, -(-camera.width // DISCOVERY_SCALE))
+    height = max(1, -(-camera.height // DISCOVERY_SCALE))
+    coarse = native.Camera(camera.eye, camera.target, camera.up, camera.fov, width, height)
+    poe = params.pixels_of_error * height / camera.height
+    return coarse, render_params(params, pixels_of_error=poe)
 
 
 class OutOfCoreModel:
@@ -163,16 +185,23 @@ class OutOfCoreModel:
             # It waits for the data anyway: let each frame queue all it found missing
             # (up to the cache's queue), not the interactive per-frame bound.
             params = render_params(params, request_limit=FULL_DETAIL_REQUEST_LIMIT)
-        native_camera = camera.to_native()
+        native_camera = camera.to_native() if isinstance(camera, Camera) else camera
         start = time.perf_counter()
         frames = 0
         stalled = 0
+        passes = [(native_camera, params)]
+        if min(native_camera.width, native_camera.height) >= DISCOVERY_MIN_SIDE:
+            passes.insert(0, discovery_pass(native_camera, params))
         while True:
-            frame = trace(self._model, native_camera, params)
+            pass_camera, pass_params = passes[0]
+            frame = trace(self._model, pass_camera, pass_params)
             frames += 1
             stats = frame.stats
             if stats.complete or (stats.bad_blocks and stats.pending == 0):
-                break
+                if len(passes) == 1:
+                    break
+                passes.pop(0)  # the coarse frames found all they can: on to full frames
+                continue
             if cancelled is not None and cancelled():
                 raise RenderCancelledError(f"{self.name}: render cancelled")
             if time.perf_counter() - start > timeout:

@@ -118,7 +118,8 @@ py::dict totals_dict(const CacheTotals& t) {
 }
 
 std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, const std::string& priority,
-                                       std::size_t max_requests_per_frame, std::size_t max_pending) {
+                                       std::size_t max_requests_per_frame, std::size_t max_pending,
+                                       bool file_order) {
     CacheConfig c;
     c.budget_bytes = budget;
     c.fetchers = fetchers;
@@ -127,6 +128,7 @@ std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, co
     else throw std::invalid_argument("priority must be 'count' (paper 000) or 'size' (paper 003)");
     c.max_requests_per_frame = max_requests_per_frame;
     c.max_pending = max_pending;
+    c.file_order = file_order;
     return std::make_shared<BlockCache>(c);
 }
 
@@ -136,7 +138,7 @@ void bind_cache(py::module_& m) {
     py::class_<BlockCache, std::shared_ptr<BlockCache>>(m, "BlockCache",
                                                         "Shared 64 KB block cache with fetcher threads")
         .def(py::init(&make_cache), py::arg("budget"), py::arg("fetchers") = 2u, py::arg("priority") = "count",
-             py::arg("max_requests_per_frame") = 256, py::arg("max_pending") = 4096)
+             py::arg("max_requests_per_frame") = 256, py::arg("max_pending") = 4096, py::arg("file_order") = true)
         .def("totals", [](const BlockCache& c) { return totals_dict(c.totals()); })
         .def("check_invariants", &BlockCache::check_invariants)
         .def("drain", &BlockCache::drain, py::call_guard<py::gil_scoped_release>(),

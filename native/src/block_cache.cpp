@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <limits>
 #include <stdexcept>
 
@@ -178,6 +179,19 @@ void BlockCache::publish_locked(FrameCacheStats* stats) {
     ready_.clear();
 }
 
+namespace {
+
+// The binary exponent of a priority (counts and projected sizes are positive): one class
+// per factor of two.
+int priority_class(float priority) {
+    if (!(priority > 0.0f)) return std::numeric_limits<int>::min();
+    int exponent = 0;
+    std::frexp(priority, &exponent);
+    return exponent;
+}
+
+}  // namespace
+
 void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
                            FrameCacheStats& stats, std::size_t limit) {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -229,9 +243,23 @@ void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<Cache
         }
         pending_.resize(config_.max_pending);
     }
-    std::sort(pending_.begin(), pending_.end(), [](const Request& a, const Request& b) {
-        return a.priority != b.priority ? a.priority < b.priority : a.serial < b.serial;
-    });
+    // Fetch order, best last: requests within a factor of two in priority form one
+    // class, and a class is fetched in file order (ascending block ids from the back), so
+    // the fetchers read forward through the file. On the disk of bench/results/complete.md
+    // cold 64 KiB reads run at about 300 MB/s in file order and 80-150 MB/s in random
+    // order, and a cold view's blocks are mostly of equal priority.
+    if (!config_.file_order) {
+        std::sort(pending_.begin(), pending_.end(), [](const Request& a, const Request& b) {
+            return a.priority != b.priority ? a.priority < b.priority : a.serial < b.serial;
+        });
+    } else {
+        std::sort(pending_.begin(), pending_.end(), [](const Request& a, const Request& b) {
+            const int ca = priority_class(a.priority), cb = priority_class(b.priority);
+            if (ca != cb) return ca < cb;
+            if (a.model != b.model) return a.model->id_ > b.model->id_;
+            return a.block > b.block;
+        });
+    }
 
     // Make room for what the fetchers can load before the next frame, evicting only
     // blocks no running frame and not this frame used.

@@ -87,6 +87,9 @@ struct CacheConfig {
     FetchPriority priority = FetchPriority::RequestCount;
     std::size_t max_requests_per_frame = 256;  // the fetch list a frame may add to
     std::size_t max_pending = 4096;            // requests older than this many are dropped
+    // Requests within a factor of two in priority are fetched in file order (false:
+    // strictly by priority, then arrival).
+    bool file_order = true;
 };
 
 struct CacheTotals {
@@ -196,7 +199,7 @@ private:
     std::condition_variable done_;   // wait_for_fetches/drain wait here
     std::vector<std::int32_t> free_slots_;
     std::vector<Retired> retired_;
-    std::vector<Request> pending_;   // kept sorted by priority, best last
+    std::vector<Request> pending_;   // sorted by priority class, then file order; best last
     std::vector<Finished> ready_;
     std::vector<std::uint32_t> active_ticks_;  // ticks of frames between begin and end
     std::vector<std::shared_ptr<CachedModel>> models_;
