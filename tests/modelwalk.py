@@ -3,7 +3,8 @@
 It reads blocks through `ModelFile.read_block` and decodes them from the bit layouts in
 native/include/vastray/format.h alone, without the native decoder: treelets from the
 root (level 0, block 0, offset 0), node cells from the root cell and the split planes
-(a quantized model's 4-byte basic nodes: the split as a step of the cell, FORMAT.md §8),
+(a quantized model's 4-byte basic nodes: the split as a step of the cell, and its
+12-byte LOD nodes: the radius from the cell, FORMAT.md §8),
 leaves with their triangles (input ids, float32 vertices, colours) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
 order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
@@ -198,11 +199,15 @@ class Walker:
                 node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
             if w & LOD:
                 voxel = off + 4 * ((w >> 4) & 127)
-                node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
+                if quantized:  # a 12-byte LOD node: the radius is half the cell's diagonal
+                    ext = (hi - lo).astype(np.float32)
+                    node.radius = float(np.float32(0.5) * np.sqrt(np.float32(ext @ ext)))
+                else:
+                    node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
                 first_sample = self.word(data, voxel)
                 n = 1 if first_sample & ONE_SAMPLE else 6
                 node.samples = [self.word(data, voxel + 4 * i) for i in range(n)]
-                child_level, child_block = level + 1, self.word(data, off + 12)
+                child_level, child_block = level + 1, self.word(data, off + (8 if quantized else 12))
                 if child_level >= self.tri_level:
                     raise WalkError("LOD node in the last node level")
                 l_off = 8 * ((w >> 17) & 8191)

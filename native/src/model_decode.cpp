@@ -73,7 +73,7 @@ private:
         if (is_lod(w)) {
             if (level + 1 >= tri_level_) bad(block, "LOD node in the last node level");
             child_level = level + 1;
-            l_block = r_block = block_of(child_level, word(block, off + 12), block);
+            l_block = r_block = block_of(child_level, word(block, off + lod_child_block_at(in_.quantized_splits)), block);
             l_off = 8 * static_cast<std::size_t>(lod_child_off8(w));
             r_off = has_l ? l_off + 8 * static_cast<std::size_t>(lod_right_from_left8(w)) : l_off;
         } else {

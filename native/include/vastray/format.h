@@ -112,6 +112,13 @@ inline bool split_step(float lo, float hi, float split, std::uint32_t& q_out) {
     return true;
 }
 
+// A quantized model's LOD nodes are 12 bytes: word 0, the split (f32) and the child
+// block id; the enclosing-sphere radius is not stored but derived from the cell, which
+// a reader of such a model carries anyway (full precision: 16 bytes, radius in word 2).
+inline std::size_t lod_node_size(bool quantized) { return quantized ? 12 : 16; }
+inline std::size_t lod_child_block_at(bool quantized) { return quantized ? 8 : 12; }
+inline float cell_radius(const Vec3f& extent) { return 0.5f * length(extent); }
+
 inline std::uint32_t float_bits(float f) {
     std::uint32_t u;
     std::memcpy(&u, &f, sizeof u);

@@ -125,15 +125,21 @@ inline float split_of(bool quantized, const NodeRef& node, std::uint32_t w) {
     return format::bits_float(load<std::uint32_t>(node.block + node.off + 4));
 }
 
-inline Voxel voxel_of(const NodeRef& node, std::uint32_t w) {
-    return {node.block + node.off + 4 * format::lod_voxel_off4(w), format::bits_float(load<std::uint32_t>(node.block + node.off + 8))};
+// A LOD node's voxel: its samples, and its radius (a quantized model derives it from the
+// cell instead of storing it).
+inline Voxel voxel_of(bool quantized, const NodeRef& node, std::uint32_t w) {
+    const float radius =
+        quantized ? format::cell_radius(Vec3f(node.hi[0] - node.lo[0], node.hi[1] - node.lo[1], node.hi[2] - node.lo[2]))
+                  : format::bits_float(load<std::uint32_t>(node.block + node.off + 8));
+    return {node.block + node.off + 4 * format::lod_voxel_off4(w), radius};
 }
 
 // The block holding a LOD node's child treelets, or null when it is not cached (then it
 // is requested) or the node is damaged (points outside the next level).
 inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, float priority) {
     if (node.level + 1 >= lane.tri_level) return nullptr;  // no node level below: damaged
-    const std::uint32_t block = lane.level_first[node.level + 1] + load<std::uint32_t>(node.block + node.off + 12);
+    const std::uint32_t block = lane.level_first[node.level + 1] +
+                                load<std::uint32_t>(node.block + node.off + format::lod_child_block_at(lane.quantized_splits));
     return block < lane.level_first[node.level + 2] ? lane.lookup(block, priority) : nullptr;
 }
 
@@ -308,7 +314,7 @@ inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheare
             const float split = lod_detail::split_of(lane.quantized_splits, node, w);
             const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(node, w);
+                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
                 const float reach = lray.cone_t0 + tmin;
                 if (here.radius <= reach * lray.cone) return take_voxel(here, tmin);
                 child = lod_detail::lod_child_block(lane, node, here.radius / std::max(reach, 1e-30f));

@@ -223,7 +223,7 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
             const float split = lod_detail::split_of(lane.quantized_splits, node, w);
             const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(node, w);
+                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
                 const vf radius = vf::broadcast(here.radius);
                 int rest = 0;
                 for (int v = 0; v < K; ++v) {

@@ -64,7 +64,7 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, Model
     std::size_t cursor = 0;
     for (TreeletNode& n : nodes) {
         n.offset = cursor;
-        cursor += n.kind == TreeletNode::Lod ? 16 : (n.kind == TreeletNode::Basic ? basic_size : 8);
+        cursor += n.kind == TreeletNode::Lod ? lod_node_size(quantized) : (n.kind == TreeletNode::Basic ? basic_size : 8);
         std::uint64_t& kind_count = n.kind == TreeletNode::Lod    ? stats.lod_nodes
                                     : n.kind == TreeletNode::Leaf ? stats.leaves
                                                                   : stats.basic_nodes;
@@ -109,8 +109,8 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, Model
                 }
                 put(n.offset, lod_word(n.axis, n.empty, voxel4, n.right_from_left8, n.child_off8));
                 put(n.offset + 4, float_bits(n.split));
-                put(n.offset + 8, float_bits(n.radius));
-                put(n.offset + 12, n.child_block);
+                if (!quantized) put(n.offset + 8, float_bits(n.radius));  // quantized: derived from the cell
+                put(n.offset + lod_child_block_at(quantized), n.child_block);
                 if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});
                 for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
                 break;
