@@ -289,7 +289,8 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
         f"headlight, {len(DIRECTIONS)} views framing the model; frame times are the median of {args.frames} "
         "frames per view, the two models alternating frame by frame; the *frame ratio* is the median of "
         "quantized / full over those pairs (below 1: quantized faster). Node visits and triangle tests are "
-        "the renderer's counters over the timed frames, per ray.",
+        "the renderer's counters over the timed frames, per ray (a packet of coherent primary rays counts "
+        "one visit per node step it takes together, so visits per ray stay below the tree's depth).",
         "",
         "## Command",
         "",
