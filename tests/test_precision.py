@@ -204,3 +204,16 @@ def test_frame_counters_and_the_cli(models: dict[tuple[str, bool], Path], tmp_pa
     result = run_cli("inspect", str(out), cwd=tmp_path)
     assert "quantized splits" in result.stdout, result.stdout
     assert native.FORMAT["split_bits"] == 20
+
+
+def test_quantized_output_does_not_depend_on_the_thread_count(tmp_path: Path) -> None:
+    """A part big enough for parallel emission (>= 2^19 references) and a parallel kd
+    build: one thread and two write the same bytes."""
+    files = []
+    for threads in (1, 2):
+        path = tmp_path / f"t{threads}.vast"
+        options = BuildOptions(threads=threads, quantized_splits=True)
+        report = build_model("scene:plant:200000:3", path, options)
+        assert report["references"] >= 1 << 19
+        files.append(path.read_bytes())
+    assert files[0] == files[1]
