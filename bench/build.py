@@ -1294,7 +1294,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> None:
                 rss = [r["peak_rss_bytes"] / MiB for r in pts]
                 ax_mem.plot(x, rss, marker=marker, ls=ls, color=colours[fam], label=f"{label}: RSS")
                 anon = [r.get("peak_anon_bytes", math.nan) / MiB for r in pts]
-                style = {"marker": marker, "mfc": "none", "ls": ls, "lw": 0.8, "colour": colours[fam]}
+                style = {"marker": marker, "mfc": "none", "ls": ls, "lw": 0.8, "color": colours[fam]}
                 ax_mem.plot(x, anon, label=f"{label}: anon", **style)
                 if kind == "ooc":
                     for r in pts:

@@ -158,10 +158,13 @@ class AsyncClient:
         name: str | None = None,
         memory: str | int | None = None,
         threads: int | None = None,
+        quantized_splits: bool = False,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
-        directory; wait for it with `wait`."""
-        body = {"source": source, "name": name, "options": {"memory": memory, "threads": threads}}
+        directory; wait for it with `wait`. `quantized_splits`: the smaller node layout
+        with the same images (docs/FORMAT.md §8)."""
+        options = {"memory": memory, "threads": threads, "quantized_splits": quantized_splits}
+        body = {"source": source, "name": name, "options": options}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 
     async def job(self, job: str | JobInfo) -> JobInfo:

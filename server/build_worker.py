@@ -92,6 +92,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             memory=int(options["memory"]),
             threads=int(options.get("threads", 0)),
             scratch_dir=options.get("scratch_dir"),
+            quantized_splits=bool(options.get("quantized_splits", False)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

@@ -2,7 +2,9 @@
 
 It reads blocks through `ModelFile.read_block` and decodes them from the bit layouts in
 native/include/vastray/format.h alone, without the native decoder: treelets from the
-root (level 0, block 0, offset 0), node cells from the root cell and the split planes,
+root (level 0, block 0, offset 0), node cells from the root cell and the split planes
+(a quantized model's 4-byte basic nodes: the split as a step of the cell, and its
+12-byte LOD nodes: the radius from the cell, FORMAT.md §8),
 leaves with their triangles (input ids, float32 vertices, colours) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
 order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
@@ -27,6 +29,13 @@ LEFT_EMPTY = 1 << 2
 RIGHT_EMPTY = 1 << 3
 ONE_SAMPLE = 1 << 31
 TREELET_HEIGHT = 3
+QUANTIZED_SPLITS = 1 << 3  # header flag (version 3): 4-byte basic nodes, splits as grid steps
+SPLIT_STEPS = 1 << 20
+
+
+def dequantize(lo: float, hi: float, q: int) -> float:
+    """FORMAT.md §8: float32((lo * (2^20 - q) + hi * q) * 2^-20), the sum in float64."""
+    return float(np.float32((np.float64(lo) * (SPLIT_STEPS - q) + np.float64(hi) * q) / SPLIT_STEPS))
 
 
 class WalkError(ValueError):
@@ -169,6 +178,7 @@ class Walker:
         hi = np.array(h["cell_hi"], dtype=np.float32)
         # (level, block relative to the level, offset, treelet depth, cell)
         stack = [(0, 0, 0, 0, lo, hi)]
+        quantized = bool(h["version"] >= 3 and h["flags"] & QUANTIZED_SPLITS)
         while stack:
             level, block, off, depth, lo, hi = stack.pop()
             data = self.block(level, block)
@@ -178,18 +188,26 @@ class Walker:
                 continue
             node = Node("lod" if w & LOD else "basic", level, depth, lo, hi)
             node.axis = w & 3
-            node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
             has_l, has_r = not w & LEFT_EMPTY, not w & RIGHT_EMPTY
             node.empty = (not has_l, not has_r)
             if node.axis > 2:
                 raise WalkError(f"split axis {node.axis}")
+            small = quantized and not w & LOD  # a 4-byte basic node
+            if small:
+                node.split = dequantize(lo[node.axis], hi[node.axis], (w >> 10) & (SPLIT_STEPS - 1))
+            else:
+                node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
             if w & LOD:
                 voxel = off + 4 * ((w >> 4) & 127)
-                node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
+                if quantized:  # a 12-byte LOD node: the radius is half the cell's diagonal
+                    ext = (hi - lo).astype(np.float32)
+                    node.radius = float(np.float32(0.5) * np.sqrt(np.float32(ext @ ext)))
+                else:
+                    node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
                 first_sample = self.word(data, voxel)
                 n = 1 if first_sample & ONE_SAMPLE else 6
                 node.samples = [self.word(data, voxel + 4 * i) for i in range(n)]
-                child_level, child_block = level + 1, self.word(data, off + 12)
+                child_level, child_block = level + 1, self.word(data, off + (8 if quantized else 12))
                 if child_level >= self.tri_level:
                     raise WalkError("LOD node in the last node level")
                 l_off = 8 * ((w >> 17) & 8191)
@@ -197,8 +215,9 @@ class Walker:
                 child_depth = 0
             else:
                 child_level, child_block, child_depth = level, block, depth + 1
-                l_off = off + 8
-                r_off = off + 8 * ((w >> 4) & 63) if has_l else off + 8
+                size = 4 if small else 8
+                l_off = off + size
+                r_off = off + size * ((w >> 4) & 63) if has_l else off + size
             yield node
             # Right first on the stack so the left subtree is walked first.
             if has_r:

@@ -96,11 +96,15 @@ def test_voxels_respect_occlusion_between_two_stacked_planes(tmp_path: Path) -> 
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("quantized", [False, True], ids=["full", "quantized-splits"])
 @pytest.mark.parametrize("memory", [2 << 30, 5 << 20], ids=["in-core", "out-of-core"])
-def test_output_does_not_depend_on_the_thread_count(models_folder: Path, tmp_path: Path, memory: int) -> None:
+def test_output_does_not_depend_on_the_thread_count(
+    models_folder: Path, tmp_path: Path, memory: int, quantized: bool
+) -> None:
     source = models_folder / "stanford-bunny.obj"
-    one = build_model(source, tmp_path / "one.vast", BuildOptions(threads=1, memory=memory))
-    two = build_model(source, tmp_path / "two.vast", BuildOptions(threads=2, memory=memory))
+    options = {"memory": memory, "quantized_splits": quantized}
+    one = build_model(source, tmp_path / "one.vast", BuildOptions(threads=1, **options))
+    two = build_model(source, tmp_path / "two.vast", BuildOptions(threads=2, **options))
     assert (one["incore_parts"] > 1) == (memory < 1 << 30)
     assert (tmp_path / "one.vast").read_bytes() == (tmp_path / "two.vast").read_bytes()
     assert two["triangles"] == one["triangles"] > 0

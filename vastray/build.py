@@ -99,6 +99,9 @@ class BuildOptions:
     intersection_cost: float = 1.0
     empty_space_ratio: float = 0.15
     voxel_rays: int = 3
+    # Split planes on a 2^20-step grid of their cell (format version 3): 4-byte basic
+    # nodes; the tree is built on those planes, so images are the same (docs/FORMAT.md).
+    quantized_splits: bool = False
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -570,7 +573,7 @@ class _Builder:
         first_split: list[_Split] = []
 
         def sifter() -> _Sifter:
-            split = _choose_splits(cell_lo, cell_hi, cell_lo, cell_hi, 0)
+            split = _choose_splits(cell_lo, cell_hi, cell_lo, cell_hi, 0, self.opt.quantized_splits)
             first_split.append(split)
             return _Sifter(split, scratch, self.dtype.itemsize)
 
@@ -650,7 +653,7 @@ class _Builder:
         if level >= MAX_OUT_OF_CORE_LEVELS:
             self.warnings.append(f"out-of-core splitting stopped at level {level} with {count:,} triangles")
             return _Part(path, count, lo, hi, level)
-        split = _choose_splits(lo, hi, tight_lo, tight_hi, level)
+        split = _choose_splits(lo, hi, tight_lo, tight_hi, level, self.opt.quantized_splits)
         sifter = _Sifter(split, self.scratch, self.dtype.itemsize)
         try:
             for rec in _read_records(path, self.dtype, self.opt.chunk()):
@@ -761,6 +764,7 @@ class _Builder:
             empty_space_ratio=self.opt.empty_space_ratio,
             voxel_rays=self.opt.voxel_rays,
             threads=self.opt.threads,
+            quantized_splits=self.opt.quantized_splits,
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
@@ -783,7 +787,9 @@ class _Builder:
             entries.extend(es)
         stored_total = sum(e[0] for e in entries)
         fields = {
-            "flags": modelfile.FLAG_TRIANGLE_IDS | (modelfile.FLAG_COLOURS if self.src.has_colours else 0),
+            "flags": modelfile.FLAG_TRIANGLE_IDS
+            | (modelfile.FLAG_COLOURS if self.src.has_colours else 0)
+            | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),
@@ -870,10 +876,16 @@ def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarra
 
 
 def _choose_splits(
-    lo: np.ndarray, hi: np.ndarray, tight_lo: np.ndarray, tight_hi: np.ndarray, level: int
+    lo: np.ndarray,
+    hi: np.ndarray,
+    tight_lo: np.ndarray,
+    tight_hi: np.ndarray,
+    level: int,
+    quantized: bool = False,
 ) -> _Split:
     """Median splits for three levels, in heap order: each halves the longest side of
-    the occupied part of its cell, so empty space is cut away as it goes."""
+    the occupied part of its cell, so empty space is cut away as it goes. `quantized`:
+    each split is the nearest plane of its cell's grid (FLAG_QUANTIZED_SPLITS)."""
     axes: list[int] = []
     splits: list[float] = []
     boxes = {0: (np.maximum(lo, tight_lo), np.minimum(hi, tight_hi))}
@@ -884,9 +896,17 @@ def _choose_splits(
         ext = bhi - blo
         axis = int(np.argmax(ext))
         value = np.float32(0.5 * (float(blo[axis]) + float(bhi[axis])))
+        if quantized and ext[axis] > 0:
+            snapped = modelfile.quantize_split(clo[axis], chi[axis], value)
+            value = np.float32(snapped) if snapped is not None else np.float32(np.nan)
         if not (ext[axis] > 0 and clo[axis] < value < chi[axis]):
             axis = int(np.argmax(chi - clo))
             value = np.float32(0.5 * (float(clo[axis]) + float(chi[axis])))
+            if quantized:
+                snapped = modelfile.quantize_split(clo[axis], chi[axis], value)
+                if snapped is None:
+                    raise ValueError(f"an out-of-core cell too narrow to split: {clo} .. {chi}")
+                value = np.float32(snapped)
         axes.append(axis)
         splits.append(float(value))
         for side, child in ((0, 2 * h + 1), (1, 2 * h + 2)):

@@ -187,6 +187,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         threads=args.threads,
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
+        quantized_splits=args.quantized_splits,
     )
     options.check()  # a bad option is a clear error before any work
     # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
@@ -255,7 +256,8 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         print(json.dumps(stats, indent=2))
         return 0
     lo, hi = stats["bounds"]
-    print(f"model      {stats['path']} (format version {stats['version']})")
+    splits = ", quantized splits" if stats.get("quantized_splits") else ""
+    print(f"model      {stats['path']} (format version {stats['version']}{splits})")
     print(
         f"triangles  {stats['triangles']:,} (input {stats['input_triangles']:,}, "
         f"{stats['degenerate']:,} degenerate dropped), colours: {'yes' if stats['colours'] else 'no'}"
@@ -383,6 +385,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=int, default=0, help="build threads (0: all cores)")
     b.add_argument("--force", action="store_true", help="replace the output if it exists")
     b.add_argument("--scratch-dir", help="where temporary files go (default: next to the output)")
+    b.add_argument(
+        "--quantized-splits",
+        action="store_true",
+        help="split planes on a 20-bit grid of their cell: 4-byte basic nodes, the same images "
+        "(format version 3; docs/FORMAT.md)",
+    )
     b.set_defaults(func=_cmd_build)
 
     i = sub.add_parser("inspect", help="print a built model's statistics")

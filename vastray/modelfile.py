@@ -26,7 +26,7 @@ from vastray import native
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # version 1: version 2 without parts
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1 and 2: version 3 without its flags
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -35,6 +35,31 @@ CODEC_FAMILY_LZ4: int = _F["codec_family_lz4"]
 FLAG_COLOURS: int = _F["flag_colours"]
 FLAG_TRIANGLE_IDS: int = _F["flag_triangle_ids"]
 FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (version 2)
+# 4-byte basic nodes whose split is a step of their cell's grid (version 3)
+FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
+SPLIT_BITS: int = _F["split_bits"]
+SPLIT_STEPS: int = 1 << SPLIT_BITS
+
+
+def dequantize_split(lo: float, hi: float, q: int) -> float:
+    """The split plane of step `q` of the cell [lo, hi] on its axis (FLAG_QUANTIZED_SPLITS):
+    float32((lo * (2^20 - q) + hi * q) * 2^-20) with the sum in float64, as format.h has it
+    (both products are exact in float64, so every reader gets the same float32)."""
+    return float(np.float32((float(lo) * (SPLIT_STEPS - q) + float(hi) * q) * (1.0 / SPLIT_STEPS)))
+
+
+def quantize_split(lo: float, hi: float, target: float) -> float | None:
+    """The plane of the grid of [lo, hi] nearest `target`, strictly inside the cell, or
+    None when the cell is too narrow for one."""
+    lo, hi = float(lo), float(hi)
+    if not (hi > lo and np.isfinite(lo) and np.isfinite(hi)):
+        return None
+    t = (float(target) - lo) / (hi - lo) * SPLIT_STEPS
+    q = int(np.floor(min(max(t, 1.0), SPLIT_STEPS - 1.0) + 0.5))
+    s = dequantize_split(lo, hi, q)
+    return s if lo < s < hi else None
+
+
 NO_PART: int = _F["no_part"]  # a run's part for triangles in no part
 
 # Header fields in file order; the struct format is derived from this table so the two
@@ -283,6 +308,7 @@ class ModelFile:
         if h["codec"] != CODEC_FAMILY_LZ4:
             raise self._fail(f"unsupported block codec family {h['codec']}")
         known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
+        known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
@@ -393,6 +419,11 @@ class ModelFile:
         return bool(self.header["flags"] & FLAG_COLOURS)
 
     @property
+    def quantized_splits(self) -> bool:
+        """Basic nodes of 4 bytes with split planes on their cell's grid (version 3)."""
+        return bool(self.header["flags"] & FLAG_QUANTIZED_SPLITS)
+
+    @property
     def node_levels(self) -> int:
         return len(self.levels) - 1
 
@@ -459,6 +490,7 @@ class ModelFile:
                 list(self.header["cell_hi"]),
                 self.header["input_triangles"],
                 self.has_colours,
+                self.quantized_splits,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -490,6 +522,7 @@ class ModelFile:
             "input_triangles": h["input_triangles"],
             "degenerate": h["degenerate"],
             "colours": self.has_colours,
+            "quantized_splits": self.quantized_splits,
             "part_count": len(self._parts),
             "parts": [
                 {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}

@@ -237,6 +237,8 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_colours"] = format::kFlagColours;
     fmt["flag_triangle_ids"] = format::kFlagTriangleIds;
     fmt["flag_part_ids"] = format::kFlagPartIds;
+    fmt["flag_quantized_splits"] = format::kFlagQuantizedSplits;
+    fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;
     fmt["entry_record"] = format::kEntryRecord;
     fmt["parts_offset_at"] = format::kPartsOffsetAt;

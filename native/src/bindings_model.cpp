@@ -42,7 +42,7 @@ class PyModelWriter {
 public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
-                  unsigned threads)
+                  unsigned threads, bool quantized_splits)
         : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -52,6 +52,7 @@ public:
         p.kd.empty_space_ratio = empty_space_ratio;
         p.kd.bins = bins;
         p.kd.threads = threads;
+        p.kd.quantized_splits = quantized_splits;
         p.voxel_rays_per_axis = voxel_rays;
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
@@ -140,7 +141,8 @@ private:
 
 std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& level_first,
                               const std::vector<double>& centre, const std::vector<double>& lo,
-                              const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours) {
+                              const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
+                              bool quantized_splits) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -154,6 +156,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.root_cell = to_box(lo, hi);
     in.triangle_ids = triangle_ids;
     in.has_colours = has_colours;
+    in.quantized_splits = quantized_splits;
     for (std::uint32_t f : level_first) {
         if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
     }
@@ -594,11 +597,11 @@ py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const st
 void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
-        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned>(),
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
-             py::arg("threads") = 0u)
+             py::arg("threads") = 0u, py::arg("quantized_splits") = false)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"))
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
@@ -619,6 +622,6 @@ void bind_model(py::module_& m) {
     m.def("sift8", &sift8, py::arg("records"), py::arg("axes"), py::arg("splits"), py::arg("cell_lo"),
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),
-          py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"),
+          py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
           "Decode a whole model (raw blocks by global id) into an in-core Scene");
 }

@@ -23,6 +23,7 @@
 
 #include <emmintrin.h>
 
+#include "vastray/format.h"
 #include "vastray/kdtree.h"
 #include "vastray/thread_pool.h"
 
@@ -539,7 +540,14 @@ bool Builder::try_empty_cut(RefStack& rs, std::size_t first, std::size_t n, cons
         if (hi_gap >= best_ratio) { best_ratio = hi_gap; best_axis = a; best_side = 1; }
     }
     if (best_axis < 0) return false;
-    const float split = best_side == 0 ? used.lo[best_axis] : used.hi[best_axis];
+    float split = best_side == 0 ? used.lo[best_axis] : used.hi[best_axis];
+    // Quantized: the nearest plane on the empty side of the occupied box, so the cut
+    // still leaves every reference on the occupied side.
+    std::uint32_t q = 0;
+    if (p_.quantized_splits &&
+        !format::quantize_split(cell.lo[best_axis], cell.hi[best_axis], split, best_side == 0 ? -1 : 1, q, split)) {
+        return false;
+    }
     Box3f lcell = cell, rcell = cell;
     lcell.hi[best_axis] = split;
     rcell.lo[best_axis] = split;
@@ -687,6 +695,14 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
             const float lo = refs[i].box.lo[best_axis], hi = refs[i].box.hi[best_axis];
             best_left += lo < best_split || (lo == best_split && hi == best_split) ? 1 : 0;
             best_right += hi > best_split || (lo == best_split && hi == best_split) ? 1 : 0;
+        }
+    }
+
+    if (p_.quantized_splits) {
+        std::uint32_t q = 0;
+        if (!format::quantize_split(cell.lo[best_axis], cell.hi[best_axis], best_split, 0, q, best_split)) {
+            emit_leaf(refs, n, cell, depth, out);  // too narrow a cell for the grid
+            return;
         }
     }
 

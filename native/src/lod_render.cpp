@@ -31,6 +31,7 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.tri_level = static_cast<std::uint32_t>(index.level_count() - 1);
         lane.block_count = static_cast<std::uint32_t>(index.block_count());
         lane.has_colours = index.has_colours();
+        lane.quantized_splits = index.quantized_splits();
     }
     return lanes;
 }

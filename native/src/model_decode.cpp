@@ -22,7 +22,7 @@ public:
     }
 
     std::shared_ptr<Scene> run() {
-        walk(in_.level_first[0], 0, 0, 0);
+        walk(in_.level_first[0], 0, 0, 0, in_.root_cell);
         KdTree tree;
         tree.nodes = std::move(nodes_);
         tree.tri_ids = std::move(tri_ids_);
@@ -51,34 +51,42 @@ private:
         return b;
     }
 
-    void walk(std::size_t block, std::size_t off, std::size_t level, int depth) {
+    void walk(std::size_t block, std::size_t off, std::size_t level, int depth, const Box3f& cell) {
         if (depth > 200) bad(block, "tree deeper than 200 levels (cycle?)");
         const std::uint32_t w = word(block, off);
         if (!is_inner(w)) {
             leaf(block, w, word(block, off + 4));
             return;
         }
-        const float split = bits_float(word(block, off + 4));
+        if (axis_of(w) > 2) bad(block, "split axis 3 at offset " + std::to_string(off));
+        // A quantized model's basic nodes are 4 bytes, their split a step of the cell.
+        const bool quantized = in_.quantized_splits && !is_lod(w);
+        const std::size_t size = quantized ? 4 : 8;
+        const float split = quantized ? dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], basic_split_step(w))
+                                      : bits_float(word(block, off + 4));
         const std::uint32_t empty = w & (kLeftEmpty | kRightEmpty);
         const bool has_l = (empty & kLeftEmpty) == 0, has_r = (empty & kRightEmpty) == 0;
         if (!has_l && !has_r) bad(block, "inner node with two empty children");
         const std::size_t self = nodes_.size();
         nodes_.push_back(KdNode::inner(axis_of(w), split, 0, (has_l ? 0 : KdNode::kLeftEmpty) | (has_r ? 0 : KdNode::kRightEmpty)));
-        std::size_t l_block = block, r_block = block, l_off = off + 8, r_off = 0, child_level = level;
+        std::size_t l_block = block, r_block = block, l_off = off + size, r_off = 0, child_level = level;
         if (is_lod(w)) {
             if (level + 1 >= tri_level_) bad(block, "LOD node in the last node level");
             child_level = level + 1;
-            l_block = r_block = block_of(child_level, word(block, off + 12), block);
+            l_block = r_block = block_of(child_level, word(block, off + lod_child_block_at(in_.quantized_splits)), block);
             l_off = 8 * static_cast<std::size_t>(lod_child_off8(w));
             r_off = has_l ? l_off + 8 * static_cast<std::size_t>(lod_right_from_left8(w)) : l_off;
         } else {
-            r_off = has_l ? off + 8 * static_cast<std::size_t>(basic_right_off8(w)) : off + 8;
-            if (has_r && r_off <= off + 8 && has_l) bad(block, "right child offset does not point past the left child");
+            r_off = has_l ? off + size * static_cast<std::size_t>(basic_right_off8(w)) : off + size;
+            if (has_r && r_off <= off + size && has_l) bad(block, "right child offset does not point past the left child");
         }
-        if (has_l) walk(l_block, l_off, child_level, depth + 1);
+        Box3f lcell = cell, rcell = cell;
+        lcell.hi[axis_of(w)] = split;
+        rcell.lo[axis_of(w)] = split;
+        if (has_l) walk(l_block, l_off, child_level, depth + 1, lcell);
         if (has_r) {
             const std::size_t right_index = nodes_.size();
-            walk(r_block, r_off, child_level, depth + 1);
+            walk(r_block, r_off, child_level, depth + 1, rcell);
             if (has_l) nodes_[self] = KdNode::inner(axis_of(w), split, static_cast<std::uint32_t>(right_index - self), 0);
             else nodes_[self] = KdNode::inner(axis_of(w), split, 1, KdNode::kLeftEmpty);
         }

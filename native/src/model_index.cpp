@@ -76,7 +76,8 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         }
         if (load<std::uint32_t>(h + 24) != kCodecFamilyLz4) throw fail("unsupported block codec family");
         const auto flags = load<std::uint32_t>(h + 16);
-        const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u);
+        const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u) |
+                                    (version >= 3 ? kFlagQuantizedSplits : 0u);
         if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
         }
@@ -100,6 +101,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
             }
         }
         has_colours_ = (flags & kFlagColours) != 0;
+        quantized_splits_ = (flags & kFlagQuantizedSplits) != 0;
         const auto level_count = load<std::uint32_t>(h + 28);
         for (int a = 0; a < 3; ++a) {
             centre_[a] = load<double>(h + 32 + 8 * a);

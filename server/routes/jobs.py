@@ -48,7 +48,7 @@ def resolve_source(state: State, source: str | None, upload: str | None) -> tupl
     return str(path), Path(source).stem
 
 
-def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int]:
+def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int | bool]:
     s = state.settings
     memory = s.build_memory
     if options is not None and options.memory is not None:
@@ -70,7 +70,10 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
             f"limit of {format_bytes(s.job_memory_limit)} per job",
         )
     threads = s.build_threads if options is None or options.threads is None else options.threads
-    return {"memory": memory, "threads": threads}
+    opts: dict[str, int | bool] = {"memory": memory, "threads": threads}
+    if options is not None and options.quantized_splits:
+        opts["quantized_splits"] = True  # recorded only when asked for, as the model's options
+    return opts
 
 
 def submit_build(

@@ -25,8 +25,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 2;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: version 1 is version 2 without parts
+constexpr std::uint32_t kVersion = 3;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1 and 2 are version 3 without its flags
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -34,6 +34,7 @@ constexpr std::uint32_t kCodecFamilyLz4 = 1;  // the header's codec field
 constexpr std::uint32_t kFlagColours = 1u << 0;
 constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
+constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
@@ -61,6 +62,63 @@ constexpr std::uint32_t kLeftEmpty = 1u << 2;
 constexpr std::uint32_t kRightEmpty = 1u << 3;
 constexpr std::uint32_t kMaxLeafTriangles = (1u << 15) - 1;
 
+// ---- quantized split planes (version 3, FLAG_QUANTIZED_SPLITS; paper 004) --------------
+// A basic node of a quantized model is 4 bytes: bits 0-3 as above, bits 4-9 the right
+// child's offset in 4-byte units, bits 10-29 q, the split's position in its cell on the
+// split axis in 2^20 steps: split = f32((lo * (2^20 - q) + hi * q) * 2^-20), evaluated
+// in f64. Both products are exact in f64 (24-bit by at most 21-bit mantissas), so the
+// one rounding of the sum is the same with or without fused multiply-add, in any
+// reader; the result lies in [lo, hi]. The kd builder only places splits on these
+// planes (and partitions by them), so the tree is exact: images do not change.
+constexpr int kSplitBits = 20;
+constexpr std::uint32_t kSplitSteps = 1u << kSplitBits;
+
+inline float dequantize_split(float lo, float hi, std::uint32_t q) {
+    const double a = static_cast<double>(lo) * static_cast<double>(kSplitSteps - q);
+    const double b = static_cast<double>(hi) * static_cast<double>(q);
+    return static_cast<float>((a + b) * (1.0 / static_cast<double>(kSplitSteps)));
+}
+
+// The plane of the grid of [lo, hi] nearest `target` (dir 0), or the nearest at or below
+// it (dir < 0) or at or above it (dir > 0), strictly inside (lo, hi); false when the
+// cell is too narrow for one. Monotone in q, so a few steps from the estimate settle it.
+inline bool quantize_split(float lo, float hi, float target, int dir, std::uint32_t& q_out, float& split_out) {
+    if (!(hi > lo) || !std::isfinite(lo) || !std::isfinite(hi)) return false;
+    const double t = (static_cast<double>(target) - lo) / (static_cast<double>(hi) - lo) * kSplitSteps;
+    long q = std::lround(std::clamp(t, 1.0, static_cast<double>(kSplitSteps - 1)));
+    if (dir != 0) {
+        for (int i = 0; i < 8 && q > 1 && dir < 0 && dequantize_split(lo, hi, static_cast<std::uint32_t>(q)) > target; ++i) --q;
+        for (int i = 0; i < 8 && q < long{kSplitSteps - 1} && dir > 0 && dequantize_split(lo, hi, static_cast<std::uint32_t>(q)) < target; ++i) ++q;
+    }
+    const float s = dequantize_split(lo, hi, static_cast<std::uint32_t>(q));
+    if (!(s > lo && s < hi)) return false;
+    if ((dir < 0 && s > target) || (dir > 0 && s < target)) return false;
+    q_out = static_cast<std::uint32_t>(q);
+    split_out = s;
+    return true;
+}
+
+// The q whose plane is exactly `split` in [lo, hi] (the writer's check that the builder
+// put every split on the grid): the smallest q with dequantize_split >= split.
+inline bool split_step(float lo, float hi, float split, std::uint32_t& q_out) {
+    std::uint32_t a = 1, b = kSplitSteps - 1;
+    while (a < b) {
+        const std::uint32_t m = a + (b - a) / 2;
+        if (dequantize_split(lo, hi, m) < split) a = m + 1;
+        else b = m;
+    }
+    if (dequantize_split(lo, hi, a) != split) return false;
+    q_out = a;
+    return true;
+}
+
+// A quantized model's LOD nodes are 12 bytes: word 0, the split (f32) and the child
+// block id; the enclosing-sphere radius is not stored but derived from the cell, which
+// a reader of such a model carries anyway (full precision: 16 bytes, radius in word 2).
+inline std::size_t lod_node_size(bool quantized) { return quantized ? 12 : 16; }
+inline std::size_t lod_child_block_at(bool quantized) { return quantized ? 8 : 12; }
+inline float cell_radius(const Vec3f& extent) { return 0.5f * length(extent); }
+
 inline std::uint32_t float_bits(float f) {
     std::uint32_t u;
     std::memcpy(&u, &f, sizeof u);
@@ -75,6 +133,9 @@ inline float bits_float(std::uint32_t u) {
 inline std::uint32_t basic_word(int axis, std::uint32_t empty, std::uint32_t right_off8) {
     return kInner | static_cast<std::uint32_t>(axis) | empty | (right_off8 << 4);
 }
+inline std::uint32_t quantized_basic_word(int axis, std::uint32_t empty, std::uint32_t right_off4, std::uint32_t q) {
+    return kInner | static_cast<std::uint32_t>(axis) | empty | (right_off4 << 4) | (q << 10);
+}
 inline std::uint32_t lod_word(int axis, std::uint32_t empty, std::uint32_t voxel_off4,
                               std::uint32_t right_from_left8, std::uint32_t child_off8) {
     return kInner | kLod | static_cast<std::uint32_t>(axis) | empty | (voxel_off4 << 4) |
@@ -86,6 +147,8 @@ inline bool is_inner(std::uint32_t w) { return (w & kInner) != 0; }
 inline bool is_lod(std::uint32_t w) { return (w & kLod) != 0; }
 inline int axis_of(std::uint32_t w) { return static_cast<int>(w & 3u); }
 inline std::uint32_t basic_right_off8(std::uint32_t w) { return (w >> 4) & 63u; }
+inline std::uint32_t basic_right_off4(std::uint32_t w) { return (w >> 4) & 63u; }  // quantized models
+inline std::uint32_t basic_split_step(std::uint32_t w) { return (w >> 10) & (kSplitSteps - 1); }
 inline std::uint32_t lod_voxel_off4(std::uint32_t w) { return (w >> 4) & 127u; }
 inline std::uint32_t lod_right_from_left8(std::uint32_t w) { return (w >> 11) & 63u; }
 inline std::uint32_t lod_child_off8(std::uint32_t w) { return (w >> 17) & 8191u; }

@@ -64,6 +64,9 @@ struct KdBuildParams {
     float empty_space_ratio = 0.15f; // cut off an empty slab when it holds >= this volume fraction
     int median_fallback = 128;       // SAH found no split but this many triangles remain: split mid
     unsigned threads = 0;            // 0: all hardware threads
+    // Every split on the 2^20-step grid of its cell on the split axis (format.h,
+    // FLAG_QUANTIZED_SPLITS); the tree is built on those planes, so it stays exact.
+    bool quantized_splits = false;
 };
 
 struct KdBuildStats {

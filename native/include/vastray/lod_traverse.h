@@ -49,6 +49,7 @@ struct LodLane {
     const std::uint32_t* level_first = nullptr;
     std::uint32_t tri_level = 0, block_count = 0;
     bool has_colours = false;
+    bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;  // first requests
     std::uint64_t lookups = 0, hits = 0, missing = 0, bad = 0, ws_blocks = 0, ws_bytes = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0, voxel_hits = 0;
@@ -102,40 +103,82 @@ inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, L
     hit.sample = (s0 & format::kOneSample) ? s0 : load<std::uint32_t>(v.samples + 4 * face);
 }
 
-// A node in a cached block: the block's bytes, the node's offset, its LOD level.
+// A node in a cached block: the block's bytes, the node's offset, its LOD level, and its
+// cell (a quantized model's basic nodes store their split as a step of it).
 struct NodeRef {
     const std::uint8_t* block;
     std::uint32_t off, level;
+    float lo[3], hi[3];
 };
 
-inline Voxel voxel_of(const NodeRef& node, std::uint32_t w) {
-    return {node.block + node.off + 4 * format::lod_voxel_off4(w), format::bits_float(load<std::uint32_t>(node.block + node.off + 8))};
+inline NodeRef root_ref(const std::uint8_t* block, const Box3f& cell) {
+    return {block, 0, 0, {cell.lo.x, cell.lo.y, cell.lo.z}, {cell.hi.x, cell.hi.y, cell.hi.z}};
+}
+
+// An inner node's split position: word 1, or (a quantized model's basic node) the step
+// of its cell on the split axis in word 0 (format.h).
+inline float split_of(bool quantized, const NodeRef& node, std::uint32_t w) {
+    if (quantized && !format::is_lod(w)) {
+        const int a = std::min(format::axis_of(w), 2);
+        return format::dequantize_split(node.lo[a], node.hi[a], format::basic_split_step(w));
+    }
+    return format::bits_float(load<std::uint32_t>(node.block + node.off + 4));
+}
+
+// A LOD node's voxel: its samples, and its radius (a quantized model derives it from the
+// cell instead of storing it).
+inline Voxel voxel_of(bool quantized, const NodeRef& node, std::uint32_t w) {
+    const float radius =
+        quantized ? format::cell_radius(Vec3f(node.hi[0] - node.lo[0], node.hi[1] - node.lo[1], node.hi[2] - node.lo[2]))
+                  : format::bits_float(load<std::uint32_t>(node.block + node.off + 8));
+    return {node.block + node.off + 4 * format::lod_voxel_off4(w), radius};
 }
 
 // The block holding a LOD node's child treelets, or null when it is not cached (then it
 // is requested) or the node is damaged (points outside the next level).
 inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, float priority) {
     if (node.level + 1 >= lane.tri_level) return nullptr;  // no node level below: damaged
-    const std::uint32_t block = lane.level_first[node.level + 1] + load<std::uint32_t>(node.block + node.off + 12);
+    const std::uint32_t block = lane.level_first[node.level + 1] +
+                                load<std::uint32_t>(node.block + node.off + format::lod_child_block_at(lane.quantized_splits));
     return block < lane.level_first[node.level + 2] ? lane.lookup(block, priority) : nullptr;
 }
 
-// An inner node's children (null block: empty child). `child` is the child block of a
-// LOD node. False for a damaged node, whose offsets would loop or leave the block.
-inline bool children_of(const NodeRef& node, std::uint32_t w, const std::uint8_t* child, NodeRef& left,
-                        NodeRef& right) {
+// An inner node's children (null block: empty child), with their cells split at
+// `split`. `child` is the child block of a LOD node. False for a damaged node, whose
+// offsets would loop or leave the block.
+inline bool children_of(bool quantized, const NodeRef& node, std::uint32_t w, float split,
+                        const std::uint8_t* child, NodeRef& left, NodeRef& right) {
     using namespace format;
     const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
-    left = right = NodeRef{};
+    const int axis = std::min(axis_of(w), 2);
+    left = right = node;
+    left.hi[axis] = split;
+    right.lo[axis] = split;
+    left.block = right.block = nullptr;
     if (is_lod(w)) {
         const std::uint32_t first = 8 * lod_child_off8(w);
-        if (has_l) left = {child, first, node.level + 1};
-        if (has_r) right = {child, has_l ? first + 8 * lod_right_from_left8(w) : first, node.level + 1};
+        left.level = right.level = node.level + 1;
+        if (has_l) {
+            left.block = child;
+            left.off = first;
+        }
+        if (has_r) {
+            right.block = child;
+            right.off = has_l ? first + 8 * lod_right_from_left8(w) : first;
+        }
     } else {
-        const std::uint32_t r8 = basic_right_off8(w);
-        if (has_l && has_r && r8 < 2) return false;
-        if (has_l) left = {node.block, node.off + 8, node.level};
-        if (has_r) right = {node.block, has_l ? node.off + 8 * r8 : node.off + 8, node.level};
+        // Basic nodes are 8 bytes, 4 in a quantized model; offsets count in their size.
+        const std::uint32_t size = quantized ? 4 : 8;
+        const std::uint32_t r = basic_right_off8(w);
+        if (has_l && has_r && r < 2) return false;
+        if (has_l) {
+            left.block = node.block;
+            left.off = node.off + size;
+        }
+        if (has_r) {
+            right.block = node.block;
+            right.off = has_l ? node.off + size * r : node.off + size;
+        }
     }
     return !(left.block && left.off > kBlockSize - 8) && !(right.block && right.off > kBlockSize - 8);
 }
@@ -268,10 +311,10 @@ inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheare
             }
             ++lane.node_visits;
             const int axis = axis_of(w);
-            const float split = bits_float(load<std::uint32_t>(node.block + node.off + 4));
+            const float split = lod_detail::split_of(lane.quantized_splits, node, w);
             const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(node, w);
+                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
                 const float reach = lray.cone_t0 + tmin;
                 if (here.radius <= reach * lray.cone) return take_voxel(here, tmin);
                 child = lod_detail::lod_child_block(lane, node, here.radius / std::max(reach, 1e-30f));
@@ -279,7 +322,7 @@ inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheare
                 voxel = here;
             }
             NodeRef left, right;
-            if (!lod_detail::children_of(node, w, child, left, right)) return true;  // damaged: stop here
+            if (!lod_detail::children_of(lane.quantized_splits, node, w, split, child, left, right)) return true;  // damaged: stop here
             const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
             const float abs_split = std::abs(t_split);
@@ -361,8 +404,8 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     if (!lod_detail::clip_with_axis(ray, root_cell, tmin, tmax, entry_axis)) return false;
     const std::uint8_t* block = lane.lookup(lane.level_first[0], 0.0f);
     if (!block) return false;
-    lod_walk<AnyHit>(lane, lray, ShearedRay(ray.dir), {block, 0, 0}, tmin, tmax, entry_axis, {nullptr, 0.0f}, hit,
-                     skip);
+    lod_walk<AnyHit>(lane, lray, ShearedRay(ray.dir), lod_detail::root_ref(block, root_cell), tmin, tmax, entry_axis,
+                     {nullptr, 0.0f}, hit, skip);
     return hit.prim != kNoHit;
 }
 

@@ -138,7 +138,7 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
     };
     Entry stack[64];
     int top = 0;
-    NodeRef node{root, 0, 0};
+    NodeRef node = lod_detail::root_ref(root, root_cell);
     Voxel voxel{nullptr, 0.0f};
 
     // The lanes `which` of vector v stop at voxel `vx`, entered at their current tmin.
@@ -220,10 +220,10 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
             }
             ++lane.node_visits;
             const int axis = axis_of(w);
-            const float split = bits_float(load<std::uint32_t>(node.block + node.off + 4));
+            const float split = lod_detail::split_of(lane.quantized_splits, node, w);
             const std::uint8_t* child = nullptr;
             if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(node, w);
+                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
                 const vf radius = vf::broadcast(here.radius);
                 int rest = 0;
                 for (int v = 0; v < K; ++v) {
@@ -243,7 +243,9 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
                 voxel = here;
             }
             NodeRef left, right;
-            if (!lod_detail::children_of(node, w, child, left, right)) return occluded;  // damaged node
+            if (!lod_detail::children_of(lane.quantized_splits, node, w, split, child, left, right)) {
+                return occluded;  // damaged node
+            }
             // The packet's near child: the origin's side (shared origin), else the side
             // the directions leave.
             bool near_is_left, may_flip = true;

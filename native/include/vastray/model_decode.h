@@ -20,6 +20,7 @@ struct DecodeInput {
     Box3f root_cell;
     std::uint64_t triangle_ids = 0;           // one more than the largest input triangle id
     bool has_colours = false;
+    bool quantized_splits = false;            // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes
 };
 
 std::shared_ptr<Scene> decode_model(const DecodeInput& in);

@@ -49,7 +49,7 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     }
     node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
     const Vec3f e = node.cell.extent();
-    node.radius = 0.5f * length(e);
+    node.radius = format::cell_radius(e);
 }
 
 Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs) {
@@ -111,7 +111,7 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& trian
             std::memcpy(&w, at, 4);
             w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(off / 8) << 17);
             std::memcpy(at, &w, 4);
-            std::memcpy(at + 12, &block, 4);
+            std::memcpy(at + format::lod_child_block_at(p_.kd.quantized_splits), &block, 4);
         }
         t.patches.clear();
     };

@@ -61,7 +61,7 @@ public:
 
     // Lays out a finished treelet of `level` into `out`.
     void serialise(std::vector<TreeletNode>& treelet, std::size_t level, Pending& out) {
-        serialise_treelet(treelet, level, stats, out);
+        serialise_treelet(treelet, level, stats, out, p_.kd.quantized_splits);
     }
 
     // Moves a part emitted in parallel into these streams: its triangle blocks follow

@@ -56,13 +56,15 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
     collect(tree, root, cell, 0, nodes);
 }
 
-void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out) {
+void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out,
+                       bool quantized) {
+    const std::size_t basic_size = quantized ? 4 : 8;
     ensure_level(stats, level);
     stats.level_nodes[level] += nodes.size();
     std::size_t cursor = 0;
     for (TreeletNode& n : nodes) {
         n.offset = cursor;
-        cursor += n.kind == TreeletNode::Lod ? 16 : 8;
+        cursor += n.kind == TreeletNode::Lod ? lod_node_size(quantized) : (n.kind == TreeletNode::Basic ? basic_size : 8);
         std::uint64_t& kind_count = n.kind == TreeletNode::Lod    ? stats.lod_nodes
                                     : n.kind == TreeletNode::Leaf ? stats.leaves
                                                                   : stats.basic_nodes;
@@ -83,8 +85,18 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, Model
         const TreeletNode& n = nodes[i];
         switch (n.kind) {
             case TreeletNode::Basic: {
-                const std::uint32_t right8 =
-                    n.right >= 0 ? static_cast<std::uint32_t>((nodes[static_cast<std::size_t>(n.right)].offset - n.offset) / 8) : 0;
+                const std::size_t right_gap = n.right >= 0 ? nodes[static_cast<std::size_t>(n.right)].offset - n.offset : 0;
+                if (quantized) {
+                    std::uint32_t q = 0;
+                    if (!split_step(n.cell.lo[n.axis], n.cell.hi[n.axis], n.split, q)) {
+                        throw std::logic_error("a split plane is not on its cell's quantization grid");
+                    }
+                    // No left child: the right one follows at +4 (the field then reads 1).
+                    const auto right4 = static_cast<std::uint32_t>(right_gap / 4);
+                    put(n.offset, quantized_basic_word(n.axis, n.empty, right4, q));
+                    break;
+                }
+                const auto right8 = static_cast<std::uint32_t>(right_gap / 8);
                 put(n.offset, basic_word(n.axis, n.empty, right8));
                 put(n.offset + 4, float_bits(n.split));
                 break;
@@ -97,8 +109,8 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, Model
                 }
                 put(n.offset, lod_word(n.axis, n.empty, voxel4, n.right_from_left8, n.child_off8));
                 put(n.offset + 4, float_bits(n.split));
-                put(n.offset + 8, float_bits(n.radius));
-                put(n.offset + 12, n.child_block);
+                if (!quantized) put(n.offset + 8, float_bits(n.radius));  // quantized: derived from the cell
+                put(n.offset + lod_child_block_at(quantized), n.child_block);
                 if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});
                 for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
                 break;

@@ -62,7 +62,10 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
 
 // Lays out a finished treelet: nodes in preorder, then the voxels of its LOD nodes, padded
 // to 8 bytes. Leaves' triangle block ids are recorded as patches (a parallel part's ids
-// are local until it is merged). Counts every node in `stats`.
-void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out);
+// are local until it is merged). Counts every node in `stats`. `quantized`: basic nodes
+// take 4 bytes with their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS);
+// a split off that grid is a logic error.
+void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out,
+                       bool quantized = false);
 
 }  // namespace vastray::writer
