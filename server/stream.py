@@ -425,6 +425,15 @@ class Connection:
             await self._fail(CLOSE_BAD_HELLO, "viewport_too_large", problem)
             return
         self.viewport = viewport
+        # Everything the welcome needs from disk comes first: once this connection
+        # subscribes to a view, its sender may send that view's frame, and no frame may
+        # go out before the welcome.
+        row = await asyncio.to_thread(self.state.store.row, hello.model)
+        info = self.state.store.info(row).model_dump()
+        # The page's parts panel searches these itself; a bigger table is searched over
+        # GET /api/models/{id}/parts.
+        table = self.state.store.parts(hello.model)
+        info["parts"] = [PartInfo.of(p).model_dump() for p in table.parts[:WELCOME_PARTS]]
         if resumed and session is not None:
             self.session_id = session.id
             camera, quality = session.camera, session.quality
@@ -460,12 +469,6 @@ class Connection:
             self._subscribe(self._new_view(self.session_id, camera, viewport, quality, sections, highlight))
         view = self.view
         assert view is not None
-        row = await asyncio.to_thread(self.state.store.row, hello.model)
-        info = self.state.store.info(row).model_dump()
-        # The page's parts panel searches these itself; a bigger table is searched over
-        # GET /api/models/{id}/parts.
-        table = self.state.store.parts(hello.model)
-        info["parts"] = [PartInfo.of(p).model_dump() for p in table.parts[:WELCOME_PARTS]]
         limits = {
             "max_pixels": self.state.settings.max_pixels,
             "max_in_flight": MAX_IN_FLIGHT,
