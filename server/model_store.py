@@ -21,7 +21,6 @@ from typing import Any
 
 from vastray.modelfile import FLAG_COLOURS, FLAG_PART_IDS, ModelError, ModelFile
 from vastray.outofcore import OutOfCoreModel, make_cache
-from vastray.parts import PartTable
 from vastray.schemas import LevelInfo, ModelInfo
 from vastray.server.errors import ApiError
 from vastray.server.registry import JobRow, ModelRow, Registry
@@ -68,7 +67,6 @@ class ModelStore:
         self.cache = make_cache(cache_bytes, fetchers)
         self._lock = threading.Lock()
         self._open: dict[str, OutOfCoreModel] = {}
-        self._parts: dict[str, PartTable] = {}
         self._leases: dict[str, int] = {}
 
     # -- reading ---------------------------------------------------------------------------
@@ -125,8 +123,8 @@ class ModelStore:
             if model is None:
                 try:
                     model = OutOfCoreModel(self.data_dir / str(row.file), self.cache)
-                    with ModelFile(self.data_dir / str(row.file)) as f:
-                        self._parts[model_id] = PartTable.of_file(f)
+                    # Read here, off the event loop: welcomes, picks and views use it.
+                    model.part_table  # noqa: B018
                 except ModelError as exc:
                     raise ApiError(
                         500, "model_damaged", f"model {model_id} cannot be opened: {exc}"
@@ -134,11 +132,6 @@ class ModelStore:
                 self._open[model_id] = model
             self._leases[model_id] = self._leases.get(model_id, 0) + 1
             return model
-
-    def parts(self, model_id: str) -> PartTable:
-        """The part table of a model this caller holds a lease on."""
-        with self._lock:
-            return self._parts[model_id]
 
     def release(self, model_id: str) -> None:
         with self._lock:
@@ -238,7 +231,6 @@ class ModelStore:
             if self._leases.get(row.id):
                 return
             model = self._open.pop(row.id, None)
-            self._parts.pop(row.id, None)
         if model is not None:
             model.close()
         if row.file and row.info.get("owned", True):

@@ -157,7 +157,7 @@ class RenderService:
                 np.concatenate(directions),
                 request.timeout,
                 request.sections,
-                parts=self.store.parts(model_id),
+                parts=model.part_table,
             )
 
     def pick_rays(

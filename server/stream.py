@@ -297,7 +297,7 @@ class Connection:
             viewport,
             quality,
             render_threads=self.state.settings.render_threads,
-            parts=self.state.store.parts(self.model_id),
+            parts=model.part_table,
         )
         view.sections = list(sections or [])
         view.highlight = list(highlight or [])
@@ -432,8 +432,7 @@ class Connection:
         info = self.state.store.info(row).model_dump()
         # The page's parts panel searches these itself; a bigger table is searched over
         # GET /api/models/{id}/parts.
-        table = self.state.store.parts(hello.model)
-        info["parts"] = [PartInfo.of(p).model_dump() for p in table.parts[:WELCOME_PARTS]]
+        info["parts"] = [PartInfo.of(p).model_dump() for p in model.part_table.parts[:WELCOME_PARTS]]
         if resumed and session is not None:
             self.session_id = session.id
             camera, quality = session.camera, session.quality

@@ -153,7 +153,7 @@ class View:
         self.controller = QualityController()
         self.sections: list[SectionPlane] = []
         self.highlight: list[int] = []
-        self.parts = parts if parts is not None else PartTable([], np.zeros(0), np.zeros(0), 0)
+        self.parts = parts if parts is not None else PartTable.empty()
         self._highlight_runs: tuple[tuple[int, ...], np.ndarray] | None = None
         self.subscribers: set[Subscriber] = set()
         self.busy = False

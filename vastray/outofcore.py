@@ -22,7 +22,8 @@ import numpy as np
 
 from vastray import native
 from vastray.camera import Camera
-from vastray.modelfile import ModelError, ModelFile, ModelPart, part_of
+from vastray.modelfile import ModelError, ModelFile, ModelPart
+from vastray.parts import PartTable
 from vastray.renderer import Frame, RayHits, Sections, render_params, trace
 from vastray.units import parse_bytes
 
@@ -114,28 +115,27 @@ class OutOfCoreModel:
         if preload_levels > 1:
             self._model.preload_levels(preload_levels)
         self.open_seconds = time.perf_counter() - start
-        self._part_table: tuple[list[ModelPart], np.ndarray, np.ndarray, int] | None = None
+        self._part_table: PartTable | None = None
         self._part_lock = threading.Lock()
 
-    def _parts(self) -> tuple[list[ModelPart], np.ndarray, np.ndarray, int]:
-        """The part table and runs, read once through ModelFile (the native reader has
-        already checked the section's checksum on open)."""
+    @property
+    def part_table(self) -> PartTable:
+        """The part table and runs, read once through ModelFile on first use (the native
+        reader has already checked the section's checksum on open)."""
         with self._part_lock:
             if self._part_table is None:
                 with ModelFile(self.path) as f:
-                    firsts, parts = f.part_runs
-                    self._part_table = (f.parts, firsts, parts, int(f.header["input_triangles"]))
+                    self._part_table = PartTable.of_file(f)
             return self._part_table
 
     @property
     def parts(self) -> list[ModelPart]:
         """The model's parts (empty when its input had none); see ModelFile.parts."""
-        return list(self._parts()[0])
+        return list(self.part_table.parts)
 
     def part_of(self, triangle_ids: np.ndarray) -> np.ndarray:
         """The part (int32, -1 for none) of each input triangle id; see ModelFile.part_of."""
-        _, firsts, parts, input_triangles = self._parts()
-        return part_of(firsts, parts, triangle_ids, input_triangles)
+        return self.part_table.part_of(triangle_ids)
 
     @property
     def name(self) -> str:

@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from vastray.modelfile import part_of
+
 __all__ = ["PartTable", "highlight_ranges", "runs_from_ids"]
 
 
@@ -54,7 +56,8 @@ def highlight_ranges(
 
 class PartTable:
     """A model's parts (`ModelFile.parts`) with the runs that give every input
-    triangle's part: what a server keeps per open model to name picks and highlight."""
+    triangle's part: what an open model keeps (`OutOfCoreModel.part_table`) to name
+    picks and highlight."""
 
     def __init__(
         self, parts: list[Any], firsts: np.ndarray, part_ids: np.ndarray, input_triangles: int
@@ -69,21 +72,21 @@ class PartTable:
         """The table of an open `vastray.modelfile.ModelFile` (empty without parts)."""
         parts = list(model_file.parts)
         if not parts:
-            return cls([], np.zeros(0, np.int64), np.zeros(0, np.int32), 0)
+            return cls.empty()
         firsts, part_ids = model_file.part_runs
         return cls(parts, firsts, part_ids, int(model_file.header["input_triangles"]))
+
+    @classmethod
+    def empty(cls) -> PartTable:
+        """A model without parts."""
+        return cls([], np.zeros(0, np.int64), np.zeros(0, np.int32), 0)
 
     def __len__(self) -> int:
         return len(self.parts)
 
     def part_of(self, triangle_ids: np.ndarray) -> np.ndarray:
         """The part of each input triangle id (int32; -1 for none, and for ids < 0)."""
-        ids = np.asarray(triangle_ids, dtype=np.int64)
-        if not self.parts:
-            return np.full(ids.shape, -1, np.int32)
-        at = np.searchsorted(self.firsts, ids, side="right") - 1
-        out = self.part_ids[np.clip(at, 0, None)]
-        return np.where((ids >= 0) & (at >= 0) & (ids < self.input_triangles), out, -1).astype(np.int32)
+        return part_of(self.firsts, self.part_ids, triangle_ids, self.input_triangles)
 
     def name(self, part: int) -> str | None:
         return self.parts[part].name if 0 <= part < len(self.parts) else None

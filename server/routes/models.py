@@ -111,8 +111,8 @@ def list_parts(
 ) -> PartList:
     state = state_of(request)
     state.auth.require_model_view(request, model_id)
-    with state.store.lease(model_id):
-        found = state.store.parts(model_id).search(q)
+    with state.store.lease(model_id) as model:
+        found = model.part_table.search(q)
     return PartList(total=len(found), parts=[PartInfo.of(p) for p in found[offset : offset + limit]])
 
 
