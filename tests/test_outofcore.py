@@ -1109,3 +1109,31 @@ def test_cli_renders_a_built_model_through_a_small_cache(
     assert "16 slots" in result.stderr
     assert "Traceback" not in result.stderr
     assert not full.exists()
+
+
+def _transparent_huge_pages() -> str:
+    """The kernel's THP mode: the bracketed word of its setting ('never' when absent)."""
+    try:
+        setting = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        return "never"
+    return setting.split("[", 1)[1].split("]", 1)[0] if "[" in setting else "never"
+
+
+def test_huge_page_slots_change_nothing_but_memory_layout(built: Callable[[str], Built]) -> None:
+    """The cache's slots on 2 MiB pages (the default, where the kernel allows it) and on
+    ordinary pages: the same frames, bit for bit, at full detail and with LOD; the cache
+    says which it got, and a cache asked for small pages never gets huge ones."""
+    model_built = built("plant")
+    camera = model_built.camera(direction=(1.0, 0.7, 1.3))
+    frames = {}
+    for huge in (True, False):
+        cache = native.BlockCache(BIG, 2, "count", huge_pages=huge)
+        assert cache.huge_pages == (huge and _transparent_huge_pages() != "never")
+        with OutOfCoreModel(model_built.path, cache) as model:
+            frames[huge] = [model.render_complete(camera, pixels_of_error=poe) for poe in (0.0, 2.0)]
+    for a, b in zip(frames[True], frames[False], strict=True):
+        assert a.complete and b.complete
+        np.testing.assert_array_equal(a.prim, b.prim)
+        np.testing.assert_array_equal(a.image, b.image)
+    assert frames[True][1].stats.voxel_hits > 0

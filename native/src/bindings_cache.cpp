@@ -119,7 +119,7 @@ py::dict totals_dict(const CacheTotals& t) {
 
 std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, const std::string& priority,
                                        std::size_t max_requests_per_frame, std::size_t max_pending,
-                                       bool file_order) {
+                                       bool file_order, bool huge_pages) {
     CacheConfig c;
     c.budget_bytes = budget;
     c.fetchers = fetchers;
@@ -129,6 +129,7 @@ std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, co
     c.max_requests_per_frame = max_requests_per_frame;
     c.max_pending = max_pending;
     c.file_order = file_order;
+    c.huge_pages = huge_pages;
     return std::make_shared<BlockCache>(c);
 }
 
@@ -138,7 +139,8 @@ void bind_cache(py::module_& m) {
     py::class_<BlockCache, std::shared_ptr<BlockCache>>(m, "BlockCache",
                                                         "Shared 64 KB block cache with fetcher threads")
         .def(py::init(&make_cache), py::arg("budget"), py::arg("fetchers") = 2u, py::arg("priority") = "count",
-             py::arg("max_requests_per_frame") = 256, py::arg("max_pending") = 4096, py::arg("file_order") = true)
+             py::arg("max_requests_per_frame") = 256, py::arg("max_pending") = 4096, py::arg("file_order") = true,
+             py::arg("huge_pages") = true)
         .def("totals", [](const BlockCache& c) { return totals_dict(c.totals()); })
         .def("check_invariants", &BlockCache::check_invariants)
         .def("drain", &BlockCache::drain, py::call_guard<py::gil_scoped_release>(),
@@ -148,6 +150,8 @@ void bind_cache(py::module_& m) {
         .def("wait_for_fetches", &BlockCache::wait_for_fetches, py::arg("timeout_ms"),
              py::call_guard<py::gil_scoped_release>(), "Wait for a fetch to finish; False on timeout or if none pending")
         .def_property_readonly("slot_count", &BlockCache::slot_count)
+        .def_property_readonly("huge_pages", &BlockCache::huge_pages,
+                               "Whether the kernel took the advice to back the slots with 2 MiB pages")
         .def("open", [](const std::shared_ptr<BlockCache>& c, const std::string& path) {
             return std::make_unique<PyCachedModel>(c, path);
         }, py::arg("path"), "Open a built model in this cache (its root treelet is loaded at once)");

@@ -4,7 +4,10 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <new>
 #include <stdexcept>
+
+#include <sys/mman.h>
 
 namespace vastray {
 
@@ -22,6 +25,25 @@ CachedModel::CachedModel(std::shared_ptr<const ModelIndex> index, std::uint32_t 
     state_.assign(n, State::Absent);
 }
 
+SlotArena::SlotArena(std::size_t bytes, bool huge_pages) {
+    constexpr std::size_t kHuge = std::size_t{2} << 20;
+    // Over-map by one huge page so the slots can start on a 2 MiB boundary.
+    mapped_ = (bytes + kHuge - 1) / kHuge * kHuge + (huge_pages ? kHuge : 0);
+    void* p = mmap(nullptr, mapped_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
+    if (p == MAP_FAILED) throw std::bad_alloc();
+    base_ = static_cast<std::uint8_t*>(p);
+    data_ = base_;
+    if (huge_pages) {
+        data_ += (kHuge - reinterpret_cast<std::uintptr_t>(base_) % kHuge) % kHuge;
+#ifdef MADV_HUGEPAGE
+        // Only whole huge pages inside the mapping: the tail is left as it is.
+        huge_ = madvise(data_, (mapped_ - static_cast<std::size_t>(data_ - base_)) / kHuge * kHuge, MADV_HUGEPAGE) == 0;
+#endif
+    }
+}
+
+SlotArena::~SlotArena() { munmap(base_, mapped_); }
+
 BlockCache::BlockCache(const CacheConfig& config) : config_(config) {
     slot_count_ = config.budget_bytes / kSlotBytes;
     if (slot_count_ < 4) throw std::invalid_argument("cache budget must hold at least 4 blocks of 64 KiB (256 KiB)");
@@ -32,7 +54,7 @@ BlockCache::BlockCache(const CacheConfig& config) : config_(config) {
     // One spare slot of padding: a damaged node can point a little past its block's end,
     // and the traversal's reads must stay inside memory we own. Pages are only touched
     // when a block lands in them, so resident memory grows with use, never past the budget.
-    arena_.reset(new std::uint8_t[(slot_count_ + 1) * kSlotBytes]);
+    arena_ = std::make_unique<SlotArena>((slot_count_ + 1) * kSlotBytes, config.huge_pages);
     last_used_.reset(new std::atomic<std::uint32_t>[slot_count_]);
     seen_.reset(new std::atomic<std::uint32_t>[slot_count_]);
     for (std::size_t s = 0; s < slot_count_; ++s) {
@@ -121,7 +143,7 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
             ++loading_;
         }
         const std::string error =
-            model.index().read_block(block, arena_.get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
+            model.index().read_block(block, arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
         std::lock_guard<std::mutex> lock(mutex_);
         --model.loading_;
         --loading_;
@@ -332,7 +354,7 @@ void BlockCache::fetcher_loop() {
         ++loading_;
         lock.unlock();
         const std::string error = model.index().read_block(
-            r.block, arena_.get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
+            r.block, arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
         lock.lock();
         --model.loading_;
         --loading_;

@@ -90,6 +90,29 @@ struct CacheConfig {
     // Requests within a factor of two in priority are fetched in file order (false:
     // strictly by priority, then arrival).
     bool file_order = true;
+    // Back the slots with 2 MiB transparent huge pages where the kernel offers them
+    // (madvise mode): a frame's rays touch blocks all over a working set of gigabytes,
+    // and with 4 KiB pages nearly every block a ray enters costs a TLB miss as well as
+    // a cache miss (Embree's `hugepages` option does the same for its BVH).
+    bool huge_pages = true;
+};
+
+// The slots' memory: one anonymous mapping, untouched (and so not resident) until a
+// block lands in it; 2 MiB-aligned with MADV_HUGEPAGE when asked for.
+class SlotArena {
+public:
+    SlotArena(std::size_t bytes, bool huge_pages);
+    ~SlotArena();
+    SlotArena(const SlotArena&) = delete;
+    SlotArena& operator=(const SlotArena&) = delete;
+    std::uint8_t* get() const { return data_; }
+    bool huge_pages() const { return huge_; }  // the kernel accepted the advice
+
+private:
+    std::uint8_t* base_ = nullptr;  // the mapping
+    std::uint8_t* data_ = nullptr;  // the slots, 2 MiB-aligned in it when huge
+    std::size_t mapped_ = 0;
+    bool huge_ = false;
 };
 
 struct CacheTotals {
@@ -111,6 +134,7 @@ public:
 
     const CacheConfig& config() const { return config_; }
     std::size_t slot_count() const { return slot_count_; }
+    bool huge_pages() const { return arena_->huge_pages(); }  // the slots are on transparent huge pages
 
     // Registers a model. Its top level (the root treelet) is loaded before this returns,
     // so the first frame always has the coarsest voxels to show.
@@ -132,7 +156,7 @@ public:
 
     // Slot bytes (valid for the frame that looked the slot up).
     const std::uint8_t* slot_data(std::int32_t slot) const {
-        return arena_.get() + static_cast<std::size_t>(slot) * kSlotBytes;
+        return arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes;
     }
     // Marks a slot used by frame `tick`; true when this is the frame's first use of it.
     // Two stamps: `last_used_` orders eviction (publishing sets it too, to protect fresh
@@ -188,7 +212,7 @@ private:
 
     CacheConfig config_;
     std::size_t slot_count_;
-    std::unique_ptr<std::uint8_t[]> arena_;
+    std::unique_ptr<SlotArena> arena_;
     std::unique_ptr<std::atomic<std::uint32_t>[]> last_used_, seen_;
     std::vector<std::uint32_t> slot_raw_;        // raw bytes in each slot
     std::vector<CachedModel*> slot_model_;       // owner of each slot (null: free or loading)
