@@ -15,6 +15,12 @@ compares them:
 
     python bench/precision.py                               # bunny, nefertiti, plant and mandelbulb 1e6
     python bench/precision.py --models plant-1e7,mandelbulb-1e7
+    python bench/precision.py --compare vertices --name precision-vertices   # quantized vertices
+    python bench/precision.py --compare both --name precision-both           # splits and vertices
+
+`--compare` says what the reduced side is built with: `splits` (the default), `vertices`
+(FLAG_QUANTIZED_VERTICES: vertices snapped to a 2^21-step grid of the root cell and
+bit-packed per triangle block, FORMAT.md §11; lossy) or `both`.
 
 `--baseline-package DIR` also times the full-precision model through an older vastray
 package (a folder holding `vastray/` with its native module, e.g. one extracted with
@@ -54,7 +60,7 @@ from common import machine_info, markdown_table, models_dir  # noqa: E402
 
 from vastray.build import BuildOptions, build_model  # noqa: E402
 from vastray.camera import frame_bounds  # noqa: E402
-from vastray.modelfile import ModelFile  # noqa: E402
+from vastray.modelfile import ModelFile, vertex_grid_steps  # noqa: E402
 from vastray.outofcore import OutOfCoreModel, make_cache  # noqa: E402
 
 DIRECTIONS = ((0.5, 0.4, 0.8), (-0.7, 0.9, -0.3), (0.1, -0.2, 1.0))
@@ -131,6 +137,13 @@ def node_bytes(model: ModelFile) -> int:
     return sum(row["raw_bytes"] for row in model.stats()["levels"][: model.node_levels])
 
 
+COMPARED = {
+    "splits": {"quantized_splits": True},
+    "vertices": {"quantized_vertices": True},
+    "both": {"quantized_splits": True, "quantized_vertices": True},
+}
+
+
 def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
     src = source_of(name, args.cache)
     row: dict[str, Any] = {"model": name}
@@ -138,7 +151,8 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for quantized in (False, True):
         path = work / f"{name}-{int(quantized)}.vast"
         t0 = time.perf_counter()
-        report = build_model(src, path, BuildOptions(quantized_splits=quantized, overwrite=True))
+        options = COMPARED[args.compare] if quantized else {}
+        report = build_model(src, path, BuildOptions(overwrite=True, **options))
         key = "q" if quantized else "f"
         row[f"{key}_build_s"] = time.perf_counter() - t0
         with ModelFile(path) as m:
@@ -153,7 +167,7 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
         with ModelFile(paths[False]) as m:
             lo, hi = m.bounds
         cams = [frame_bounds(lo, hi, width=args.width, height=args.height, direction=d) for d in DIRECTIONS]
-        differ = depth_err = colour = pixels = 0
+        differ = depth_err = colour = pixels = coverage = 0
         visits = {False: 0, True: 0}
         tests = {False: 0, True: 0}
         rays = {False: 0, True: 0}
@@ -165,9 +179,8 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
             differ += int((a.prim != b.prim).sum())
             hit = np.isfinite(a.depth) | np.isfinite(b.depth)
             both = np.isfinite(a.depth) & np.isfinite(b.depth)
-            if (hit & ~both).any():
-                depth_err = float("inf")
-            elif both.any():
+            coverage += int((hit & ~both).sum())
+            if both.any():
                 depth_err = max(depth_err, float(np.abs(a.depth[both] - b.depth[both]).max()))
             colour += int((a.image != b.image).any(axis=2).sum())
             for _ in range(args.frames):
@@ -181,7 +194,10 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
     finally:
         for m in models.values():
             m.close()
-    row.update(pixels=pixels, prim_differs=differ, max_depth_error=depth_err, colour_differs=colour)
+    row.update(pixels=pixels, prim_differs=differ, max_depth_error=depth_err, colour_differs=colour,
+               coverage_differs=coverage)  # fmt: skip
+    with ModelFile(paths[True]) as m:
+        row["grid_step"] = max(vertex_grid_steps(m.header["cell_lo"], m.header["cell_hi"]))
     for q, key in ((False, "f"), (True, "q")):
         row[f"{key}_visits_per_ray"] = visits[q] / max(1, rays[q])
         row[f"{key}_tests_per_ray"] = tests[q] / max(1, rays[q])
@@ -196,6 +212,7 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default="stanford-bunny,nefertiti,plant-1e6,mandelbulb-1e6")
+    ap.add_argument("--compare", choices=sorted(COMPARED), default="splits", help="what the reduced side has")
     ap.add_argument("--frames", type=int, default=5, help="timed frames per view and model")
     ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--height", type=int, default=384)
@@ -253,13 +270,14 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
             pct(r["q_visits_per_ray"], r["f_visits_per_ray"]), f"{r['f_tests_per_ray']:.2f}",
             f"{r['q_tests_per_ray']:.2f}", pct(r["q_tests_per_ray"], r["f_tests_per_ray"]),
             f"{r['f_frame_ms']:.1f}", f"{r['q_frame_ms']:.1f}", f"**{r['frame_ratio']:.3f}**",
-            f"{r['pixels']:,}", f"{r['prim_differs']:,}", f"{r['max_depth_error']:g}",
+            f"{r['pixels']:,}", f"{r['prim_differs']:,}", f"{r['coverage_differs']:,}",
+            f"{r['max_depth_error']:.3g} ({r['max_depth_error'] / r['grid_step']:.2f} steps)",
             f"{r['colour_differs']:,}",
         ])  # fmt: skip
     render = markdown_table(
         ["model", "node visits/ray full", "quantized", "change", "triangle tests/ray full", "quantized",
          "change", "frame ms full", "quantized", "**frame ratio**", "pixels", "hit differs",
-         "max depth error", "colour differs"],
+         "hit / miss differs", "max depth error (vertex grid steps)", "colour differs"],
         render_rows,
     )  # fmt: skip
     base = ""
@@ -279,11 +297,13 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
             + "\n"
         )
     lines = [
-        "# Reduced precision: quantized split planes against full precision",
+        f"# Reduced precision: quantized {args.compare} against full precision",
         "",
-        "Each model is built twice from the same input, back to back (default options, 2 GiB budget), with "
-        "full-precision `f32` split planes and with `quantized_splits` (format version 3: basic nodes of 4 "
-        "bytes instead of 8, the split a 20-bit step of the node's cell, docs/FORMAT.md §8). Both are "
+        "Each model is built twice from the same input, back to back (default options, 2 GiB budget), at "
+        f"full precision and with {', '.join(f'`{k}`' for k in COMPARED[args.compare])} (quantized splits: "
+        "basic nodes of 4 bytes instead of 8, the split a 20-bit step of the node's cell, docs/FORMAT.md "
+        "§8; quantized vertices: every vertex snapped to a 2^21-step grid of the root cell before the "
+        "tree is built, bit-packed per triangle block, §11). Both are "
         "rendered out of core at full detail (pixels of error 0, every block cached), "
         f"{args.width} x {args.height}, "
         f"headlight, {len(DIRECTIONS)} views framing the model; frame times are the median of {args.frames} "
@@ -312,9 +332,12 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
         "",
         "*hit differs*: pixels whose nearest triangle (input id) differs; *max depth error*: the largest "
         "difference of the hit distance over pixels both hit; *colour differs*: pixels whose 8-bit colour "
-        "differs. The tree is built on the quantized planes and the triangles are stored exactly, so the "
-        "nearest hit is the same triangle at the same distance; only two triangles at exactly the same "
-        "distance (a ray through a shared edge) could be told apart differently.",
+        "differs; *hit / miss differs*: pixels that one model hits and the other misses (a silhouette "
+        "moved by the vertex snapping). Quantized splits alone are exact (the tree is built on the "
+        "planes and the triangles are stored unchanged): the same triangle at the same distance, but for "
+        "ties at a shared edge. Quantized vertices move each vertex by at most one grid step per axis, "
+        "so a depth differs by at most about sqrt(3) steps along the surface normal, more at a "
+        "silhouette or where the ray meets another surface.",
         "",
         base,
     ]

@@ -93,6 +93,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             threads=int(options.get("threads", 0)),
             scratch_dir=options.get("scratch_dir"),
             quantized_splits=bool(options.get("quantized_splits", False)),
+            quantized_vertices=bool(options.get("quantized_vertices", False)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

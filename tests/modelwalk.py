@@ -5,7 +5,8 @@ native/include/vastray/format.h alone, without the native decoder: treelets from
 root (level 0, block 0, offset 0), node cells from the root cell and the split planes
 (a quantized model's 4-byte basic nodes: the split as a step of the cell, and its
 12-byte LOD nodes: the radius from the cell, FORMAT.md §8),
-leaves with their triangles (input ids, float32 vertices, colours) and LOD nodes with
+leaves with their triangles (input ids, float32 vertices, colours; a model with quantized
+vertices: grid origin plus bit-packed offsets, FORMAT.md §11) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
 order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
 from the file's bytes alone, checking that it follows the last block to the file's end.
@@ -31,6 +32,16 @@ ONE_SAMPLE = 1 << 31
 TREELET_HEIGHT = 3
 QUANTIZED_SPLITS = 1 << 3  # header flag (version 3): 4-byte basic nodes, splits as grid steps
 SPLIT_STEPS = 1 << 20
+QUANTIZED_VERTICES = 1 << 4  # header flag: vertices on the root cell's grid, packed per block
+
+
+def grid_step(lo: float, hi: float) -> float:
+    """FORMAT.md §11: the smallest power of two S >= 2^-126 with 2^20 * S > max(|lo|, |hi|)."""
+    m = max(abs(float(lo)), abs(float(hi)))
+    e = -126
+    while e < 200 and 2.0 ** (e + 20) <= m:
+        e += 1
+    return 2.0**e
 
 
 def dequantize(lo: float, hi: float, q: int) -> float:
@@ -99,20 +110,44 @@ class TriangleBlock:
     vertices: np.ndarray  # (verts, 3) float32
 
     @classmethod
-    def parse(cls, raw: bytes, has_colours: bool) -> TriangleBlock:
-        entries, tris, verts, _ = struct.unpack_from("<4I", raw)
+    def parse(
+        cls, raw: bytes, has_colours: bool, steps: tuple[float, float, float] | None = None
+    ) -> TriangleBlock:
+        """`steps`: the grid of a model with quantized vertices (None: float32 vertices)."""
+        entries, tris, verts, packing = struct.unpack_from("<4I", raw)
         at_tri = 16 + _pad4(2 * entries)
         at_ids = at_tri + _pad4(6 * tris)
         at_col = at_ids + 4 * tris
         at_vert = at_col + (4 * tris if has_colours else 0)
-        if at_vert + 12 * verts != len(raw):
+        if steps is None:
+            size = 12 * verts
+        else:
+            bits = [packing & 0xFF, (packing >> 8) & 0xFF, (packing >> 16) & 0xFF]
+            if packing >> 24 or max(bits) > 21:
+                raise WalkError(f"vertex packing word {packing:#x} is damaged")
+            record = (sum(bits) + 7) // 8
+            size = 12 + _pad4(record * verts + 8 - record)
+        if at_vert + size != len(raw):
             raise WalkError(f"triangle block of {len(raw)} bytes does not match its section counts")
+        if steps is None:
+            vertices = np.frombuffer(raw, "<f4", 3 * verts, at_vert).reshape(verts, 3)
+        else:
+            origin = struct.unpack_from("<3i", raw, at_vert)
+            vertices = np.empty((verts, 3), np.float32)
+            for v in range(verts):
+                word = int.from_bytes(
+                    raw[at_vert + 12 + record * v : at_vert + 12 + record * (v + 1)], "little"
+                )
+                for a in range(3):
+                    k = origin[a] + (word & ((1 << bits[a]) - 1))
+                    word >>= bits[a]
+                    vertices[v, a] = np.float32(k) * np.float32(steps[a])  # exact: a power of two
         return cls(
             np.frombuffer(raw, "<u2", entries, 16),
             np.frombuffer(raw, "<u2", 3 * tris, at_tri).reshape(tris, 3),
             np.frombuffer(raw, "<u4", tris, at_ids),
             np.frombuffer(raw, "<u4", tris, at_col) if has_colours else None,
-            np.frombuffer(raw, "<f4", 3 * verts, at_vert).reshape(verts, 3),
+            vertices,
         )
 
 
@@ -140,7 +175,11 @@ class Walker:
     def triangles(self, relative: int) -> TriangleBlock:
         if relative not in self.tri_blocks:
             raw = self.block(self.tri_level, relative)
-            self.tri_blocks[relative] = TriangleBlock.parse(raw, self.model.has_colours)
+            h = self.model.header
+            steps = None
+            if h["flags"] & QUANTIZED_VERTICES:
+                steps = tuple(grid_step(a, b) for a, b in zip(h["cell_lo"], h["cell_hi"], strict=True))
+            self.tri_blocks[relative] = TriangleBlock.parse(raw, self.model.has_colours, steps)
         return self.tri_blocks[relative]
 
     def leaf(

@@ -102,6 +102,11 @@ class BuildOptions:
     # Split planes on a 2^20-step grid of their cell (format version 3): 4-byte basic
     # nodes; the tree is built on those planes, so images are the same (docs/FORMAT.md).
     quantized_splits: bool = False
+    # Vertices snapped to a 2^21-step grid of the root cell before the tree is built,
+    # stored as bit-packed offsets from a per-block origin (FLAG_QUANTIZED_VERTICES):
+    # lossy, by at most one grid step, and watertight (a shared vertex snaps the same
+    # everywhere).
+    quantized_vertices: bool = False
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -614,6 +619,8 @@ class _Builder:
                     rec, _, lo_k, hi_k, _ = native.make_records(
                         chunk.corners, chunk.colours, ids, chunk.first, centre_list, out, self.opt.threads
                     )
+                if self.opt.quantized_vertices:
+                    native.snap_to_vertex_grid(rec, cell_lo.tolist(), cell_hi.tolist())
                 self.part_stats.add(chunk, rec.view(self.dtype).reshape(-1))
                 if len(rec):
                     box_lo = np.minimum(box_lo, np.asarray(lo_k, dtype=np.float32))
@@ -631,8 +638,11 @@ class _Builder:
             raise MeshError(f"{self.src.name}: the input has no triangles")
         if records.count == 0:
             raise MeshError(f"{self.src.name}: all {total} triangles are degenerate (zero area)")
-        if records.sifter is None:
+        if records.sifter is None and not self.opt.quantized_vertices:
             return records, None, records.count, total, centre, box_lo, box_hi
+        if records.sifter is None:
+            # The vertex grid was made from this cell: a reader derives it from the header's.
+            return records, None, records.count, total, centre, cell_lo, cell_hi
         return records, first_split[0], records.count, total, centre, cell_lo, cell_hi
 
     # -- phase 3: split ---------------------------------------------------------------------
@@ -754,6 +764,7 @@ class _Builder:
         self.dup = 1.5
         blocks_dir = scratch / "blocks"
         blocks_dir.mkdir()
+        steps = native.vertex_grid_steps(lo.tolist(), hi.tolist()) if self.opt.quantized_vertices else None
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
             scratch_dir=str(blocks_dir),
@@ -765,6 +776,7 @@ class _Builder:
             voxel_rays=self.opt.voxel_rays,
             threads=self.opt.threads,
             quantized_splits=self.opt.quantized_splits,
+            vertex_steps=steps,
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
@@ -789,7 +801,8 @@ class _Builder:
         fields = {
             "flags": modelfile.FLAG_TRIANGLE_IDS
             | (modelfile.FLAG_COLOURS if self.src.has_colours else 0)
-            | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0),
+            | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0)
+            | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),
@@ -848,8 +861,8 @@ class _Builder:
             "peak_rss_bytes": peak_rss_bytes(),
             "warnings": self.warnings,
             **{k: stats[k] for k in ("basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six",
-                                     "references", "stored_triangles", "stored_vertices", "kd_build_ms",
-                                     "emit_ms", "max_depth")},
+                                     "references", "stored_triangles", "stored_vertices", "vertex_bytes",
+                                     "kd_build_ms", "emit_ms", "max_depth")},
         }  # fmt: skip
 
 

@@ -188,6 +188,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
         quantized_splits=args.quantized_splits,
+        quantized_vertices=args.quantized_vertices,
     )
     options.check()  # a bad option is a clear error before any work
     # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
@@ -257,6 +258,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         return 0
     lo, hi = stats["bounds"]
     splits = ", quantized splits" if stats.get("quantized_splits") else ""
+    splits += ", quantized vertices" if stats.get("quantized_vertices") else ""
     print(f"model      {stats['path']} (format version {stats['version']}{splits})")
     print(
         f"triangles  {stats['triangles']:,} (input {stats['input_triangles']:,}, "
@@ -390,6 +392,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="split planes on a 20-bit grid of their cell: 4-byte basic nodes, the same images "
         "(format version 3; docs/FORMAT.md)",
+    )
+    b.add_argument(
+        "--quantized-vertices",
+        action="store_true",
+        help="vertices on a 2^21-step grid of the model's box, bit-packed per block: smaller, "
+        "lossy by at most one grid step, watertight (docs/FORMAT.md)",
     )
     b.set_defaults(func=_cmd_build)
 

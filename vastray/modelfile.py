@@ -37,6 +37,9 @@ FLAG_TRIANGLE_IDS: int = _F["flag_triangle_ids"]
 FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (version 2)
 # 4-byte basic nodes whose split is a step of their cell's grid (version 3)
 FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
+# Vertices on a grid of the root cell, u16 offsets per triangle block (FORMAT.md §11)
+FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
+VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
 SPLIT_STEPS: int = 1 << SPLIT_BITS
 
@@ -58,6 +61,17 @@ def quantize_split(lo: float, hi: float, target: float) -> float | None:
     q = int(np.floor(min(max(t, 1.0), SPLIT_STEPS - 1.0) + 0.5))
     s = dequantize_split(lo, hi, q)
     return s if lo < s < hi else None
+
+
+def vertex_grid_steps(lo: Any, hi: Any) -> tuple[float, float, float]:
+    """The quantized vertex grid's step per axis for the root cell [lo, hi]
+    (FLAG_QUANTIZED_VERTICES): the smallest power of two (at least 2^-126) whose 2^20
+    steps reach past max(|lo|, |hi|)."""
+    return native.vertex_grid_steps([float(x) for x in lo], [float(x) for x in hi])
+
+
+def _pad4(n: int) -> int:
+    return (n + 3) & ~3
 
 
 NO_PART: int = _F["no_part"]  # a run's part for triangles in no part
@@ -308,7 +322,7 @@ class ModelFile:
         if h["codec"] != CODEC_FAMILY_LZ4:
             raise self._fail(f"unsupported block codec family {h['codec']}")
         known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
-        known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
+        known |= FLAG_QUANTIZED_SPLITS | FLAG_QUANTIZED_VERTICES if h["version"] >= 3 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
@@ -424,6 +438,52 @@ class ModelFile:
         return bool(self.header["flags"] & FLAG_QUANTIZED_SPLITS)
 
     @property
+    def quantized_vertices(self) -> bool:
+        """Vertices on the root cell's grid, u16 offsets in triangle blocks."""
+        return bool(self.header["flags"] & FLAG_QUANTIZED_VERTICES)
+
+    def triangle_layout(self, data: bytes) -> dict[str, int]:
+        """The sections of a triangle block's raw bytes (FORMAT.md §11): counts, byte
+        offsets and, with quantized vertices, the bits per axis and bytes per vertex.
+        Raises ModelError for a damaged packing word."""
+        entries, tris, verts, packing = struct.unpack_from("<4I", data)
+        out = {"entries": entries, "triangles_count": tris, "vertices_count": verts}
+        out["triangles"] = 16 + _pad4(2 * entries)
+        out["ids"] = out["triangles"] + _pad4(6 * tris)
+        out["colours"] = out["ids"] + 4 * tris
+        out["vertices"] = out["colours"] + (4 * tris if self.has_colours else 0)
+        out["end"] = out["vertices"] + 12 * verts
+        if self.quantized_vertices:
+            bits = [(packing >> (8 * a)) & 0xFF for a in range(3)]
+            if packing >> 24 or max(bits) > VERTEX_GRID_BITS + 1:
+                raise self._fail(f"triangle block with a damaged vertex packing word {packing:#x}")
+            record = (sum(bits) + 7) // 8
+            out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record=record)
+            out["end"] = out["vertices"] + 12 + _pad4(record * verts + 8 - record)
+        return out
+
+    def block_vertices(self, data: bytes) -> np.ndarray:
+        """A triangle block's vertices, (V, 3) float32 relative to the centre, decoded as
+        every reader does: f32 as stored, or f32(origin + offset) * step on the grid."""
+        layout = self.triangle_layout(data)
+        v, at = layout["vertices_count"], layout["vertices"]
+        if not self.quantized_vertices:
+            return np.frombuffer(data, "<f4", 3 * v, at).reshape(v, 3).copy()
+        origin = np.frombuffer(data, "<i4", 3, at).astype(np.int64)
+        r = layout["record"]
+        rows = np.zeros((v, 8), np.uint8)
+        rows[:, :r] = np.frombuffer(data, np.uint8, r * v, at + 12).reshape(v, r)
+        words = rows.view("<u8").reshape(v)
+        k = np.empty((v, 3), np.int64)
+        shift = 0
+        for a, name in enumerate(("bits_x", "bits_y", "bits_z")):
+            bits = layout[name]
+            k[:, a] = ((words >> np.uint64(shift)) & np.uint64((1 << bits) - 1)).astype(np.int64) + origin[a]
+            shift += bits
+        steps = np.asarray(vertex_grid_steps(self.header["cell_lo"], self.header["cell_hi"]), np.float32)
+        return k.astype(np.float32) * steps
+
+    @property
     def node_levels(self) -> int:
         return len(self.levels) - 1
 
@@ -491,6 +551,7 @@ class ModelFile:
                 self.header["input_triangles"],
                 self.has_colours,
                 self.quantized_splits,
+                self.quantized_vertices,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -523,6 +584,7 @@ class ModelFile:
             "degenerate": h["degenerate"],
             "colours": self.has_colours,
             "quantized_splits": self.quantized_splits,
+            "quantized_vertices": self.quantized_vertices,
             "part_count": len(self._parts),
             "parts": [
                 {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}

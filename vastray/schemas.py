@@ -269,6 +269,11 @@ class BuildOptionsIn(Strict):
     quantized_splits: bool = Field(
         False, description="split planes on a 20-bit grid of their cell: 5 % smaller, the same images"
     )
+    quantized_vertices: bool = Field(
+        False,
+        description="vertices on a 2^21-step grid of the model's box, bit-packed per block: smaller, "
+        "lossy by at most one grid step, watertight",
+    )
 
 
 class JobRequest(Strict):

@@ -203,6 +203,14 @@ PYBIND11_MODULE(native, m) {
             const Vec3d c = s.centre();
             return std::vector<double>{c.x, c.y, c.z};
         })
+        .def_property_readonly(
+            "local_vertices",
+            [](const Scene& s) {
+                // (triangles, 3, 3) float32 relative to the centre: what a decoded model stores.
+                py::array_t<float> a({static_cast<py::ssize_t>(s.triangle_count()), py::ssize_t{3}, py::ssize_t{3}});
+                std::memcpy(a.mutable_data(), s.tri_vertices(), 36 * s.triangle_count());
+                return a;
+            })
         .def_property_readonly("bounds", [](const Scene& s) {
             const Vec3d lo = s.world_lo(), hi = s.world_hi();
             return std::make_pair(std::vector<double>{lo.x, lo.y, lo.z}, std::vector<double>{hi.x, hi.y, hi.z});
@@ -238,6 +246,8 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_triangle_ids"] = format::kFlagTriangleIds;
     fmt["flag_part_ids"] = format::kFlagPartIds;
     fmt["flag_quantized_splits"] = format::kFlagQuantizedSplits;
+    fmt["flag_quantized_vertices"] = format::kFlagQuantizedVertices;
+    fmt["vertex_grid_bits"] = format::kVertexGridBits;
     fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;
     fmt["entry_record"] = format::kEntryRecord;

@@ -42,7 +42,7 @@ class PyModelWriter {
 public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
-                  unsigned threads, bool quantized_splits)
+                  unsigned threads, bool quantized_splits, py::object vertex_steps)
         : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -53,6 +53,11 @@ public:
         p.kd.bins = bins;
         p.kd.threads = threads;
         p.kd.quantized_splits = quantized_splits;
+        if (!vertex_steps.is_none()) {
+            const auto steps = vertex_steps.cast<std::array<float, 3>>();
+            p.quantized_vertices = true;
+            p.vertex_steps = Vec3f(steps[0], steps[1], steps[2]);
+        }
         p.voxel_rays_per_axis = voxel_rays;
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
@@ -123,6 +128,7 @@ public:
         d["stored_vertices"] = s.stored_vertices;
         d["degenerate"] = s.degenerate;
         d["triangle_blocks"] = s.triangle_blocks;
+        d["vertex_bytes"] = s.vertex_bytes;
         d["triangle_bytes"] = s.triangle_bytes;
         d["level_blocks"] = s.level_blocks;
         d["level_bytes"] = s.level_bytes;
@@ -142,7 +148,7 @@ private:
 std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& level_first,
                               const std::vector<double>& centre, const std::vector<double>& lo,
                               const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
-                              bool quantized_splits) {
+                              bool quantized_splits, bool quantized_vertices) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -157,6 +163,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.triangle_ids = triangle_ids;
     in.has_colours = has_colours;
     in.quantized_splits = quantized_splits;
+    in.quantized_vertices = quantized_vertices;
     for (std::uint32_t f : level_first) {
         if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
     }
@@ -243,6 +250,40 @@ py::tuple sift8(const py::array_t<std::uint8_t, py::array::c_style>& records, co
     py::array_t<float> bounds({8, 6});
     std::memcpy(bounds.mutable_data(), tight, sizeof tight);
     return py::make_tuple(out, bounds);
+}
+
+// FLAG_QUANTIZED_VERTICES: moves every corner of a chunk of records (nine f32 first) to
+// the nearest point of the vertex grid of the root cell [lo, hi] (format.h), kept inside
+// the cell so the tree's root still holds every triangle. Done before the tree is built,
+// so the tree and its voxels are exact for the triangles as stored.
+void snap_to_vertex_grid(const py::buffer& records, const std::vector<double>& lo, const std::vector<double>& hi) {
+    // In place, so never through a converted copy.
+    const py::buffer_info buf = records.request(true);
+    if (buf.ndim != 2 || buf.itemsize != 1 || buf.shape[1] < 36 || buf.strides[1] != 1 || buf.strides[0] != buf.shape[1]) {
+        throw std::invalid_argument("records: a writeable, contiguous (n, stride) uint8 array");
+    }
+    const Box3f cell = to_box(lo, hi);
+    const Vec3f steps = format::vertex_grid_steps(cell.lo, cell.hi);
+    float k_lo[3], k_hi[3];
+    for (int a = 0; a < 3; ++a) {
+        k_lo[a] = std::ceil(cell.lo[a] / steps[a]);
+        k_hi[a] = std::floor(cell.hi[a] / steps[a]);
+    }
+    const std::size_t n = static_cast<std::size_t>(buf.shape[0]), stride = static_cast<std::size_t>(buf.shape[1]);
+    std::uint8_t* data = static_cast<std::uint8_t*>(buf.ptr);
+    py::gil_scoped_release release;
+    ThreadPool::global().parallel_for((n + 65535) / 65536, [&](std::size_t b, unsigned) {
+        for (std::size_t i = b * 65536; i < std::min(n, (b + 1) * 65536); ++i) {
+            float f[9];
+            std::memcpy(f, data + i * stride, 36);
+            for (int c = 0; c < 9; ++c) {
+                const int a = c % 3;
+                const float k = std::clamp(std::nearbyint(f[c] / steps[a]), k_lo[a], k_hi[a]);
+                f[c] = format::grid_vertex(static_cast<std::int32_t>(k), steps[a]);
+            }
+            std::memcpy(data + i * stride, f, 36);
+        }
+    });
 }
 
 // The read phase's records: per triangle its corners as float32(vertex - centre), computed
@@ -597,11 +638,12 @@ py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const st
 void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
-        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool>(),
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
-             py::arg("threads") = 0u, py::arg("quantized_splits") = false)
+             py::arg("threads") = 0u, py::arg("quantized_splits") = false,
+             py::arg("vertex_steps") = py::none())
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"))
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
@@ -618,10 +660,19 @@ void bind_model(py::module_& m) {
           "Builder records for a chunk of indexed triangles, gathered from vertex records");
     m.def("vertex_bounds", &vertex_bounds, py::arg("vertices"), py::arg("stride"), py::arg("offsets"), py::arg("types"),
           py::arg("count"), py::arg("threads") = 0u, "Bounds of a table of vertex records, and its first non-finite vertex");
+    m.def("snap_to_vertex_grid", &snap_to_vertex_grid, py::arg("records"), py::arg("lo"), py::arg("hi"),
+          "Moves the corners of builder records onto the quantized vertex grid of the root cell [lo, hi]");
+    m.def(
+        "vertex_grid_steps",
+        [](const std::vector<double>& lo, const std::vector<double>& hi) {
+            const Vec3f s = format::vertex_grid_steps(to_box(lo, hi).lo, to_box(lo, hi).hi);
+            return py::make_tuple(s.x, s.y, s.z);
+        },
+        py::arg("lo"), py::arg("hi"), "The quantized vertex grid's step on each axis for the root cell [lo, hi]");
     bind_ingest(m);
     m.def("sift8", &sift8, py::arg("records"), py::arg("axes"), py::arg("splits"), py::arg("cell_lo"),
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),
           py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
-          "Decode a whole model (raw blocks by global id) into an in-core Scene");
+          py::arg("quantized_vertices") = false, "Decode a whole model (raw blocks by global id) into an in-core Scene");
 }

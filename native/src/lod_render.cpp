@@ -32,6 +32,8 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.block_count = static_cast<std::uint32_t>(index.block_count());
         lane.has_colours = index.has_colours();
         lane.quantized_splits = index.quantized_splits();
+        lane.quantized_vertices = index.quantized_vertices();
+        lane.vertex_steps = index.vertex_steps();
     }
     return lanes;
 }
@@ -63,13 +65,10 @@ format::TriangleBlockLayout triangle_layout(const std::uint8_t* tb, bool has_col
                                            load<std::uint32_t>(tb + 8), has_colours);
 }
 
-void triangle_of(const LodHit& hit, bool has_colours, Vec3f* v) {
-    const auto l = triangle_layout(hit.tri_block, has_colours);
+void triangle_of(const LodHit& hit, const ModelIndex& index, Vec3f* v) {
+    const auto l = format::TriangleBlockLayout::read(hit.tri_block, index.has_colours(), index.quantized_vertices());
     const std::uint8_t* corner = hit.tri_block + l.triangles + 6 * std::size_t{hit.local};
-    for (int k = 0; k < 3; ++k) {
-        const std::uint32_t i = load<std::uint16_t>(corner + 2 * k);
-        v[k] = load<Vec3f>(hit.tri_block + l.vertices + 12 * std::size_t{i});
-    }
+    for (int k = 0; k < 3; ++k) v[k] = l.vertex(hit.tri_block, load<std::uint16_t>(corner + 2 * k), index.vertex_steps());
 }
 
 // A secondary ray over a cached model: never reports the triangle it starts on.
@@ -125,7 +124,7 @@ public:
             return;
         }
         Vec3f v[3];
-        triangle_of(hit, index_.has_colours(), v);
+        triangle_of(hit, index_, v);
         n = normalize(cross(v[1] - v[0], v[2] - v[0]));
         colour = shading::default_colour();
         if (index_.has_colours()) {
@@ -156,7 +155,7 @@ public:
             r.ray.tmin = 0;
         } else {
             Vec3f v[3];
-            triangle_of(hit, index_.has_colours(), v);
+            triangle_of(hit, index_, v);
             r.ray.org = shading::offset_origin(v, hit, n);
             r.ray.tmin = 2.5f * r.cone_t0 * r.cone;
             s.skip = hit.prim;
@@ -272,7 +271,7 @@ LodRayHits intersect_model(BlockCache& cache, CachedModel& model, const double* 
             }
             if (hit.prim == kNoHit) continue;
             Vec3f v[3];
-            triangle_of(hit, index.has_colours(), v);
+            triangle_of(hit, index, v);
             // The hit point from barycentrics in the local float frame, then to world in
             // double: exact to the triangle's own float precision, far from the origin too.
             Vec3f local = v[0] * (1.0f - hit.u - hit.v) + v[1] * hit.u + v[2] * hit.v;

@@ -13,7 +13,7 @@ namespace {
 
 class Decoder {
 public:
-    explicit Decoder(const DecodeInput& in) : in_(in) {
+    explicit Decoder(const DecodeInput& in) : in_(in), steps_(vertex_grid_steps(in.root_cell.lo, in.root_cell.hi)) {
         if (in.level_first.size() < 2) throw std::runtime_error("model has no levels");
         tri_level_ = in.level_first.size() - 1;
         vertices_.resize(3 * in.triangle_ids);
@@ -109,7 +109,8 @@ private:
         v.lists = header[0];
         v.tris = header[1];
         v.verts = header[2];
-        v.layout = TriangleBlockLayout::of(v.lists, v.tris, v.verts, in_.has_colours);
+        v.layout = TriangleBlockLayout::read(v.data, in_.has_colours, in_.quantized_vertices);
+        if (v.layout.end == ~std::size_t{0}) bad(b, "unknown vertex encoding " + std::to_string(header[3]));
         if (v.layout.end != in_.sizes[b]) bad(b, "triangle block size does not match its section counts");
         return v;
     }
@@ -143,7 +144,7 @@ private:
                 std::uint16_t v;
                 std::memcpy(&v, data + l.triangles + 6 * std::size_t{local} + 2 * static_cast<std::size_t>(k), 2);
                 if (v >= tb.verts) bad(b, "triangle points past the vertex section");
-                std::memcpy(&vertices_[3 * std::size_t{id} + static_cast<std::size_t>(k)], data + l.vertices + 12 * std::size_t{v}, 12);
+                vertices_[3 * std::size_t{id} + static_cast<std::size_t>(k)] = l.vertex(data, v, steps_);
             }
             if (in_.has_colours) {
                 std::uint32_t c;
@@ -154,6 +155,7 @@ private:
     }
 
     const DecodeInput& in_;
+    Vec3f steps_;  // the quantized vertex grid (used only with FLAG_QUANTIZED_VERTICES)
     std::size_t tri_level_ = 0;
     std::vector<KdNode> nodes_;
     std::vector<std::uint32_t> tri_ids_;

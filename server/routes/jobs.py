@@ -73,6 +73,8 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
     opts: dict[str, int | bool] = {"memory": memory, "threads": threads}
     if options is not None and options.quantized_splits:
         opts["quantized_splits"] = True  # recorded only when asked for, as the model's options
+    if options is not None and options.quantized_vertices:
+        opts["quantized_vertices"] = True
     return opts
 
 

@@ -150,22 +150,25 @@ def test_jobs_list_and_filter(api: httpx.Client, source: str) -> None:
 
 
 def test_a_build_with_quantized_splits(server: ServerProcess, api: httpx.Client) -> None:
-    """The option reaches the builder: the job and the model record it, the file's header
-    carries the flag, and the model renders."""
-    from vastray.modelfile import FLAG_QUANTIZED_SPLITS, ModelFile
+    """The options (quantized splits and vertices) reach the builder: the job and the model
+    record them, the file's header carries the flags, and the model renders."""
+    from vastray.modelfile import FLAG_QUANTIZED_SPLITS, FLAG_QUANTIZED_VERTICES, ModelFile
 
-    body = {"source": "scene:spheres:2000:3", "options": {"quantized_splits": True}}
+    both = FLAG_QUANTIZED_SPLITS | FLAG_QUANTIZED_VERTICES
+    options = {"quantized_splits": True, "quantized_vertices": True}
+    body = {"source": "scene:spheres:2000:3", "options": options}
     job = api.post("/api/jobs", json=body)
     assert job.status_code == 202, job.text
     done = wait_for_job(api, job.json()["id"])
     assert done["state"] == "succeeded", done
-    assert done["options"]["quantized_splits"] is True
+    assert done["options"]["quantized_splits"] is True and done["options"]["quantized_vertices"] is True
     info = api.get(f"/api/models/{done['model_id']}").json()
     assert info["build"]["options"]["quantized_splits"] is True
+    assert info["build"]["options"]["quantized_vertices"] is True
     flagged = []
     for path in (server.data_dir / "models").glob("*.vast"):
         with ModelFile(path) as model:
-            flagged.append(bool(model.header["flags"] & FLAG_QUANTIZED_SPLITS))
+            flagged.append(model.header["flags"] & both == both)
     assert any(flagged)
     r = api.post(f"/api/models/{done['model_id']}/render", json={"camera": {"width": 32, "height": 24}})
     assert r.status_code == 200, r.text

@@ -35,6 +35,7 @@ constexpr std::uint32_t kFlagColours = 1u << 0;
 constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
+constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, u16 per block
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
@@ -195,25 +196,97 @@ inline void unpack_sample(std::uint32_t s, Vec3f& colour, Vec3f& normal) {
 }
 
 // ---- triangle blocks --------------------------------------------------------------------
-// 16-byte header (u32 list entries, triangles, vertices, reserved 0), then the sections,
-// each starting on a 4-byte boundary:
+// 16-byte header (u32 list entries, triangles, vertices, and a word that is 0, or with
+// FLAG_QUANTIZED_VERTICES the vertex record's bits per axis), then the sections, each
+// starting on a 4-byte boundary:
 //   list       u16 per entry: triangle index in this block (leaves point into it)
 //   triangles  3 x u16 per triangle: vertex indices in this block
 //   ids        u32 per triangle: the input triangle index (for picking and checks)
 //   colours    u32 per triangle, 0x00BBGGRR, only when the model has colours
-//   vertices   3 x f32 per vertex, relative to the model centre
+//   vertices   3 x f32 per vertex, relative to the model centre; or, quantized, an
+//              i32[3] grid origin and one packed record per vertex (below).
+
+// ---- quantized watertight vertices (FLAG_QUANTIZED_VERTICES; paper 004) -----------------
+// Every vertex lies on a grid of the root cell: on axis a, the multiples k * S[a] of a
+// power of two S[a], the smallest (at least 2^-126) with 2^20 * S[a] > max(|lo[a]|,
+// |hi[a]|); the builder keeps |k| < 2^20, so 2^21 steps span the cell (which holds 0: it
+// is centred). It snaps the vertices before it builds the tree, so the tree is exact for
+// the triangles as stored. A vertex is f32(k) * S wherever it is stored: f32(k) is exact
+// (|k| < 2^24) and so is the product by a power of two, so every reader, with or without
+// fused multiply-add, decodes the same f32 for a vertex shared by triangles in different
+// blocks, and neighbours stay watertight.
+// A block stores k as its origin (i32[3], the smallest k on each axis) plus per vertex
+// the offsets packed into `record` bytes, little-endian: bits[0] bits of x, then bits[1]
+// of y, then bits[2] of z (bits[a] = the bit length of the block's span on axis a, at
+// most 21; header word 3 = bits[0] | bits[1] << 8 | bits[2] << 16). Each record is read
+// as 8 bytes, so the section has 8 - record bytes of slack after the last one.
+constexpr int kVertexGridBits = 20;  // |k| < 2^20
+constexpr std::uint32_t kMaxVertexBits = kVertexGridBits + 1;
+
+inline float grid_vertex(std::int32_t k, float step) { return static_cast<float>(k) * step; }
+
+inline float vertex_grid_step(float lo, float hi) {
+    const float m = std::max(std::abs(lo), std::abs(hi));
+    int e = -126;
+    if (m > 0 && std::isfinite(m)) {
+        int c;
+        std::frexp(m, &c);  // m = f * 2^c with f in [0.5, 1): 2^c > m
+        e = std::max(e, c - kVertexGridBits);
+    }
+    return std::ldexp(1.0f, e);
+}
+inline Vec3f vertex_grid_steps(const Vec3f& lo, const Vec3f& hi) {
+    return {vertex_grid_step(lo.x, hi.x), vertex_grid_step(lo.y, hi.y), vertex_grid_step(lo.z, hi.z)};
+}
+
 struct TriangleBlockLayout {
     std::size_t list = 16, triangles = 0, ids = 0, colours = 0, vertices = 0, end = 0;
+    bool packed = false;         // quantized vertices
+    std::uint32_t bits[3] = {};  // their bits per axis
+    std::size_t record = 12;     // bytes per vertex
 
     static std::size_t pad4(std::size_t n) { return (n + 3) & ~std::size_t{3}; }
-    static TriangleBlockLayout of(std::size_t entries, std::size_t tris, std::size_t verts, bool has_colours) {
+    // `packing`: header word 3 of a quantized block (bits per axis), or none.
+    static TriangleBlockLayout of(std::size_t entries, std::size_t tris, std::size_t verts, bool has_colours,
+                                  bool packed = false, std::uint32_t packing = 0) {
         TriangleBlockLayout l;
         l.triangles = l.list + pad4(2 * entries);
         l.ids = l.triangles + pad4(6 * tris);
         l.colours = l.ids + 4 * tris;
         l.vertices = l.colours + (has_colours ? 4 * tris : 0);
         l.end = l.vertices + 12 * verts;
+        if (packed) {
+            l.packed = true;
+            for (int a = 0; a < 3; ++a) l.bits[a] = (packing >> (8 * a)) & 0xffu;
+            l.record = (l.bits[0] + l.bits[1] + l.bits[2] + 7) / 8;
+            l.end = l.vertices + 12 + pad4(l.record * verts + 8 - l.record);
+            // A damaged word (over 21 bits on an axis): an end past any block.
+            if ((packing >> 24) != 0 || std::max({l.bits[0], l.bits[1], l.bits[2]}) > kMaxVertexBits) l.end = ~std::size_t{0};
+        }
         return l;
+    }
+    // The layout a block's 16-byte header gives.
+    static TriangleBlockLayout read(const std::uint8_t* tb, bool has_colours, bool quantized_vertices) {
+        std::uint32_t h[4];
+        std::memcpy(h, tb, sizeof h);
+        return of(h[0], h[1], h[2], has_colours, quantized_vertices, h[3]);
+    }
+    // Vertex i of the block at tb: f32 as stored, or f32(origin + offset) * step.
+    Vec3f vertex(const std::uint8_t* tb, std::size_t i, const Vec3f& steps) const {
+        Vec3f v;
+        if (!packed) {
+            std::memcpy(&v, tb + vertices + 12 * i, 12);
+            return v;
+        }
+        std::int32_t o[3];
+        std::uint64_t w;
+        std::memcpy(o, tb + vertices, 12);
+        std::memcpy(&w, tb + vertices + 12 + record * i, 8);
+        const auto field = [&](int a, std::uint32_t shift) {
+            return o[a] + static_cast<std::int32_t>((w >> shift) & ((std::uint64_t{1} << bits[a]) - 1));
+        };
+        return {grid_vertex(field(0, 0), steps.x), grid_vertex(field(1, bits[0]), steps.y),
+                grid_vertex(field(2, bits[0] + bits[1]), steps.z)};
     }
 };
 

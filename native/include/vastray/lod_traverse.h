@@ -50,6 +50,8 @@ struct LodLane {
     std::uint32_t tri_level = 0, block_count = 0;
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
+    bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: u16 grid offsets in triangle blocks
+    Vec3f vertex_steps{1, 1, 1};      // that grid's steps
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;  // first requests
     std::uint64_t lookups = 0, hits = 0, missing = 0, bad = 0, ws_blocks = 0, ws_bytes = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0, voxel_hits = 0;
@@ -234,9 +236,9 @@ public:
             const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
                                 i2 = load<std::uint16_t>(corner + 4);
             if (i0 >= verts_ || i1 >= verts_ || i2 >= verts_) continue;
-            v0 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i0});
-            v1 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i1});
-            v2 = load<Vec3f>(block_ + layout_.vertices + 12 * std::size_t{i2});
+            v0 = layout_.vertex(block_, i0, lane_.vertex_steps);
+            v1 = layout_.vertex(block_, i1, lane_.vertex_steps);
+            v2 = layout_.vertex(block_, i2, lane_.vertex_steps);
             return true;
         }
         return false;
@@ -255,7 +257,7 @@ private:
         entries_ = load<std::uint32_t>(block_);
         tris_ = load<std::uint32_t>(block_ + 4);
         verts_ = load<std::uint32_t>(block_ + 8);
-        layout_ = format::TriangleBlockLayout::of(entries_, tris_, verts_, lane_.has_colours);
+        layout_ = format::TriangleBlockLayout::read(block_, lane_.has_colours, lane_.quantized_vertices);
         if (layout_.end > format::kBlockSize) block_ = nullptr;  // damaged header: treat as missing
     }
 

@@ -21,6 +21,7 @@ struct DecodeInput {
     std::uint64_t triangle_ids = 0;           // one more than the largest input triangle id
     bool has_colours = false;
     bool quantized_splits = false;            // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes
+    bool quantized_vertices = false;          // FLAG_QUANTIZED_VERTICES: vertices on the root cell's grid
 };
 
 std::shared_ptr<Scene> decode_model(const DecodeInput& in);

@@ -28,6 +28,8 @@ public:
     const std::string& path() const { return path_; }
     bool has_colours() const { return has_colours_; }
     bool quantized_splits() const { return quantized_splits_; }  // FLAG_QUANTIZED_SPLITS
+    bool quantized_vertices() const { return quantized_vertices_; }  // FLAG_QUANTIZED_VERTICES
+    const Vec3f& vertex_steps() const { return vertex_steps_; }  // that flag's grid (format.h)
     const Vec3d& centre() const { return centre_; }
     const Box3f& root_cell() const { return root_cell_; }
     std::uint64_t triangle_count() const { return triangle_count_; }
@@ -51,7 +53,8 @@ private:
     std::string path_;
     int fd_ = -1;
     bool has_colours_ = false;
-    bool quantized_splits_ = false;
+    bool quantized_splits_ = false, quantized_vertices_ = false;
+    Vec3f vertex_steps_{1, 1, 1};
     Vec3d centre_;
     Box3f root_cell_;
     std::uint64_t triangle_count_ = 0, input_triangles_ = 0, file_size_ = 0;

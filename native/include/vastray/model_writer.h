@@ -31,6 +31,10 @@ struct ModelWriterParams {
     int voxel_rays_per_axis = 3;        // a k x k grid of rays per voxel face
     float one_sample_colour = 0.05f;    // six samples collapse to one when every colour
     float one_sample_normal = 0.10f;    // and normal component is this close to the mean
+    // FLAG_QUANTIZED_VERTICES: the records' vertices are on the root cell's grid with
+    // these steps (format.h), and triangle blocks store them as u16 grid offsets.
+    bool quantized_vertices = false;
+    Vec3f vertex_steps{1, 1, 1};
 };
 
 struct ModelWriterStats {
@@ -41,6 +45,7 @@ struct ModelWriterStats {
     std::uint64_t stored_vertices = 0;
     std::uint64_t degenerate = 0;           // zero-area triangles left out
     std::uint64_t triangle_blocks = 0;
+    std::uint64_t vertex_bytes = 0;  // raw bytes of the triangle blocks' vertex sections
     std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels (raw bytes)
     std::vector<std::uint64_t> level_nodes, level_voxels;  // nodes and LOD voxels per node level
     std::uint64_t triangle_bytes = 0;       // raw bytes of the triangle blocks

@@ -21,7 +21,7 @@ void ProgressCounter::add(std::uint64_t n) {
 
 SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
     : p_(params), counter_(counter), out_(std::move(out)), defer_(defer), nodes(out_, stats),
-      triangles(params.has_colours, out_, stats) {}
+      triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, out_, stats) {}
 
 void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
     const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,
@@ -132,6 +132,7 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& trian
     stats.references += s.references;
     stats.stored_triangles += s.stored_triangles;
     stats.stored_vertices += s.stored_vertices;
+    stats.vertex_bytes += s.vertex_bytes;
     for (std::size_t level = 0; level < s.level_nodes.size(); ++level) {
         ensure_level(stats, level);
         stats.level_nodes[level] += s.level_nodes[level];

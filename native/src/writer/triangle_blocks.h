@@ -97,8 +97,13 @@ private:
 
 class TriangleBlocks {
 public:
-    TriangleBlocks(bool has_colours, BlockStream& out, ModelWriterStats& stats)
-        : has_colours_(has_colours), out_(out), stats_(stats) {}
+    // `vertex_steps`: the grid of FLAG_QUANTIZED_VERTICES (null: f32 vertices as given).
+    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, BlockStream& out, ModelWriterStats& stats)
+        : has_colours_(has_colours), quantized_(vertex_steps != nullptr),
+          steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)), max_vertices_(quantized_ ? 3 * kMaxTriangles : kMaxVertices),
+          out_(out), stats_(stats), vertex_map_(quantized_ ? 15 : 13) {
+        reset_span();
+    }
 
     // Blocks closed so far: the id the next block gets.
     std::uint32_t blocks() const { return blocks_; }
@@ -116,27 +121,50 @@ public:
     void flush();
 
 private:
-    format::TriangleBlockLayout layout() const {
-        return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_);
+    // Quantized: header word 3, the bit length of the block's span of grid indices on
+    // each axis (format.h), so the encoding follows what the block holds.
+    std::uint32_t packing() const {
+        if (!quantized_ || grid_.empty()) return 0;
+        std::uint32_t word = 0;
+        for (int a = 0; a < 3; ++a) {
+            std::uint32_t span = static_cast<std::uint32_t>(k_hi_[a] - k_lo_[a]), bits = 0;
+            while (span >> bits) ++bits;
+            word |= bits << (8 * a);
+        }
+        return word;
     }
+    format::TriangleBlockLayout layout() const {
+        return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_, quantized_,
+                                               packing());
+    }
+    void reset_span();
+    std::array<std::int32_t, 3> grid_index(const Vec3f& p) const;
+    void extend_span(const std::array<std::int32_t, 3>& k);
     void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
     // Inserts triangles into the current block; false when it stopped because the block
     // certainly cannot hold them.
     bool insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
 
+    // A vertex takes 12 bytes, a triangle at least 12 (record, id, list entry); a packed
+    // vertex can take less than a byte, but a triangle brings at most three.
     static constexpr std::size_t kMaxVertices = (format::kBlockSize - 16) / 12;
     static constexpr std::size_t kMaxTriangles = (format::kBlockSize - 16) / 12;
 
     bool has_colours_;
+    bool quantized_;
+    Vec3f steps_;
+    std::size_t max_vertices_;
     BlockStream& out_;
     ModelWriterStats& stats_;
     std::uint32_t blocks_ = 0;
     std::vector<std::uint16_t> list_, tri_verts_;
     std::vector<std::uint32_t> ids_, colours_;
     std::vector<Vec3f> verts_;
+    std::vector<std::array<std::int32_t, 3>> grid_;  // quantized: each vertex's grid index
+    std::array<std::int32_t, 3> k_lo_{}, k_hi_{};    // and their bounds in this block
     // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
     SmallMap<std::uint32_t, IdHash> id_map_{13};
-    SmallMap<VertexKey, VertexHash> vertex_map_{13};
+    SmallMap<VertexKey, VertexHash> vertex_map_;  // 2^13 slots, 2^15 for packed vertices
 };
 
 }  // namespace vastray::writer
