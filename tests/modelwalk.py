@@ -32,7 +32,7 @@ ONE_SAMPLE = 1 << 31
 TREELET_HEIGHT = 3
 QUANTIZED_SPLITS = 1 << 3  # header flag (version 3): 4-byte basic nodes, splits as grid steps
 SPLIT_STEPS = 1 << 20
-QUANTIZED_VERTICES = 1 << 4  # header flag: vertices on the root cell's grid, packed per block
+QUANTIZED_VERTICES = 1 << 4  # header flag (version 4): vertices on the root cell's grid, packed per block
 
 
 def grid_step(lo: float, hi: float) -> float:

@@ -56,7 +56,7 @@ def views(path: Path) -> list:
 def test_the_header_says_which(models: dict[tuple[str, bool], Path]) -> None:
     for (_, quantized), path in models.items():
         with ModelFile(path) as model:
-            assert model.header["version"] == VERSION == 3
+            assert model.header["version"] == VERSION == 4
             assert bool(model.header["flags"] & FLAG_QUANTIZED_SPLITS) == quantized
             assert model.quantized_splits == quantized and model.stats()["quantized_splits"] == quantized
 

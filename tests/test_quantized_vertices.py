@@ -204,15 +204,16 @@ def test_closed_mesh_stays_closed(models: dict[tuple[str, str], Path]) -> None:
 
 
 def test_old_files_still_read(tmp_path: Path, models: dict[tuple[str, str], Path]) -> None:
-    """A version-3 model without the flag, and versions 1 and 2, render as before; a
-    quantized model cannot pass for version 2; the flag's absence keeps word 3 ignored."""
+    """A version-4 model without the flag, read as versions 1-3, renders as before; a
+    quantized model cannot pass for version 3 (the flag came with version 4); the
+    flag's absence keeps word 3 ignored."""
     full = tmp_path / "spheres.vast"
     build_model("scene:spheres:20000:3", full)
     camera = views(full)[0]
     with ModelFile(full) as model:
         assert not model.quantized_vertices
         reference = trace(model.to_scene(), camera)
-    for version in (1, 2):
+    for version in (1, 2, 3):
         copy = tmp_path / f"v{version}.vast"
         copy.write_bytes(full.read_bytes())
         rewrite_version(copy, version)
@@ -222,9 +223,9 @@ def test_old_files_still_read(tmp_path: Path, models: dict[tuple[str, str], Path
             np.testing.assert_array_equal(
                 ooc.render_complete(camera, pixels_of_error=0.0).prim, reference.prim
             )
-    copy = tmp_path / "q2.vast"
+    copy = tmp_path / "q3.vast"
     copy.write_bytes(models["plant", "vertices"].read_bytes())
-    rewrite_version(copy, 2)
+    rewrite_version(copy, 3)
     with pytest.raises(ModelError, match="unsupported attribute flags"):
         ModelFile(copy)
     with pytest.raises(ModelError, match="unsupported attribute flags"):

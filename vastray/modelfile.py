@@ -26,7 +26,7 @@ from vastray import native
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1 and 2: version 3 without its flags
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-3: version 4 without its later flags
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -322,7 +322,8 @@ class ModelFile:
         if h["codec"] != CODEC_FAMILY_LZ4:
             raise self._fail(f"unsupported block codec family {h['codec']}")
         known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
-        known |= FLAG_QUANTIZED_SPLITS | FLAG_QUANTIZED_VERTICES if h["version"] >= 3 else 0
+        known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
+        known |= FLAG_QUANTIZED_VERTICES if h["version"] >= 4 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)

@@ -77,7 +77,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         if (load<std::uint32_t>(h + 24) != kCodecFamilyLz4) throw fail("unsupported block codec family");
         const auto flags = load<std::uint32_t>(h + 16);
         const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u) |
-                                    (version >= 3 ? kFlagQuantizedSplits | kFlagQuantizedVertices : 0u);
+                                    (version >= 3 ? kFlagQuantizedSplits : 0u) | (version >= 4 ? kFlagQuantizedVertices : 0u);
         if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
         }

@@ -25,8 +25,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 3;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1 and 2 are version 3 without its flags
+constexpr std::uint32_t kVersion = 4;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-3 are version 4 without its later flags
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -270,6 +270,10 @@ struct TriangleBlockLayout {
         std::uint32_t h[4];
         std::memcpy(h, tb, sizeof h);
         return of(h[0], h[1], h[2], has_colours, quantized_vertices, h[3]);
+    }
+    // Where vertex i of the block at tb is stored (its record; for prefetching).
+    const std::uint8_t* vertex_at(const std::uint8_t* tb, std::size_t i) const {
+        return tb + vertices + (packed ? 12 + record * i : 12 * i);
     }
     // Vertex i of the block at tb: f32 as stored, or f32(origin + offset) * step.
     Vec3f vertex(const std::uint8_t* tb, std::size_t i, const Vec3f& steps) const {
