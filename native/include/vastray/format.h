@@ -271,10 +271,6 @@ struct TriangleBlockLayout {
         std::memcpy(h, tb, sizeof h);
         return of(h[0], h[1], h[2], has_colours, quantized_vertices, h[3]);
     }
-    // Where vertex i of the block at tb is stored (its record; for prefetching).
-    const std::uint8_t* vertex_at(const std::uint8_t* tb, std::size_t i) const {
-        return tb + vertices + (packed ? 12 + record * i : 12 * i);
-    }
     // Vertex i of the block at tb: f32 as stored, or f32(origin + offset) * step.
     Vec3f vertex(const std::uint8_t* tb, std::size_t i, const Vec3f& steps) const {
         Vec3f v;
