@@ -2,12 +2,14 @@
 
 For each model size (bench/tradeoff.py's plant models in bench/.cache) and each pixels of
 error, the page cache is dropped, the model opened in a fresh cache and the 1280x720
-overview rendered until complete in three ways, one after the other, so all see the
+overview rendered until complete in four ways, one after the other, so all see the
 same machine: *before* (full frames from the start, fetches strictly by priority),
 *discovery* (render_complete's coarse discovery frames first: vastray/outofcore.py
-DISCOVERY_SCALE) and *discovery + file order* (also fetching requests of about equal
-priority in file order: BlockCache file_order, the default). The final images are
-compared (they must be equal: both only change what is loaded when). Also measures the
+DISCOVERY_SCALE), *discovery + file order* (also fetching requests of about equal
+priority in file order: BlockCache file_order, the default), and *+ read-ahead* (the
+queued blocks handed to the kernel to read ahead: BlockCache readahead, the default;
+the other three go without). The final images are
+compared (they must be equal: all only change what is loaded when). Also measures the
 disk's cold read rate of the model file: the bytes a view needs over it are the floor
 of any cold start.
 
@@ -55,17 +57,28 @@ def cold_read_rate(path: Path, limit: int = 1 << 30) -> float:
 
 
 # (name, discovery frames, fetch in file order)
-VARIANTS = (("before", False, False), ("discovery", True, False), ("discovery + file order", True, True))
+VARIANTS = (
+    ("before", False, False, False),
+    ("discovery", True, False, False),
+    ("discovery + file order", True, True, False),
+    ("+ read-ahead", True, True, True),
+)
 
 
 def cold_complete(
-    path: Path, poe: float, discovery: bool, file_order: bool, budget: int, image: tuple[int, int]
+    path: Path,
+    poe: float,
+    discovery: bool,
+    file_order: bool,
+    readahead: bool,
+    budget: int,
+    image: tuple[int, int],
 ) -> dict:
     saved = outofcore.DISCOVERY_MIN_SIDE
     outofcore.DISCOVERY_MIN_SIDE = saved if discovery else 1 << 30
     try:
         drop_page_cache(path)
-        cache = native.BlockCache(budget, 2, "count", file_order=file_order)
+        cache = native.BlockCache(budget, 2, "count", file_order=file_order, readahead=readahead)
         with OutOfCoreModel(path, cache) as model:
             camera = frame_bounds(*model.bounds, width=image[0], height=image[1])
             done = model.render_complete(camera, pixels_of_error=poe)
@@ -100,10 +113,10 @@ def main() -> int:
         rate = cold_read_rate(path)
         print(f"{path.name}: cold read rate {rate:.0f} MB/s", file=sys.stderr, flush=True)
         for poe in (float(p) for p in args.poes.split(",")):
-            runs: dict[str, list[dict]] = {name: [] for name, _, _ in VARIANTS}
+            runs: dict[str, list[dict]] = {name: [] for name, *_ in VARIANTS}
             for _ in range(args.repeats):
-                for name, discovery, file_order in VARIANTS:
-                    r = cold_complete(path, poe, discovery, file_order, budget, image)
+                for name, discovery, file_order, readahead in VARIANTS:
+                    r = cold_complete(path, poe, discovery, file_order, readahead, budget, image)
                     runs[name].append(r)
                     print(
                         f"  PoE {poe:g} {name}: {r['seconds']:.2f} s, {r['frames']} frames, "
@@ -122,7 +135,7 @@ def main() -> int:
                 "read_mib": new["read_mib"],
                 "read_floor_s": new["read_mib"] * 2**20 / 1e6 / rate,
             }
-            for name, _, _ in VARIANTS:
+            for name, *_ in VARIANTS:
                 row[f"{name} s"] = med[name]
                 row[f"{name} frames"] = runs[name][0]["frames"]
             row["speedup"] = med["before"] / med[VARIANTS[-1][0]]

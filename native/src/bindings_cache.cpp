@@ -119,7 +119,7 @@ py::dict totals_dict(const CacheTotals& t) {
 
 std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, const std::string& priority,
                                        std::size_t max_requests_per_frame, std::size_t max_pending,
-                                       bool file_order, bool huge_pages) {
+                                       bool file_order, bool huge_pages, bool readahead) {
     CacheConfig c;
     c.budget_bytes = budget;
     c.fetchers = fetchers;
@@ -130,6 +130,7 @@ std::shared_ptr<BlockCache> make_cache(std::size_t budget, unsigned fetchers, co
     c.max_pending = max_pending;
     c.file_order = file_order;
     c.huge_pages = huge_pages;
+    c.readahead = readahead;
     return std::make_shared<BlockCache>(c);
 }
 
@@ -140,7 +141,7 @@ void bind_cache(py::module_& m) {
                                                         "Shared 64 KB block cache with fetcher threads")
         .def(py::init(&make_cache), py::arg("budget"), py::arg("fetchers") = 2u, py::arg("priority") = "count",
              py::arg("max_requests_per_frame") = 256, py::arg("max_pending") = 4096, py::arg("file_order") = true,
-             py::arg("huge_pages") = true)
+             py::arg("huge_pages") = true, py::arg("readahead") = true)
         .def("totals", [](const BlockCache& c) { return totals_dict(c.totals()); })
         .def("check_invariants", &BlockCache::check_invariants)
         .def("drain", &BlockCache::drain, py::call_guard<py::gil_scoped_release>(),

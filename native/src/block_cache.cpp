@@ -216,7 +216,29 @@ int priority_class(float priority) {
 
 void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
                            FrameCacheStats& stats, std::size_t limit) {
-    std::lock_guard<std::mutex> lock(mutex_);
+    Readahead readahead;
+    {
+        std::lock_guard<std::mutex> lock(mutex_);
+        end_frame_locked(tick, requests, stats, limit, readahead);
+    }
+    if (readahead.empty()) return;
+    // Outside the lock (the advice submits reads): runs of consecutive blocks of one
+    // model become one call. The index's shared_ptr keeps its file open meanwhile.
+    std::sort(readahead.begin(), readahead.end());
+    std::size_t run = 0;
+    for (std::size_t i = 1; i <= readahead.size(); ++i) {
+        if (i < readahead.size() && readahead[i].first == readahead[run].first &&
+            readahead[i].second == readahead[i - 1].second + 1) {
+            continue;
+        }
+        readahead[run].first->read_ahead(readahead[run].second, readahead[i - 1].second);
+        run = i;
+    }
+}
+
+void BlockCache::end_frame_locked(std::uint32_t tick,
+                                  const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
+                                  FrameCacheStats& stats, std::size_t limit, Readahead& readahead) {
     const std::size_t per_frame = limit > 0 ? std::min(limit, config_.max_pending) : config_.max_requests_per_frame;
     active_ticks_.erase(std::find(active_ticks_.begin(), active_ticks_.end(), tick));
 
@@ -244,6 +266,9 @@ void BlockCache::end_frame(std::uint32_t tick, const std::vector<std::pair<Cache
     }
     for (Request& r : fresh) {
         r.serial = ++serial_;
+        if (config_.readahead && r.model->state_[r.block] == CachedModel::State::Absent) {
+            readahead.emplace_back(r.model->index_, r.block);
+        }
         r.model->state_[r.block] = CachedModel::State::Queued;
     }
     // Merge with the queue: a block asked again keeps its newest priority.

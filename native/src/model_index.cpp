@@ -169,6 +169,15 @@ std::string ModelIndex::level_name(std::size_t block) const {
     return "LOD level " + std::to_string(level);
 }
 
+void ModelIndex::read_ahead(std::size_t first, std::size_t last) const {
+    if (first > last || last >= entries_.size()) return;
+    const BlockEntry& a = entries_[first];
+    const BlockEntry& b = entries_[last];
+    if (b.offset + b.stored_size <= a.offset) return;
+    posix_fadvise(fd_, static_cast<off_t>(a.offset), static_cast<off_t>(b.offset + b.stored_size - a.offset),
+                  POSIX_FADV_WILLNEED);
+}
+
 std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const {
     const BlockEntry& e = entries_[block];
     // Only failures pay for naming the block.

@@ -95,6 +95,11 @@ struct CacheConfig {
     // and with 4 KiB pages nearly every block a ray enters costs a TLB miss as well as
     // a cache miss (Embree's `hugepages` option does the same for its BVH).
     bool huge_pages = true;
+    // Tell the kernel which blocks a frame queued (POSIX_FADV_WILLNEED), so it reads them
+    // ahead, many at once, while the fetchers still work through earlier ones: a
+    // fetcher's pread then finds them in the page cache. Two fetchers alone keep only two
+    // reads in flight, a third of a disk's rate (bench/results/complete.md).
+    bool readahead = true;
 };
 
 // The slots' memory: one anonymous mapping, untouched (and so not resident) until a
@@ -209,6 +214,9 @@ private:
     void forget_if_closed_locked(CachedModel& model);
     std::size_t evict_locked(std::size_t wanted, std::uint32_t protect_from);
     void publish_locked(FrameCacheStats* stats);
+    using Readahead = std::vector<std::pair<std::shared_ptr<const ModelIndex>, std::uint32_t>>;
+    void end_frame_locked(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
+                          FrameCacheStats& stats, std::size_t limit, Readahead& readahead);
 
     CacheConfig config_;
     std::size_t slot_count_;
