@@ -33,10 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, markdown_table
 from tradeoff import built_model, isa_path
 
-from build import drop_page_cache
 from vastray import native, outofcore
 from vastray.camera import frame_bounds
 from vastray.outofcore import OutOfCoreModel
+from vastray.pagecache import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
 from vastray.units import parse_bytes
 
 

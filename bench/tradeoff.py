@@ -52,11 +52,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, machine_info, markdown_table, save_figure
 
-from build import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
 from vastray import native
 from vastray.camera import Camera, frame_bounds
 from vastray.modelfile import ModelFile
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
+from vastray.pagecache import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
 from vastray.renderer import RENDER_PARAM_FIELDS, trace
 from vastray.units import parse_bytes
 
