@@ -413,17 +413,22 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
         out.id = id;
     };
     for (std::size_t i = first; i < top; ++i) {
-        const PrimRef r = refs[i];
-        const float lo = r.box.lo[axis], hi = r.box.hi[axis];
+        // The reference goes straight into registers: a copy on the stack, written as two
+        // overlapping 16-byte stores, made each read of it wait for a failed store forward.
+        // All of it is read before the writes below, which may reuse its slot.
+        const __m128 blo = _mm_loadu_ps(&refs[i].box.lo.x), bhi = _mm_loadu_ps(&refs[i].box.hi.x);
+        const float lo = refs[i].box.lo[axis], hi = refs[i].box.hi[axis];
+        const std::uint32_t id = refs[i].id;
         const bool planar = lo == split && hi == split;
         const bool in_left = lo < split || planar;
         const bool in_right = hi > split || planar;
         if (in_left && in_right && !planar) {
             // Straddles: clip the triangle to each side for tight child boxes.
-            const Vec3f &a = soup_.v(r.id, 0), &b = soup_.v(r.id, 1), &c = soup_.v(r.id, 2);
+            const Box3f box = to_box(blo, bhi);
+            const Vec3f &a = soup_.v(id, 0), &b = soup_.v(id, 1), &c = soup_.v(id, 2);
             for (int side = 0; side < 2; ++side) {
                 const Box3f& child = side == 0 ? lcell : rcell;
-                const Box3f limit = Box3f::intersection(r.box, child);
+                const Box3f limit = Box3f::intersection(box, child);
                 Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
@@ -431,26 +436,25 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
                 if (side == 0) {
                     lused_lo = _mm_min_ps(clo, lused_lo);
                     lused_hi = _mm_max_ps(chi, lused_hi);
-                    put(left[nl++], clo, chi, r.id);
+                    put(left[nl++], clo, chi, id);
                 } else {
                     rused_lo = _mm_min_ps(clo, rused_lo);
                     rused_hi = _mm_max_ps(chi, rused_hi);
-                    put(refs[first + nr++], clo, chi, r.id);
+                    put(refs[first + nr++], clo, chi, id);
                 }
             }
         } else {
-            const __m128 blo = _mm_loadu_ps(&r.box.lo.x), bhi = _mm_loadu_ps(&r.box.hi.x);
             if (in_left) {
                 const __m128 clo = _mm_max_ps(lcell_lo, blo), chi = _mm_min_ps(lcell_hi, bhi);
                 lused_lo = _mm_min_ps(clo, lused_lo);
                 lused_hi = _mm_max_ps(chi, lused_hi);
-                put(left[nl++], clo, chi, r.id);
+                put(left[nl++], clo, chi, id);
             }
             if (in_right) {
                 const __m128 clo = _mm_max_ps(rcell_lo, blo), chi = _mm_min_ps(rcell_hi, bhi);
                 rused_lo = _mm_min_ps(clo, rused_lo);
                 rused_hi = _mm_max_ps(chi, rused_hi);
-                put(refs[first + nr++], clo, chi, r.id);
+                put(refs[first + nr++], clo, chi, id);
             }
         }
     }
@@ -567,12 +571,33 @@ namespace {
 
 constexpr int kStackBins = 64;
 
-// Counts, per axis, the references whose box starts (ends) in each bin.
+// Counts, per axis, the references whose box starts (ends) in each bin. `spare` is room
+// for a second set of counters (2 * 3 * bins): neighbouring references mostly fall into
+// the same bins, and alternating between two sets halves the chains of increments of
+// one counter, each of which waits for the one before.
 void bin_references(const PrimRef* refs, std::size_t n, const Binner& binner, std::uint32_t* starts,
-                    std::uint32_t* ends) {
-    for (std::size_t i = 0; i < n; ++i) {
-        // lo's lane 3 is hi.x, hi's is the id: both are ignored.
-        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), starts, ends);
+                    std::uint32_t* ends, std::uint32_t* spare) {
+    // lo's lane 3 is hi.x, hi's is the id: both are ignored.
+    auto add = [&](std::size_t i, std::uint32_t* s, std::uint32_t* e) {
+        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), s, e);
+    };
+    constexpr std::size_t kTwoSets = 64;  // below, clearing and summing the second set costs more
+    if (n < kTwoSets) {
+        for (std::size_t i = 0; i < n; ++i) add(i, starts, ends);
+        return;
+    }
+    const std::size_t per_set = 3 * static_cast<std::size_t>(binner.bins());
+    std::fill(spare, spare + 2 * per_set, 0u);
+    std::uint32_t *starts2 = spare, *ends2 = spare + per_set;
+    std::size_t i = 0;
+    for (; i + 1 < n; i += 2) {
+        add(i, starts, ends);
+        add(i + 1, starts2, ends2);
+    }
+    if (i < n) add(i, starts, ends);
+    for (std::size_t k = 0; k < per_set; ++k) {
+        starts[k] += starts2[k];
+        ends[k] += ends2[k];
     }
 }
 
@@ -627,11 +652,11 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     int best_axis = -1;
     float best_split = 0;
     std::size_t best_left = 0, best_right = 0;
-    std::uint32_t stack_bins[2 * 3 * kStackBins];
+    std::uint32_t stack_bins[2 * 2 * 3 * kStackBins];  // starts, ends; the binning's spare set
     std::vector<std::uint32_t> heap_bins;
     std::uint32_t* starts = stack_bins;
     if (bins > kStackBins) {
-        heap_bins.resize(2 * 3 * nb);
+        heap_bins.resize(2 * 2 * 3 * nb);
         starts = heap_bins.data();
     }
     std::uint32_t* ends = starts + 3 * nb;
@@ -651,7 +676,7 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     }
     std::uint32_t* counts_right = counts_left + nb + 4;
     std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
-    bin_references(refs, n, Binner(cell, bins), starts, ends);
+    bin_references(refs, n, Binner(cell, bins), starts, ends, starts + 2 * 3 * nb);
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
