@@ -11,6 +11,7 @@
 #include <condition_variable>
 #include <deque>
 #include <exception>
+#include <memory>
 #include <mutex>
 #include <chrono>
 #include <cmath>
@@ -143,12 +144,11 @@ bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, co
 // child's in place (each reference read gives at most one to the right, so writes never
 // overtake reads) and moves the left child's down behind them. The left subtree is then
 // built above the right child's range, which it never touches. No node allocates.
-// A box's corners in SSE registers; lane 3 is whatever follows the corner in memory.
-inline __m128 load_lo(const Box3f& b) { return _mm_loadu_ps(&b.lo.x); }
-inline __m128 load_hi(const Box3f& b) {
-    alignas(16) float hi[4] = {b.hi.x, b.hi.y, b.hi.z, 0.0f};  // a Box3f ends with hi.z
-    return _mm_load_ps(hi);
-}
+// A box's corners in SSE registers (lane 3: 0), built from the components rather than
+// loaded as a vector: a box just computed lies in memory as scalar stores, and a
+// 16-byte load across them waits for a failed store forward.
+inline __m128 load_lo(const Box3f& b) { return _mm_setr_ps(b.lo.x, b.lo.y, b.lo.z, 0.0f); }
+inline __m128 load_hi(const Box3f& b) { return _mm_setr_ps(b.hi.x, b.hi.y, b.hi.z, 0.0f); }
 inline Box3f to_box(__m128 lo, __m128 hi) {
     alignas(16) float l[4], h[4];
     _mm_store_ps(l, lo);
@@ -237,8 +237,10 @@ private:
 // and builds the left one itself. An idle helper takes the oldest task on offer (the
 // biggest: the one nearest the root) and builds it into an output of its own. Back from
 // the left child, the owner builds the right one itself if nobody took it, or waits for
-// it and splices the helper's output after the left child's. Who builds what changes
-// nothing in the tree: the nodes end up in the same preorder either way.
+// it and splices the helper's output after the left child's. While it waits, it builds
+// tasks on offer itself (the helper's own right children), so neither thread idles
+// while the other has work to give. Who builds what changes nothing in the tree: the
+// nodes end up in the same preorder either way.
 struct Task {
     RefStack* stack = nullptr;  // the owner's: the child's references lie there, untouched meanwhile
     std::size_t first = 0, n = 0;
@@ -257,7 +259,7 @@ public:
             std::lock_guard<std::mutex> lock(mutex_);
             offered_.push_back(t);
         }
-        wake_.notify_one();
+        changed_.notify_all();  // an idle helper, or an owner waiting for its own task
     }
     // The owner takes its task back; false when a helper has it.
     bool reclaim(Task* t) {
@@ -269,36 +271,45 @@ public:
     }
     void wait(Task* t) {
         std::unique_lock<std::mutex> lock(mutex_);
-        finished_.wait(lock, [t] { return t->done; });
+        changed_.wait(lock, [t] { return t->done; });
+    }
+    // Until `t` (taken by another thread) is done: a task on offer for the caller to
+    // build meanwhile. Null once `t` is done.
+    Task* wait_or_take(Task* t) {
+        std::unique_lock<std::mutex> lock(mutex_);
+        changed_.wait(lock, [this, t] { return t->done || !offered_.empty(); });
+        return t->done ? nullptr : pop();
     }
     // A helper's next task, or null once the build is over.
     Task* take() {
         std::unique_lock<std::mutex> lock(mutex_);
-        wake_.wait(lock, [this] { return over_ || !offered_.empty(); });
-        if (offered_.empty()) return nullptr;
-        Task* t = offered_.front();
-        offered_.pop_front();
-        t->state = Task::Taken;
-        return t;
+        changed_.wait(lock, [this] { return over_ || !offered_.empty(); });
+        return offered_.empty() ? nullptr : pop();
     }
     void complete(Task* t) {
         {
             std::lock_guard<std::mutex> lock(mutex_);
             t->done = true;
         }
-        finished_.notify_all();
+        changed_.notify_all();
     }
     void end() {
         {
             std::lock_guard<std::mutex> lock(mutex_);
             over_ = true;
         }
-        wake_.notify_all();
+        changed_.notify_all();
     }
 
 private:
+    Task* pop() {  // the oldest task on offer: the biggest
+        Task* t = offered_.front();
+        offered_.pop_front();
+        t->state = Task::Taken;
+        return t;
+    }
     std::mutex mutex_;
-    std::condition_variable wake_, finished_;
+    std::condition_variable changed_;  // offered, completed or over
     std::deque<Task*> offered_;
     bool over_ = false;
 };
@@ -311,20 +322,23 @@ public:
     // A helper thread: builds offered subtrees until the build is over.
     void help() {
         RefStack rs;
-        while (Task* t = tasks_.take()) {
-            try {
-                rs.reserve(std::max<std::size_t>(2 * t->n, 16));
-                // Room for the subtree's nodes and leaf lists (address space: only what is
-                // written becomes resident), so they do not grow by copying.
-                t->out.nodes.reserve(t->n / 2 + 16);
-                t->out.tri_ids.reserve(2 * t->n + 16);
-                t->stack->copy_out(t->first, t->n, rs.data());
-                build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
-            } catch (...) {
-                t->error = std::current_exception();
-            }
-            tasks_.complete(t);
+        while (Task* t = tasks_.take()) run(t, rs);
+    }
+    // Builds a task taken from another thread (or from an outer frame of this one) on `rs`,
+    // a stack that nothing else is using meanwhile.
+    void run(Task* t, RefStack& rs) {
+        try {
+            rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+            // Room for the subtree's nodes and leaf lists (address space: only what is
+            // written becomes resident), so they do not grow by copying.
+            t->out.nodes.reserve(t->n / 2 + 16);
+            t->out.tri_ids.reserve(2 * t->n + 16);
+            t->stack->copy_out(t->first, t->n, rs.data());
+            build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
+        } catch (...) {
+            t->error = std::current_exception();
         }
+        tasks_.complete(t);
     }
     void end() { tasks_.end(); }
 
@@ -511,7 +525,12 @@ void Builder::build_children(RefStack& rs, const Side& left, const Side& right, 
         build(rs, right.first, right.n, right.cell, right.used, depth + 1, bad, out);
         return;
     }
-    tasks_.wait(&task);
+    // The stack for tasks built while waiting: this thread's own is in use down the path.
+    std::unique_ptr<RefStack> spare;
+    while (Task* other = tasks_.wait_or_take(&task)) {
+        if (!spare) spare = std::make_unique<RefStack>();
+        run(other, *spare);
+    }
     if (task.error) std::rethrow_exception(task.error);
     const Output& right_out = task.out;
     const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
