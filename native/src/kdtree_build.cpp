@@ -57,28 +57,37 @@ Box3f widen(const Box3f& b) {
     return r;
 }
 
-// Bounds of the part of a triangle on one side of an axis-aligned plane (side 0:
+// Bounds of the parts of a triangle on each side of an axis-aligned plane (side 0:
 // coordinate <= split, side 1: >= split), in double. Clipping against the one split
 // plane and intersecting with the reference's current box is nearly as tight as a full
 // polygon clip against the child cell, at a fraction of the cost: long thin triangles
-// (pipes, cables) straddle many planes, so this runs at every level.
-Box3f clip_to_half_space(const Vec3f& a, const Vec3f& b, const Vec3f& c, int axis, float split, int side) {
+// (pipes, cables) straddle many planes, so this runs at every level. Both sides in one
+// pass: an edge's crossing point is the same for both (same endpoints, same order), and
+// each side's box takes its points in the order a pass of its own would.
+void clip_to_half_spaces(const Vec3f& a, const Vec3f& b, const Vec3f& c, int axis, float split, Box3f& below,
+                         Box3f& above) {
     const Vec3d p[3] = {Vec3d(a), Vec3d(b), Vec3d(c)};
     const double plane = split;
-    auto inside = [&](const Vec3d& q) { return side == 0 ? q[axis] <= plane : q[axis] >= plane; };
-    Box3f r;
+    below = Box3f{};
+    above = Box3f{};
     for (int i = 0; i < 3; ++i) {
         const Vec3d& q0 = p[i];
         const Vec3d& q1 = p[(i + 1) % 3];
-        if (inside(q0)) r.extend(Vec3f(q0));
-        if (inside(q0) != inside(q1)) {
+        const bool lo0 = q0[axis] <= plane, lo1 = q1[axis] <= plane;
+        const bool hi0 = q0[axis] >= plane, hi1 = q1[axis] >= plane;
+        const bool cross_lo = lo0 != lo1, cross_hi = hi0 != hi1;
+        Vec3f x;
+        if (cross_lo || cross_hi) {
             const double s = (plane - q0[axis]) / (q1[axis] - q0[axis]);
-            Vec3d x = q0 + (q1 - q0) * s;
-            x[axis] = plane;
-            r.extend(Vec3f(x));
+            Vec3d xd = q0 + (q1 - q0) * s;
+            xd[axis] = plane;
+            x = Vec3f(xd);
         }
+        if (lo0) below.extend(Vec3f(q0));
+        if (cross_lo) below.extend(x);
+        if (hi0) above.extend(Vec3f(q0));
+        if (cross_hi) above.extend(x);
     }
-    return r;
 }
 
 // Bounds of the part of a triangle inside a box (Sutherland-Hodgman in double), or an
@@ -439,11 +448,12 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
         if (in_left && in_right && !planar) {
             // Straddles: clip the triangle to each side for tight child boxes.
             const Box3f box = to_box(blo, bhi);
-            const Vec3f &a = soup_.v(id, 0), &b = soup_.v(id, 1), &c = soup_.v(id, 2);
+            Box3f halves[2];
+            clip_to_half_spaces(soup_.v(id, 0), soup_.v(id, 1), soup_.v(id, 2), axis, split, halves[0], halves[1]);
             for (int side = 0; side < 2; ++side) {
                 const Box3f& child = side == 0 ? lcell : rcell;
                 const Box3f limit = Box3f::intersection(box, child);
-                Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
+                Box3f clipped = halves[side];
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
                 const __m128 clo = load_lo(clipped), chi = load_hi(clipped);
