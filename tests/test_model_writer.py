@@ -111,6 +111,19 @@ def test_output_does_not_depend_on_the_thread_count(
 
 
 @pytest.mark.slow
+def test_more_threads_than_cores_build_the_same_file(tmp_path: Path) -> None:
+    # Oversubscribed, the kd build's subtrees are taken, offered on and stolen back by
+    # several threads at once (a thread waiting for a subtree it offered builds others'
+    # meanwhile), so the tasks nest in many orders; the file must not change.
+    files = []
+    for threads in (1, 3, 8):
+        out = tmp_path / f"threads-{threads}.vast"
+        build_model("scene:plant:200000:5", out, BuildOptions(threads=threads))
+        files.append(out.read_bytes())
+    assert files[0] == files[1] == files[2]
+
+
+@pytest.mark.slow
 def test_a_fan_too_big_for_one_block_continues_into_the_next(tmp_path: Path) -> None:
     # 20,000 thin triangles around one vertex (a finely tessellated disc): no split can
     # separate them near the centre, so some leaf holds more than a 64 KB block fits.

@@ -11,6 +11,7 @@
 #include <condition_variable>
 #include <deque>
 #include <exception>
+#include <memory>
 #include <mutex>
 #include <chrono>
 #include <cmath>
@@ -56,28 +57,37 @@ Box3f widen(const Box3f& b) {
     return r;
 }
 
-// Bounds of the part of a triangle on one side of an axis-aligned plane (side 0:
+// Bounds of the parts of a triangle on each side of an axis-aligned plane (side 0:
 // coordinate <= split, side 1: >= split), in double. Clipping against the one split
 // plane and intersecting with the reference's current box is nearly as tight as a full
 // polygon clip against the child cell, at a fraction of the cost: long thin triangles
-// (pipes, cables) straddle many planes, so this runs at every level.
-Box3f clip_to_half_space(const Vec3f& a, const Vec3f& b, const Vec3f& c, int axis, float split, int side) {
+// (pipes, cables) straddle many planes, so this runs at every level. Both sides in one
+// pass: an edge's crossing point is the same for both (same endpoints, same order), and
+// each side's box takes its points in the order a pass of its own would.
+void clip_to_half_spaces(const Vec3f& a, const Vec3f& b, const Vec3f& c, int axis, float split, Box3f& below,
+                         Box3f& above) {
     const Vec3d p[3] = {Vec3d(a), Vec3d(b), Vec3d(c)};
     const double plane = split;
-    auto inside = [&](const Vec3d& q) { return side == 0 ? q[axis] <= plane : q[axis] >= plane; };
-    Box3f r;
+    below = Box3f{};
+    above = Box3f{};
     for (int i = 0; i < 3; ++i) {
         const Vec3d& q0 = p[i];
         const Vec3d& q1 = p[(i + 1) % 3];
-        if (inside(q0)) r.extend(Vec3f(q0));
-        if (inside(q0) != inside(q1)) {
+        const bool lo0 = q0[axis] <= plane, lo1 = q1[axis] <= plane;
+        const bool hi0 = q0[axis] >= plane, hi1 = q1[axis] >= plane;
+        const bool cross_lo = lo0 != lo1, cross_hi = hi0 != hi1;
+        Vec3f x;
+        if (cross_lo || cross_hi) {
             const double s = (plane - q0[axis]) / (q1[axis] - q0[axis]);
-            Vec3d x = q0 + (q1 - q0) * s;
-            x[axis] = plane;
-            r.extend(Vec3f(x));
+            Vec3d xd = q0 + (q1 - q0) * s;
+            xd[axis] = plane;
+            x = Vec3f(xd);
         }
+        if (lo0) below.extend(Vec3f(q0));
+        if (cross_lo) below.extend(x);
+        if (hi0) above.extend(Vec3f(q0));
+        if (cross_hi) above.extend(x);
     }
-    return r;
 }
 
 // Bounds of the part of a triangle inside a box (Sutherland-Hodgman in double), or an
@@ -143,12 +153,11 @@ bool triangle_overlaps_box(const Vec3f& fa, const Vec3f& fb, const Vec3f& fc, co
 // child's in place (each reference read gives at most one to the right, so writes never
 // overtake reads) and moves the left child's down behind them. The left subtree is then
 // built above the right child's range, which it never touches. No node allocates.
-// A box's corners in SSE registers; lane 3 is whatever follows the corner in memory.
-inline __m128 load_lo(const Box3f& b) { return _mm_loadu_ps(&b.lo.x); }
-inline __m128 load_hi(const Box3f& b) {
-    alignas(16) float hi[4] = {b.hi.x, b.hi.y, b.hi.z, 0.0f};  // a Box3f ends with hi.z
-    return _mm_load_ps(hi);
-}
+// A box's corners in SSE registers (lane 3: 0), built from the components rather than
+// loaded as a vector: a box just computed lies in memory as scalar stores, and a
+// 16-byte load across them waits for a failed store forward.
+inline __m128 load_lo(const Box3f& b) { return _mm_setr_ps(b.lo.x, b.lo.y, b.lo.z, 0.0f); }
+inline __m128 load_hi(const Box3f& b) { return _mm_setr_ps(b.hi.x, b.hi.y, b.hi.z, 0.0f); }
 inline Box3f to_box(__m128 lo, __m128 hi) {
     alignas(16) float l[4], h[4];
     _mm_store_ps(l, lo);
@@ -237,8 +246,10 @@ private:
 // and builds the left one itself. An idle helper takes the oldest task on offer (the
 // biggest: the one nearest the root) and builds it into an output of its own. Back from
 // the left child, the owner builds the right one itself if nobody took it, or waits for
-// it and splices the helper's output after the left child's. Who builds what changes
-// nothing in the tree: the nodes end up in the same preorder either way.
+// it and splices the helper's output after the left child's. While it waits, it builds
+// tasks on offer itself (the helper's own right children), so neither thread idles
+// while the other has work to give. Who builds what changes nothing in the tree: the
+// nodes end up in the same preorder either way.
 struct Task {
     RefStack* stack = nullptr;  // the owner's: the child's references lie there, untouched meanwhile
     std::size_t first = 0, n = 0;
@@ -257,7 +268,7 @@ public:
             std::lock_guard<std::mutex> lock(mutex_);
             offered_.push_back(t);
         }
-        wake_.notify_one();
+        changed_.notify_all();  // an idle helper, or an owner waiting for its own task
     }
     // The owner takes its task back; false when a helper has it.
     bool reclaim(Task* t) {
@@ -269,36 +280,45 @@ public:
     }
     void wait(Task* t) {
         std::unique_lock<std::mutex> lock(mutex_);
-        finished_.wait(lock, [t] { return t->done; });
+        changed_.wait(lock, [t] { return t->done; });
+    }
+    // Until `t` (taken by another thread) is done: a task on offer for the caller to
+    // build meanwhile. Null once `t` is done.
+    Task* wait_or_take(Task* t) {
+        std::unique_lock<std::mutex> lock(mutex_);
+        changed_.wait(lock, [this, t] { return t->done || !offered_.empty(); });
+        return t->done ? nullptr : pop();
     }
     // A helper's next task, or null once the build is over.
     Task* take() {
         std::unique_lock<std::mutex> lock(mutex_);
-        wake_.wait(lock, [this] { return over_ || !offered_.empty(); });
-        if (offered_.empty()) return nullptr;
-        Task* t = offered_.front();
-        offered_.pop_front();
-        t->state = Task::Taken;
-        return t;
+        changed_.wait(lock, [this] { return over_ || !offered_.empty(); });
+        return offered_.empty() ? nullptr : pop();
     }
     void complete(Task* t) {
         {
             std::lock_guard<std::mutex> lock(mutex_);
             t->done = true;
         }
-        finished_.notify_all();
+        changed_.notify_all();
     }
     void end() {
         {
             std::lock_guard<std::mutex> lock(mutex_);
             over_ = true;
         }
-        wake_.notify_all();
+        changed_.notify_all();
     }
 
 private:
+    Task* pop() {  // the oldest task on offer: the biggest
+        Task* t = offered_.front();
+        offered_.pop_front();
+        t->state = Task::Taken;
+        return t;
+    }
     std::mutex mutex_;
-    std::condition_variable wake_, finished_;
+    std::condition_variable changed_;  // offered, completed or over
     std::deque<Task*> offered_;
     bool over_ = false;
 };
@@ -311,20 +331,23 @@ public:
     // A helper thread: builds offered subtrees until the build is over.
     void help() {
         RefStack rs;
-        while (Task* t = tasks_.take()) {
-            try {
-                rs.reserve(std::max<std::size_t>(2 * t->n, 16));
-                // Room for the subtree's nodes and leaf lists (address space: only what is
-                // written becomes resident), so they do not grow by copying.
-                t->out.nodes.reserve(t->n / 2 + 16);
-                t->out.tri_ids.reserve(2 * t->n + 16);
-                t->stack->copy_out(t->first, t->n, rs.data());
-                build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
-            } catch (...) {
-                t->error = std::current_exception();
-            }
-            tasks_.complete(t);
+        while (Task* t = tasks_.take()) run(t, rs);
+    }
+    // Builds a task taken from another thread (or from an outer frame of this one) on `rs`,
+    // a stack that nothing else is using meanwhile.
+    void run(Task* t, RefStack& rs) {
+        try {
+            rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+            // Room for the subtree's nodes and leaf lists (address space: only what is
+            // written becomes resident), so they do not grow by copying.
+            t->out.nodes.reserve(t->n / 2 + 16);
+            t->out.tri_ids.reserve(2 * t->n + 16);
+            t->stack->copy_out(t->first, t->n, rs.data());
+            build(rs, 0, t->n, t->cell, t->used, t->depth, t->bad, t->out);
+        } catch (...) {
+            t->error = std::current_exception();
         }
+        tasks_.complete(t);
     }
     void end() { tasks_.end(); }
 
@@ -413,44 +436,49 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
         out.id = id;
     };
     for (std::size_t i = first; i < top; ++i) {
-        const PrimRef r = refs[i];
-        const float lo = r.box.lo[axis], hi = r.box.hi[axis];
+        // The reference goes straight into registers: a copy on the stack, written as two
+        // overlapping 16-byte stores, made each read of it wait for a failed store forward.
+        // All of it is read before the writes below, which may reuse its slot.
+        const __m128 blo = _mm_loadu_ps(&refs[i].box.lo.x), bhi = _mm_loadu_ps(&refs[i].box.hi.x);
+        const float lo = refs[i].box.lo[axis], hi = refs[i].box.hi[axis];
+        const std::uint32_t id = refs[i].id;
         const bool planar = lo == split && hi == split;
         const bool in_left = lo < split || planar;
         const bool in_right = hi > split || planar;
         if (in_left && in_right && !planar) {
             // Straddles: clip the triangle to each side for tight child boxes.
-            const Vec3f &a = soup_.v(r.id, 0), &b = soup_.v(r.id, 1), &c = soup_.v(r.id, 2);
+            const Box3f box = to_box(blo, bhi);
+            Box3f halves[2];
+            clip_to_half_spaces(soup_.v(id, 0), soup_.v(id, 1), soup_.v(id, 2), axis, split, halves[0], halves[1]);
             for (int side = 0; side < 2; ++side) {
                 const Box3f& child = side == 0 ? lcell : rcell;
-                const Box3f limit = Box3f::intersection(r.box, child);
-                Box3f clipped = clip_to_half_space(a, b, c, axis, split, side);
+                const Box3f limit = Box3f::intersection(box, child);
+                Box3f clipped = halves[side];
                 clipped = clipped.empty() ? limit : Box3f::intersection(widen(clipped), limit);
                 if (clipped.empty()) clipped = limit;  // rounding: stay conservative
                 const __m128 clo = load_lo(clipped), chi = load_hi(clipped);
                 if (side == 0) {
                     lused_lo = _mm_min_ps(clo, lused_lo);
                     lused_hi = _mm_max_ps(chi, lused_hi);
-                    put(left[nl++], clo, chi, r.id);
+                    put(left[nl++], clo, chi, id);
                 } else {
                     rused_lo = _mm_min_ps(clo, rused_lo);
                     rused_hi = _mm_max_ps(chi, rused_hi);
-                    put(refs[first + nr++], clo, chi, r.id);
+                    put(refs[first + nr++], clo, chi, id);
                 }
             }
         } else {
-            const __m128 blo = _mm_loadu_ps(&r.box.lo.x), bhi = _mm_loadu_ps(&r.box.hi.x);
             if (in_left) {
                 const __m128 clo = _mm_max_ps(lcell_lo, blo), chi = _mm_min_ps(lcell_hi, bhi);
                 lused_lo = _mm_min_ps(clo, lused_lo);
                 lused_hi = _mm_max_ps(chi, lused_hi);
-                put(left[nl++], clo, chi, r.id);
+                put(left[nl++], clo, chi, id);
             }
             if (in_right) {
                 const __m128 clo = _mm_max_ps(rcell_lo, blo), chi = _mm_min_ps(rcell_hi, bhi);
                 rused_lo = _mm_min_ps(clo, rused_lo);
                 rused_hi = _mm_max_ps(chi, rused_hi);
-                put(refs[first + nr++], clo, chi, r.id);
+                put(refs[first + nr++], clo, chi, id);
             }
         }
     }
@@ -507,7 +535,12 @@ void Builder::build_children(RefStack& rs, const Side& left, const Side& right, 
         build(rs, right.first, right.n, right.cell, right.used, depth + 1, bad, out);
         return;
     }
-    tasks_.wait(&task);
+    // The stack for tasks built while waiting: this thread's own is in use down the path.
+    std::unique_ptr<RefStack> spare;
+    while (Task* other = tasks_.wait_or_take(&task)) {
+        if (!spare) spare = std::make_unique<RefStack>();
+        run(other, *spare);
+    }
     if (task.error) std::rethrow_exception(task.error);
     const Output& right_out = task.out;
     const auto id_base = static_cast<std::uint32_t>(out.tri_ids.size());
@@ -567,12 +600,33 @@ namespace {
 
 constexpr int kStackBins = 64;
 
-// Counts, per axis, the references whose box starts (ends) in each bin.
+// Counts, per axis, the references whose box starts (ends) in each bin. `spare` is room
+// for a second set of counters (2 * 3 * bins): neighbouring references mostly fall into
+// the same bins, and alternating between two sets halves the chains of increments of
+// one counter, each of which waits for the one before.
 void bin_references(const PrimRef* refs, std::size_t n, const Binner& binner, std::uint32_t* starts,
-                    std::uint32_t* ends) {
-    for (std::size_t i = 0; i < n; ++i) {
-        // lo's lane 3 is hi.x, hi's is the id: both are ignored.
-        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), starts, ends);
+                    std::uint32_t* ends, std::uint32_t* spare) {
+    // lo's lane 3 is hi.x, hi's is the id: both are ignored.
+    auto add = [&](std::size_t i, std::uint32_t* s, std::uint32_t* e) {
+        binner.add(_mm_loadu_ps(&refs[i].box.lo.x), _mm_loadu_ps(&refs[i].box.hi.x), s, e);
+    };
+    constexpr std::size_t kTwoSets = 64;  // below, clearing and summing the second set costs more
+    if (n < kTwoSets) {
+        for (std::size_t i = 0; i < n; ++i) add(i, starts, ends);
+        return;
+    }
+    const std::size_t per_set = 3 * static_cast<std::size_t>(binner.bins());
+    std::fill(spare, spare + 2 * per_set, 0u);
+    std::uint32_t *starts2 = spare, *ends2 = spare + per_set;
+    std::size_t i = 0;
+    for (; i + 1 < n; i += 2) {
+        add(i, starts, ends);
+        add(i + 1, starts2, ends2);
+    }
+    if (i < n) add(i, starts, ends);
+    for (std::size_t k = 0; k < per_set; ++k) {
+        starts[k] += starts2[k];
+        ends[k] += ends2[k];
     }
 }
 
@@ -627,11 +681,11 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     int best_axis = -1;
     float best_split = 0;
     std::size_t best_left = 0, best_right = 0;
-    std::uint32_t stack_bins[2 * 3 * kStackBins];
+    std::uint32_t stack_bins[2 * 2 * 3 * kStackBins];  // starts, ends; the binning's spare set
     std::vector<std::uint32_t> heap_bins;
     std::uint32_t* starts = stack_bins;
     if (bins > kStackBins) {
-        heap_bins.resize(2 * 3 * nb);
+        heap_bins.resize(2 * 2 * 3 * nb);
         starts = heap_bins.data();
     }
     std::uint32_t* ends = starts + 3 * nb;
@@ -651,7 +705,7 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     }
     std::uint32_t* counts_right = counts_left + nb + 4;
     std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
-    bin_references(refs, n, Binner(cell, bins), starts, ends);
+    bin_references(refs, n, Binner(cell, bins), starts, ends, starts + 2 * 3 * nb);
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;

@@ -33,6 +33,9 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     self.proxies.push_back({node.cell, q.seen});
     if (defer_) {
         Unit u{level + 1, {}};
+        // One allocation each (this runs for every LOD node of a job).
+        u.data.bytes.reserve((a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0));
+        u.data.patches.reserve((a ? a->patches.size() : 0) + (b ? b->patches.size() : 0));
         for (const Pending* t : {a, b}) {
             if (t == nullptr) continue;
             for (const Patch& patch : t->patches) {
@@ -53,10 +56,22 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
 }
 
 Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs) {
-    std::vector<TreeletNode> treelet;
-    treelet.reserve(7);
+    // The treelet lists of the levels on the current path, kept between calls: a part
+    // emits millions of treelets, and their allocations showed in the profile.
+    if (depth_ == treelets_.size()) treelets_.emplace_back().reserve(7);
+    std::vector<TreeletNode>& treelet = treelets_[depth_];
+    treelet.clear();
     collect_kd_treelet(*tree_, root, cell, treelet);
     Pending self;
+    std::size_t proxies = 0;  // one per LOD node and leaf; as many patches at most
+    for (const TreeletNode& n : treelet) proxies += n.kind == TreeletNode::Basic ? 0 : 1;
+    self.proxies.reserve(proxies);
+    self.patches.reserve(proxies);
+    struct Depth {
+        std::size_t& d;
+        explicit Depth(std::size_t& depth) : d(depth) { ++d; }
+        ~Depth() { --d; }
+    } nested(depth_);
     auto child = [&](std::uint32_t kd_node, const Box3f& child_cell) {
         Pending t;
         if (jobs == nullptr || !(*jobs)(kd_node, t)) t = emit_kd_treelet(kd_node, child_cell, level + 1, jobs);
@@ -79,10 +94,19 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
             n.first = first;
             self.proxies.push_back(leaf_proxy(src_, tris, n.count, n.cell));
             stats.references += n.count;
-            counter_.add(n.count);
+            // Progress goes to the shared (locked) counter in batches, not once per leaf.
+            unreported_ += n.count;
+            if (unreported_ >= kProgressBatch) {
+                counter_.add(unreported_);
+                unreported_ = 0;
+            }
         }
     }
     serialise(treelet, level, self);
+    if (depth_ == 1 && unreported_ > 0) {  // the outermost treelet: all of it is counted
+        counter_.add(unreported_);
+        unreported_ = 0;
+    }
     return self;
 }
 

@@ -10,6 +10,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <mutex>
 #include <vector>
@@ -77,6 +78,10 @@ private:
     BlockStream out_;  // declared before the block packers that write into it
     bool defer_;
     std::vector<Unit> units_;
+    std::deque<std::vector<TreeletNode>> treelets_;  // by depth of emit_kd_treelet; a deque keeps them in place
+    std::size_t depth_ = 0;
+    static constexpr std::uint64_t kProgressBatch = 1 << 14;
+    std::uint64_t unreported_ = 0;  // leaf references not yet added to counter_
     const KdTree* tree_ = nullptr;
     TriangleSource src_;
 
