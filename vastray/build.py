@@ -638,11 +638,11 @@ class _Builder:
             raise MeshError(f"{self.src.name}: the input has no triangles")
         if records.count == 0:
             raise MeshError(f"{self.src.name}: all {total} triangles are degenerate (zero area)")
-        if records.sifter is None and not self.opt.quantized_vertices:
-            return records, None, records.count, total, centre, box_lo, box_hi
         if records.sifter is None:
-            # The vertex grid was made from this cell: a reader derives it from the header's.
-            return records, None, records.count, total, centre, cell_lo, cell_hi
+            # In core the root cell is the kept triangles' box, unless the vertex grid was
+            # made from the input's cell: a reader derives the grid from the header's.
+            lo, hi = (cell_lo, cell_hi) if self.opt.quantized_vertices else (box_lo, box_hi)
+            return records, None, records.count, total, centre, lo, hi
         return records, first_split[0], records.count, total, centre, cell_lo, cell_hi
 
     # -- phase 3: split ---------------------------------------------------------------------

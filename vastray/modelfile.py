@@ -37,7 +37,7 @@ FLAG_TRIANGLE_IDS: int = _F["flag_triangle_ids"]
 FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (version 2)
 # 4-byte basic nodes whose split is a step of their cell's grid (version 3)
 FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
-# Vertices on a grid of the root cell, u16 offsets per triangle block (FORMAT.md §11)
+# Vertices on a grid of the root cell, bit-packed offsets per triangle block (FORMAT.md §11)
 FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
@@ -440,7 +440,7 @@ class ModelFile:
 
     @property
     def quantized_vertices(self) -> bool:
-        """Vertices on the root cell's grid, u16 offsets in triangle blocks."""
+        """Vertices on the root cell's grid, bit-packed offsets in triangle blocks (version 4)."""
         return bool(self.header["flags"] & FLAG_QUANTIZED_VERTICES)
 
     def triangle_layout(self, data: bytes) -> dict[str, int]:
@@ -462,27 +462,6 @@ class ModelFile:
             out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record=record)
             out["end"] = out["vertices"] + 12 + _pad4(record * verts + 8 - record)
         return out
-
-    def block_vertices(self, data: bytes) -> np.ndarray:
-        """A triangle block's vertices, (V, 3) float32 relative to the centre, decoded as
-        every reader does: f32 as stored, or f32(origin + offset) * step on the grid."""
-        layout = self.triangle_layout(data)
-        v, at = layout["vertices_count"], layout["vertices"]
-        if not self.quantized_vertices:
-            return np.frombuffer(data, "<f4", 3 * v, at).reshape(v, 3).copy()
-        origin = np.frombuffer(data, "<i4", 3, at).astype(np.int64)
-        r = layout["record"]
-        rows = np.zeros((v, 8), np.uint8)
-        rows[:, :r] = np.frombuffer(data, np.uint8, r * v, at + 12).reshape(v, r)
-        words = rows.view("<u8").reshape(v)
-        k = np.empty((v, 3), np.int64)
-        shift = 0
-        for a, name in enumerate(("bits_x", "bits_y", "bits_z")):
-            bits = layout[name]
-            k[:, a] = ((words >> np.uint64(shift)) & np.uint64((1 << bits) - 1)).astype(np.int64) + origin[a]
-            shift += bits
-        steps = np.asarray(vertex_grid_steps(self.header["cell_lo"], self.header["cell_hi"]), np.float32)
-        return k.astype(np.float32) * steps
 
     @property
     def node_levels(self) -> int:

@@ -143,7 +143,7 @@ std::size_t BlockCache::preload(CachedModel& model, const std::vector<std::uint3
             ++loading_;
         }
         const std::string error =
-            model.index().read_block(block, arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
+            model.index().read_block(block, slot_bytes(slot), scratch);
         std::lock_guard<std::mutex> lock(mutex_);
         --model.loading_;
         --loading_;
@@ -379,7 +379,7 @@ void BlockCache::fetcher_loop() {
         ++loading_;
         lock.unlock();
         const std::string error = model.index().read_block(
-            r.block, arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes, scratch);
+            r.block, slot_bytes(slot), scratch);
         lock.lock();
         --model.loading_;
         --loading_;

@@ -160,9 +160,7 @@ public:
                    FrameCacheStats& stats, std::size_t limit = 0);
 
     // Slot bytes (valid for the frame that looked the slot up).
-    const std::uint8_t* slot_data(std::int32_t slot) const {
-        return arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes;
-    }
+    const std::uint8_t* slot_data(std::int32_t slot) const { return slot_bytes(slot); }
     // Marks a slot used by frame `tick`; true when this is the frame's first use of it.
     // Two stamps: `last_used_` orders eviction (publishing sets it too, to protect fresh
     // blocks), `seen_` only records use, so working sets count exactly what frames read.
@@ -214,6 +212,9 @@ private:
     void forget_if_closed_locked(CachedModel& model);
     std::size_t evict_locked(std::size_t wanted, std::uint32_t protect_from);
     void publish_locked(FrameCacheStats* stats);
+    std::uint8_t* slot_bytes(std::int32_t slot) const {
+        return arena_->get() + static_cast<std::size_t>(slot) * kSlotBytes;
+    }
     using Readahead = std::vector<std::pair<std::shared_ptr<const ModelIndex>, std::uint32_t>>;
     void end_frame_locked(std::uint32_t tick, const std::vector<std::pair<CachedModel*, std::uint32_t>>& requests,
                           FrameCacheStats& stats, std::size_t limit, Readahead& readahead);

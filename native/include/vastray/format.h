@@ -35,7 +35,7 @@ constexpr std::uint32_t kFlagColours = 1u << 0;
 constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
-constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, u16 per block
+constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, bit-packed per block
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
