@@ -270,35 +270,51 @@ private:
 
 }  // namespace lod_detail
 
-// The walk of one ray through the subtree at `node`, entered with the segment
-// [tmin, tmax] by the face on `entry_axis`, below the voxel last passed (`voxel`).
-// Closest hit (AnyHit = false) or any hit (AnyHit = true); voxels count as hits.
-// Returns true when the ray is finished (its hit can no longer change: a voxel stood in,
-// a hit lies inside its cell, an any-hit ray hit, or a node is damaged), false when the
-// subtree is done and cells beyond it may still hold a nearer hit. lod_traverse() walks
-// from the root; the packets hand their last live ray to it mid-tree.
-template <bool AnyHit>
-inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, lod_detail::NodeRef node,
-                     float tmin, float tmax, int entry_axis, lod_detail::Voxel voxel, LodHit& hit,
-                     std::uint32_t skip) {
+namespace lod_detail {
+
+// The walk of one ray below `start` (lod_walk), for a model whose basic nodes carry
+// their split in word 1 (Quantized = false) or as a step of their cell (true). Only a
+// quantized model's walk carries cells: its splits and LOD radii derive from them. The
+// position is kept as loose scalars rather than NodeRefs, which the compiler would
+// copy whole (and read back as vectors right after writing single fields) at every
+// step; and the node count is kept in a register until the walk returns.
+template <bool AnyHit, bool Quantized>
+inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const NodeRef& start, float tmin,
+                 float tmax, int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
     using namespace format;
-    using lod_detail::load;
-    using lod_detail::NodeRef;
-    using lod_detail::Voxel;
     const Ray& ray = lray.ray;
     const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
     const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
     const bool dir_negative[3] = {std::signbit(ray.dir.x), std::signbit(ray.dir.y), std::signbit(ray.dir.z)};
+    const float cone = lray.cone, cone_t0 = lray.cone_t0;
+    constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;  // a basic node; offsets count in it
+    constexpr int kCellSlots = Quantized ? 64 : 1;
+
     struct Entry {
-        NodeRef node;
+        const std::uint8_t* block;
+        std::uint32_t off, level;
         float tmin, tmax;
         int entry_axis;
         Voxel voxel;
     };
     Entry stack[64];
+    float cells[kCellSlots][6];  // the entries' cells (quantized models only)
     int top = 0;
+
+    const std::uint8_t* block = start.block;
+    std::uint32_t off = start.off, level = start.level;
+    float lo[3] = {start.lo[0], start.lo[1], start.lo[2]};
+    float hi[3] = {start.hi[0], start.hi[1], start.hi[2]};
+
+    std::uint64_t node_visits = 0;
+    struct Publish {
+        std::uint64_t& to;
+        std::uint64_t& n;
+        ~Publish() { to += n; }
+    } publish{lane.node_visits, node_visits};
+
     auto take_voxel = [&](const Voxel& v, float t) {
-        if (t < hit.t) lod_detail::hit_voxel(v, entry_axis, ray, t, hit);
+        if (t < hit.t) hit_voxel(v, entry_axis, ray, t, hit);
         ++lane.voxel_hits;
         return true;
     };
@@ -306,60 +322,101 @@ inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheare
     for (;;) {
         bool leaf = false;
         for (;;) {
-            const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
+            const std::uint32_t w = load<std::uint32_t>(block + off);
             if (!is_inner(w)) {
                 leaf = true;
                 break;
             }
-            ++lane.node_visits;
-            const int axis = axis_of(w);
-            const float split = lod_detail::split_of(lane.quantized_splits, node, w);
-            const std::uint8_t* child = nullptr;
-            if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
-                const float reach = lray.cone_t0 + tmin;
-                if (here.radius <= reach * lray.cone) return take_voxel(here, tmin);
-                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(reach, 1e-30f));
-                if (!child) return take_voxel(here, tmin);
-                voxel = here;
+            ++node_visits;
+            const int axis = std::min(axis_of(w), 2);
+            const bool lod = is_lod(w);
+            const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
+            float split;
+            if (Quantized && !lod) {
+                split = dequantize_split(lo[axis], hi[axis], basic_split_step(w));
+            } else {
+                split = bits_float(load<std::uint32_t>(block + off + 4));
             }
-            NodeRef left, right;
-            if (!lod_detail::children_of(lane.quantized_splits, node, w, split, child, left, right)) return true;  // damaged: stop here
+            const std::uint8_t* child_block = block;
+            std::uint32_t child_level = level, l_off, r_off;
+            if (lod) {
+                float radius;
+                if constexpr (Quantized) {
+                    radius = cell_radius(Vec3f(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+                } else {
+                    radius = bits_float(load<std::uint32_t>(block + off + 8));
+                }
+                const Voxel here{block + off + 4 * lod_voxel_off4(w), radius};
+                const float reach = cone_t0 + tmin;
+                if (radius <= reach * cone) return take_voxel(here, tmin);
+                child_block = lod_child_block(lane, NodeRef{block, off, level, {}, {}}, radius / std::max(reach, 1e-30f));
+                if (!child_block) return take_voxel(here, tmin);
+                voxel = here;
+                child_level = level + 1;
+                l_off = 8 * lod_child_off8(w);
+                r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
+            } else {
+                const std::uint32_t r = basic_right_off8(w);
+                if (has_l && has_r && r < 2) return true;  // damaged: the offsets would loop
+                l_off = off + kNodeSize;
+                r_off = has_l ? off + kNodeSize * r : off + kNodeSize;
+            }
+            if ((has_l && l_off > kBlockSize - 8) || (has_r && r_off > kBlockSize - 8)) return true;  // damaged
+
             const float o = org[axis];
             const float t_split = (split - o) * inv[axis];
             const float abs_split = std::abs(t_split);
             const float slack = abs_split < std::numeric_limits<float>::infinity() ? abs_split * kSplitSlack : 0.0f;
             const float ts_lo = t_split - slack, ts_hi = t_split + slack;
             const bool below_first = o < split || (o == split && dir_negative[axis]);
-            const NodeRef first = below_first ? left : right;
-            const NodeRef second = below_first ? right : left;
-            NodeRef next;
+            const bool has_first = below_first ? has_l : has_r, has_second = below_first ? has_r : has_l;
+            const std::uint32_t first_off = below_first ? l_off : r_off, second_off = below_first ? r_off : l_off;
+            // Pushes the second child with its segment (and, quantized, its cell).
+            auto push_second = [&](float t0, float t1, int ax) {
+                if (!has_second || top >= 64) return;
+                if constexpr (Quantized) {
+                    float* c = cells[top];
+                    for (int a = 0; a < 3; ++a) {
+                        c[a] = lo[a];
+                        c[3 + a] = hi[a];
+                    }
+                    if (below_first) c[axis] = split;  // the second child lies above the plane
+                    else c[3 + axis] = split;
+                }
+                stack[top++] = {child_block, second_off, child_level, t0, t1, ax, voxel};
+            };
+            bool to_first;
             if (t_split != t_split) {
-                if (second.block && top < 64) stack[top++] = {second, tmin, tmax, entry_axis, voxel};
-                next = first;
+                push_second(tmin, tmax, entry_axis);
+                to_first = true;
             } else if (ts_lo > tmax || t_split <= 0.0f) {
-                next = first;
+                to_first = true;
             } else if (ts_hi < tmin) {
-                next = second;
-            } else if (!first.block) {
-                next = second;
+                to_first = false;
+            } else if (!has_first) {
+                to_first = false;
                 if (ts_lo > tmin) {
                     tmin = ts_lo;
                     entry_axis = axis;
                 }
             } else {
-                if (second.block && top < 64) {
-                    stack[top++] = {second, std::max(tmin, ts_lo), tmax, ts_lo > tmin ? axis : entry_axis, voxel};
-                }
-                next = first;
+                push_second(std::max(tmin, ts_lo), tmax, ts_lo > tmin ? axis : entry_axis);
+                to_first = true;
                 tmax = std::min(tmax, ts_hi);
             }
-            if (!next.block) break;
-            node = next;
+            if (!(to_first ? has_first : has_second)) break;
+            if constexpr (Quantized) {
+                // The child below the plane keeps lo, the one above keeps hi.
+                if (to_first == below_first) hi[axis] = split;
+                else lo[axis] = split;
+            }
+            block = child_block;
+            off = to_first ? first_off : second_off;
+            level = child_level;
         }
         if (leaf) {
-            const float priority = voxel.samples ? voxel.radius / std::max(lray.cone_t0 + tmin, 1e-30f) : 0.0f;
-            lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
+            const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + tmin, 1e-30f) : 0.0f;
+            LeafTriangles triangles(lane, block + off, priority);
             Vec3f v0, v1, v2;
             std::uint32_t local;
             while (triangles.next(v0, v1, v2, local)) {
@@ -383,14 +440,40 @@ inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheare
             if (top == 0) return false;
             const Entry& e = stack[--top];
             if (e.tmin > hit.t) continue;
-            node = e.node;
+            block = e.block;
+            off = e.off;
+            level = e.level;
             tmin = e.tmin;
             tmax = e.tmax;
             entry_axis = e.entry_axis;
             voxel = e.voxel;
+            if constexpr (Quantized) {
+                for (int a = 0; a < 3; ++a) {
+                    lo[a] = cells[top][a];
+                    hi[a] = cells[top][3 + a];
+                }
+            }
             break;
         }
     }
+}
+
+}  // namespace lod_detail
+
+// The walk of one ray through the subtree at `node`, entered with the segment
+// [tmin, tmax] by the face on `entry_axis`, below the voxel last passed (`voxel`).
+// Closest hit (AnyHit = false) or any hit (AnyHit = true); voxels count as hits.
+// Returns true when the ray is finished (its hit can no longer change: a voxel stood in,
+// a hit lies inside its cell, an any-hit ray hit, or a node is damaged), false when the
+// subtree is done and cells beyond it may still hold a nearer hit. lod_traverse() walks
+// from the root; the packets hand their last live ray to it mid-tree.
+template <bool AnyHit>
+inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const lod_detail::NodeRef& node,
+                     float tmin, float tmax, int entry_axis, lod_detail::Voxel voxel, LodHit& hit,
+                     std::uint32_t skip) {
+    return lane.quantized_splits
+               ? lod_detail::walk<AnyHit, true>(lane, lray, sheared, node, tmin, tmax, entry_axis, voxel, hit, skip)
+               : lod_detail::walk<AnyHit, false>(lane, lray, sheared, node, tmin, tmax, entry_axis, voxel, hit, skip);
 }
 
 // Closest hit (AnyHit = false) or any hit (AnyHit = true) of one ray; voxels count as
