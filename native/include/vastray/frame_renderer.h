@@ -111,8 +111,9 @@ inline Vec3f ghosted(const Vec3f& colour) {
     return {grey, grey, grey};
 }
 
-// Rays traced by one lane; node and triangle counts live in the backend's lane.
-struct LaneRays {
+// Rays traced by one lane; node and triangle counts live in the backend's lane. Each
+// lane's on a cache line of its own (no false sharing between threads).
+struct alignas(64) LaneRays {
     std::uint64_t primary = 0, secondary = 0;
 };
 

@@ -41,8 +41,10 @@ struct LodHit : Hit {
 };
 
 // One lane's view of a model during one frame: block lookups that stamp the working
-// set, request what is missing and count what happened.
-struct LodLane {
+// set, request what is missing and count what happened. Lanes sit side by side in a
+// vector, one per thread: each starts on a cache line of its own, so one thread's
+// counters never share a line with the next lane's fields (false sharing).
+struct alignas(64) LodLane {
     BlockCache* cache = nullptr;
     CachedModel* model = nullptr;
     std::uint32_t tick = 0;

@@ -27,7 +27,9 @@ struct Hit {
 // traversal never skips a cell a ray touches, at the cost of rare extra visits.
 constexpr float kSplitSlack = 8.0f * std::numeric_limits<float>::epsilon();
 
-struct TraversalCounters {
+// One per thread, each on its own cache line: threads that bump neighbouring counters
+// would pass the line back and forth on every ray (false sharing).
+struct alignas(64) TraversalCounters {
     std::uint64_t node_visits = 0;
     std::uint64_t triangle_tests = 0;
 };
