@@ -104,6 +104,9 @@ public:
     }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const { lod_traverse<false>(lane, root_, ray, hit); }
+    void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {
+        lod_trace_stream(lane, root_, rays, hits, n);
+    }
 
     template <int Side>
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {

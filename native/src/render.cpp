@@ -70,6 +70,9 @@ public:
     void trace(Lane& lane, const Ray& ray, Hit& hit) const {
         traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);
     }
+    void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {
+        for (int i = 0; i < n; ++i) trace(lane, rays[i], hits[i]);
+    }
 
     template <int Side>
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {

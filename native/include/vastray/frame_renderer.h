@@ -8,6 +8,8 @@
 //   using Secondary = ...;              // a secondary ray: has `ray`, a Ray
 //   Ray primary_ray(int x, int y) const;
 //   void trace(Lane&, const Ray&, Hit&) const;                       // closest hit
+//   void trace_stream(Lane&, const Ray*, Hit*, int n) const;        // n closest hits, as trace
+//       // gives them; the backend may keep several rays in flight to overlap memory waits
 //   template <int Side> bool trace_packet(Lane&, const Ray*, Hit*) const;
 //       // Side x Side rays in row order; false (nothing traced) when not coherent
 //   std::int32_t prim_id(const Hit&) const;                          // what Frame::prim holds
@@ -144,6 +146,10 @@ public:
     }
 
     void render_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
+        if (packets_ == 1) {
+            stream_tile(x0, y0, x1, y1, lane, rays);
+            return;
+        }
         for (int y = y0; y < y1; y += 4) {
             for (int x = x0; x < x1; x += 4) {
                 if (packets_ == 16 && x + 3 < x1 && y + 3 < y1 && trace_packet<4>(x, y, lane, rays)) continue;
@@ -186,6 +192,37 @@ private:
         rays.primary += N;
         shade(b, lane, rays);
         return true;
+    }
+
+    // Single rays: the tile's primary rays go to the backend a run at a time, which traces
+    // them as it likes (several in flight), and are then shaded pixel by pixel.
+    void stream_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
+        constexpr int kRun = 256;
+        Block<1> px[kRun];
+        Ray traced[kRun];
+        Hit hits[kRun];
+        int slot[kRun];
+        const int width = x1 - x0, pixels = width * (y1 - y0);
+        for (int p0 = 0; p0 < pixels; p0 += kRun) {
+            const int count = std::min(kRun, pixels - p0);
+            int n = 0;
+            for (int k = 0; k < count; ++k) {
+                Block<1>& b = px[k];
+                b.lit = b.marked = 0;  // (the array serves every run)
+                b.x[0] = x0 + (p0 + k) % width;
+                b.y[0] = y0 + (p0 + k) / width;
+                b.ray[0] = backend_.primary_ray(b.x[0], b.y[0]);
+                b.hit[0].prim = kNoHit;  // stays so when the whole ray lies on the cut side
+                if (clip(b.ray[0], b.entered[0])) {
+                    traced[n] = b.ray[0];
+                    slot[n++] = k;
+                }
+            }
+            backend_.trace_stream(lane, traced, hits, n);
+            for (int j = 0; j < n; ++j) px[slot[j]].hit[0] = hits[j];
+            rays.primary += static_cast<std::uint64_t>(count);
+            for (int k = 0; k < count; ++k) shade(px[k], lane, rays);
+        }
     }
 
     void trace_single(int x, int y, Lane& lane, LaneRays& rays) const {

@@ -12,6 +12,7 @@
 
 #include <cstdint>
 #include <cstring>
+#include <cstdlib>
 #include <utility>
 #include <vector>
 
@@ -274,24 +275,346 @@ private:
 
 namespace lod_detail {
 
-// The walk of one ray below `start` (lod_walk), for a model whose basic nodes carry
-// their split in word 1 (Quantized = false) or as a step of their cell (true). Only a
+// The walk of one ray below a node (lod_walk), for a model whose basic nodes carry their
+// split in word 1 (Quantized = false) or as a step of their cell (true). Only a
 // quantized model's walk carries cells: its splits and LOD radii derive from them. The
-// position is kept as loose scalars rather than NodeRefs, which the compiler would
-// copy whole (and read back as vectors right after writing single fields) at every
-// step; and the node count is kept in a register until the walk returns.
-template <bool AnyHit, bool Quantized>
-inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const NodeRef& start, float tmin,
-                 float tmax, int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
-    using namespace format;
-    const Ray& ray = lray.ray;
-    const float org[3] = {ray.org.x, ray.org.y, ray.org.z};
-    const float inv[3] = {1.0f / ray.dir.x, 1.0f / ray.dir.y, 1.0f / ray.dir.z};
-    const bool dir_negative[3] = {std::signbit(ray.dir.x), std::signbit(ray.dir.y), std::signbit(ray.dir.z)};
-    const float cone = lray.cone, cone_t0 = lray.cone_t0;
-    constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;  // a basic node; offsets count in it
-    constexpr int kCellSlots = Quantized ? 64 : 1;
+// position is kept as loose scalars rather than NodeRefs, which the compiler would copy
+// whole (and read back as vectors right after writing single fields) at every step.
+//
+// With Yield = false, run() goes to the end of the walk. With Yield = true it also stops
+// where the walk is about to wait for memory it cannot have in cache, having asked for
+// it: on entering a child treelet (its first lines) and on reaching a leaf (the triangle
+// block's header and the leaf's list entries). A caller with several walks in flight
+// (lod_trace_stream) runs the others meanwhile, so their misses overlap instead of
+// following one another. Either way every ray does exactly the same arithmetic.
+template <bool AnyHit, bool Quantized, bool Yield>
+class Walker {
+public:
+    enum class Stop { Done, Treelet, Leaf };
 
+    void start(const LodRay& lray, const ShearedRay& sheared, const NodeRef& at, float tmin, float tmax,
+               int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
+        lray_ = &lray;
+        sheared_ = sheared;
+        hit_ = &hit;
+        skip_ = skip;
+        const Ray& ray = lray.ray;
+        for (int a = 0; a < 3; ++a) {
+            org_[a] = ray.org[a];
+            inv_[a] = 1.0f / ray.dir[a];
+            dir_negative_[a] = std::signbit(ray.dir[a]);
+        }
+        block_ = at.block;
+        off_ = at.off;
+        level_ = at.level;
+        for (int a = 0; a < 3; ++a) {
+            lo_[a] = at.lo[a];
+            hi_[a] = at.hi[a];
+        }
+        tmin_ = tmin;
+        tmax_ = tmax;
+        entry_axis_ = entry_axis;
+        voxel_ = voxel;
+        top_ = 0;
+        leaf_stage_ = 0;
+    }
+
+    // Walks on to the next stop. After Stop::Done, finished() is the walk's answer: true
+    // when the ray is finished (its hit can no longer change), false when the subtree is
+    // done and cells beyond it may still hold a nearer hit.
+    // (Every exit goes through the labels at the end rather than through lambdas that
+    // capture the position by reference: a captured local lives in memory, and the
+    // compiler then loads and stores tmin, tmax and the rest at every step.)
+    Stop run(LodLane& lane) {
+        using namespace format;
+        const Ray& ray = lray_->ray;
+        const float cone = lray_->cone, cone_t0 = lray_->cone_t0;
+        constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;  // a basic node; offsets count in it
+        LodHit& hit = *hit_;
+        const std::uint8_t* block = block_;
+        std::uint32_t off = off_, level = level_;
+        float tmin = tmin_, tmax = tmax_;
+        int entry_axis = entry_axis_;
+        Voxel voxel = voxel_;
+        int top = top_;
+        float lo[3], hi[3];
+        if constexpr (Quantized) {
+            for (int a = 0; a < 3; ++a) {
+                lo[a] = lo_[a];
+                hi[a] = hi_[a];
+            }
+        }
+        std::uint64_t node_visits = 0;
+        Stop why = Stop::Done;
+        bool finished = true;
+        Voxel stand_in{nullptr, 0.0f};  // the voxel a finished ray hits, at tmin
+
+        if constexpr (Yield) {
+            if (leaf_stage_ == 1 || leaf_stage_ == 2) {
+                prefetch_leaf_data(lane, block + off);
+                return Stop::Leaf;
+            }
+        }
+        bool leaf = leaf_stage_ != 0;
+        leaf_stage_ = 0;
+        for (;;) {
+            while (!leaf) {
+                const std::uint32_t w = load<std::uint32_t>(block + off);
+                if (!is_inner(w)) {
+                    leaf = true;
+                    if constexpr (Yield) {
+                        if (prefetch_leaf(lane, block + off)) {
+                            leaf_stage_ = 1;
+                            why = Stop::Leaf;
+                            goto yield;
+                        }
+                    }
+                    break;
+                }
+                ++node_visits;
+                const int axis = std::min(axis_of(w), 2);
+                const bool lod = is_lod(w);
+                const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
+                float split;
+                if (Quantized && !lod) {
+                    split = dequantize_split(lo[axis], hi[axis], basic_split_step(w));
+                } else {
+                    split = bits_float(load<std::uint32_t>(block + off + 4));
+                }
+                const std::uint8_t* child_block = block;
+                std::uint32_t child_level = level, l_off, r_off;
+                if (lod) {
+                    float radius;
+                    if constexpr (Quantized) {
+                        radius = cell_radius(Vec3f(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+                    } else {
+                        radius = bits_float(load<std::uint32_t>(block + off + 8));
+                    }
+                    const Voxel here{block + off + 4 * lod_voxel_off4(w), radius};
+                    const float reach = cone_t0 + tmin;
+                    if (radius <= reach * cone) {
+                        stand_in = here;
+                        goto done;
+                    }
+                    child_block =
+                        lod_child_block(lane, NodeRef{block, off, level, {}, {}}, radius / std::max(reach, 1e-30f));
+                    if (!child_block) {
+                        stand_in = here;
+                        goto done;
+                    }
+                    voxel = here;
+                    child_level = level + 1;
+                    l_off = 8 * lod_child_off8(w);
+                    r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
+                } else {
+                    const std::uint32_t r = basic_right_off8(w);
+                    if (has_l && has_r && r < 2) goto done;  // damaged: the offsets would loop
+                    l_off = off + kNodeSize;
+                    r_off = has_l ? off + kNodeSize * r : off + kNodeSize;
+                }
+                if ((has_l && l_off > kBlockSize - 8) || (has_r && r_off > kBlockSize - 8)) goto done;  // damaged
+
+                const float o = org_[axis];
+                const float t_split = (split - o) * inv_[axis];
+                const float abs_split = std::abs(t_split);
+                const float slack = abs_split < std::numeric_limits<float>::infinity() ? abs_split * kSplitSlack : 0.0f;
+                const float ts_lo = t_split - slack, ts_hi = t_split + slack;
+                const bool below_first = o < split || (o == split && dir_negative_[axis]);
+                const bool has_first = below_first ? has_l : has_r, has_second = below_first ? has_r : has_l;
+                const std::uint32_t first_off = below_first ? l_off : r_off, second_off = below_first ? r_off : l_off;
+                bool to_first, push = false;
+                float push_tmin = tmin, push_tmax = tmax;
+                int push_axis = entry_axis;
+                if (t_split != t_split) {
+                    push = true;
+                    to_first = true;
+                } else if (ts_lo > tmax || t_split <= 0.0f) {
+                    to_first = true;
+                } else if (ts_hi < tmin) {
+                    to_first = false;
+                } else if (!has_first) {
+                    to_first = false;
+                    if (ts_lo > tmin) {
+                        tmin = ts_lo;
+                        entry_axis = axis;
+                    }
+                } else {
+                    push = true;
+                    push_tmin = std::max(tmin, ts_lo);
+                    push_axis = ts_lo > tmin ? axis : entry_axis;
+                    to_first = true;
+                    tmax = std::min(tmax, ts_hi);
+                }
+                if (push && has_second && top < kStack) {
+                    // The second child, with its segment (and, quantized, its cell).
+                    if constexpr (Quantized) {
+                        float* c = cells_[top];
+                        for (int a = 0; a < 3; ++a) {
+                            c[a] = lo[a];
+                            c[3 + a] = hi[a];
+                        }
+                        if (below_first) c[axis] = split;  // the second child lies above the plane
+                        else c[3 + axis] = split;
+                    }
+                    stack_[top++] = {child_block, second_off, child_level, push_tmin, push_tmax, push_axis, voxel};
+                }
+                if (!(to_first ? has_first : has_second)) break;
+                if constexpr (Quantized) {
+                    // The child below the plane keeps lo, the one above keeps hi.
+                    if (to_first == below_first) hi[axis] = split;
+                    else lo[axis] = split;
+                }
+                block = child_block;
+                off = to_first ? first_off : second_off;
+                level = child_level;
+                if constexpr (Yield) {
+                    if (lod) {
+                        // A treelet pair is stored back to back: ask for the lines of both.
+                        const std::uint32_t first = std::min(l_off, r_off);
+                        const std::size_t span =
+                            std::min<std::size_t>(std::max(l_off, r_off) - first + 128, kBlockSize - first);
+                        for (std::size_t b = 0; b < span; b += 64) __builtin_prefetch(child_block + first + b);
+                        why = Stop::Treelet;
+                        goto yield;
+                    }
+                }
+            }
+            if (leaf) {
+                leaf = false;
+                const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + tmin, 1e-30f) : 0.0f;
+                LeafTriangles triangles(lane, block + off, priority);
+                Vec3f v0, v1, v2;
+                std::uint32_t local;
+                while (triangles.next(v0, v1, v2, local)) {
+                    if (skip_ != kNoHit && triangles.id(local) == skip_) continue;
+                    ++lane.triangle_tests;
+                    if (intersect_triangle(ray, sheared_, v0, v1, v2, hit)) {
+                        hit.prim = triangles.id(local);
+                        hit.tri_block = triangles.block();
+                        hit.local = local;
+                        if (AnyHit) goto done;
+                    }
+                }
+                if (triangles.missing()) {
+                    // Triangles not here yet: the last voxel passed stands in for them.
+                    if (voxel.samples) {
+                        stand_in = voxel;
+                        goto done;
+                    }
+                } else if (hit.prim != kNoHit && hit.t * (1.0f + kSplitSlack) < tmax) {
+                    goto done;
+                }
+            }
+            for (;;) {
+                if (top == 0) {
+                    finished = false;
+                    goto done;
+                }
+                const Entry& e = stack_[--top];
+                if (e.tmin > hit.t) continue;
+                block = e.block;
+                off = e.off;
+                level = e.level;
+                tmin = e.tmin;
+                tmax = e.tmax;
+                entry_axis = e.entry_axis;
+                voxel = e.voxel;
+                if constexpr (Quantized) {
+                    for (int a = 0; a < 3; ++a) {
+                        lo[a] = cells_[top][a];
+                        hi[a] = cells_[top][3 + a];
+                    }
+                }
+                break;
+            }
+        }
+    done:
+        if (stand_in.samples) {
+            if (tmin < hit.t) hit_voxel(stand_in, entry_axis, ray, tmin, hit);
+            ++lane.voxel_hits;
+        }
+        finished_ = finished;
+        why = Stop::Done;
+    yield:
+        lane.node_visits += node_visits;
+        if constexpr (Yield) {
+            block_ = block;
+            off_ = off;
+            level_ = level;
+            tmin_ = tmin;
+            tmax_ = tmax;
+            entry_axis_ = entry_axis;
+            voxel_ = voxel;
+            top_ = top;
+            if constexpr (Quantized) {
+                for (int a = 0; a < 3; ++a) {
+                    lo_[a] = lo[a];
+                    hi_[a] = hi[a];
+                }
+            }
+        }
+        return why;
+    }
+
+    bool finished() const { return finished_; }
+
+private:
+    // Asks for the triangle block header and the list entries of the leaf at `node`;
+    // false when the block is not cached (the leaf's walk requests it and moves on).
+    bool prefetch_leaf(const LodLane& lane, const std::uint8_t* node) {
+        const std::uint32_t id = lane.level_first[lane.tri_level] + load<std::uint32_t>(node + 4);
+        if (id >= lane.block_count) return false;
+        const std::int32_t slot = lane.model->slot(id);
+        if (slot < 0) return false;
+        leaf_block_ = lane.cache->slot_data(slot);
+        __builtin_prefetch(leaf_block_);
+        __builtin_prefetch(leaf_block_ + 16 + 2 * std::size_t{format::leaf_first(load<std::uint32_t>(node))});
+        return true;
+    }
+
+    // The next two waits of a leaf: with its list entries at hand, asks for the lines of
+    // its triangle records (a leaf's triangles were stored together, so they span few
+    // lines); with those, for its vertices'.
+    void prefetch_leaf_data(const LodLane& lane, const std::uint8_t* node) {
+        const std::uint8_t* tb = leaf_block_;
+        const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
+        const std::uint32_t w = load<std::uint32_t>(node);
+        const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
+        const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
+        std::uint32_t t_lo = ~0u, t_hi = 0;
+        for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
+            const std::uint32_t t = load<std::uint16_t>(tb + layout.list + 2 * std::size_t{e});
+            if (t >= tris) continue;
+            t_lo = std::min(t_lo, t);
+            t_hi = std::max(t_hi, t);
+        }
+        ++leaf_stage_;
+        if (t_lo > t_hi || layout.end > format::kBlockSize) return;
+        if (leaf_stage_ == 2) {
+            prefetch_range(tb + layout.triangles + 6 * std::size_t{t_lo}, 6 * std::size_t{t_hi - t_lo + 1});
+            return;
+        }
+        const std::uint32_t verts = load<std::uint32_t>(tb + 8);
+        std::uint32_t v_lo = ~0u, v_hi = 0;
+        for (std::uint32_t t : {t_lo, t_hi}) {
+            for (int k = 0; k < 3; ++k) {
+                const std::uint32_t v = load<std::uint16_t>(tb + layout.triangles + 6 * std::size_t{t} + 2 * k);
+                if (v >= verts) continue;
+                v_lo = std::min(v_lo, v);
+                v_hi = std::max(v_hi, v);
+            }
+        }
+        if (v_lo > v_hi) return;
+        const std::size_t base = layout.vertices + (layout.packed ? 12 : 0);
+        prefetch_range(tb + base + layout.record * v_lo, layout.record * (v_hi - v_lo + 1));
+    }
+
+    static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
+        bytes = std::min<std::size_t>(bytes, 6 * 64);
+        for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
+    }
+
+    static constexpr int kStack = 64;
     struct Entry {
         const std::uint8_t* block;
         std::uint32_t off, level;
@@ -299,165 +622,34 @@ inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, c
         int entry_axis;
         Voxel voxel;
     };
-    Entry stack[64];
-    float cells[kCellSlots][6];  // the entries' cells (quantized models only)
-    int top = 0;
 
-    const std::uint8_t* block = start.block;
-    std::uint32_t off = start.off, level = start.level;
-    float lo[3] = {start.lo[0], start.lo[1], start.lo[2]};
-    float hi[3] = {start.hi[0], start.hi[1], start.hi[2]};
+    const LodRay* lray_ = nullptr;
+    ShearedRay sheared_;
+    LodHit* hit_ = nullptr;
+    std::uint32_t skip_ = kNoHit;
+    float org_[3], inv_[3];
+    bool dir_negative_[3];
+    const std::uint8_t* block_ = nullptr;
+    std::uint32_t off_ = 0, level_ = 0;
+    float lo_[3], hi_[3];
+    float tmin_ = 0, tmax_ = 0;
+    int entry_axis_ = 0;
+    Voxel voxel_{nullptr, 0.0f};
+    int top_ = 0;
+    int leaf_stage_ = 0;  // 1-3: a leaf waits for its block's header, records, vertices
+    const std::uint8_t* leaf_block_ = nullptr;
+    bool finished_ = false;
+    Entry stack_[kStack];
+    float cells_[Quantized ? kStack : 1][6];  // the entries' cells (quantized models only)
+};
 
-    std::uint64_t node_visits = 0;
-    struct Publish {
-        std::uint64_t& to;
-        std::uint64_t& n;
-        ~Publish() { to += n; }
-    } publish{lane.node_visits, node_visits};
-
-    auto take_voxel = [&](const Voxel& v, float t) {
-        if (t < hit.t) hit_voxel(v, entry_axis, ray, t, hit);
-        ++lane.voxel_hits;
-        return true;
-    };
-
-    for (;;) {
-        bool leaf = false;
-        for (;;) {
-            const std::uint32_t w = load<std::uint32_t>(block + off);
-            if (!is_inner(w)) {
-                leaf = true;
-                break;
-            }
-            ++node_visits;
-            const int axis = std::min(axis_of(w), 2);
-            const bool lod = is_lod(w);
-            const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
-            float split;
-            if (Quantized && !lod) {
-                split = dequantize_split(lo[axis], hi[axis], basic_split_step(w));
-            } else {
-                split = bits_float(load<std::uint32_t>(block + off + 4));
-            }
-            const std::uint8_t* child_block = block;
-            std::uint32_t child_level = level, l_off, r_off;
-            if (lod) {
-                float radius;
-                if constexpr (Quantized) {
-                    radius = cell_radius(Vec3f(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
-                } else {
-                    radius = bits_float(load<std::uint32_t>(block + off + 8));
-                }
-                const Voxel here{block + off + 4 * lod_voxel_off4(w), radius};
-                const float reach = cone_t0 + tmin;
-                if (radius <= reach * cone) return take_voxel(here, tmin);
-                child_block = lod_child_block(lane, NodeRef{block, off, level, {}, {}}, radius / std::max(reach, 1e-30f));
-                if (!child_block) return take_voxel(here, tmin);
-                voxel = here;
-                child_level = level + 1;
-                l_off = 8 * lod_child_off8(w);
-                r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
-            } else {
-                const std::uint32_t r = basic_right_off8(w);
-                if (has_l && has_r && r < 2) return true;  // damaged: the offsets would loop
-                l_off = off + kNodeSize;
-                r_off = has_l ? off + kNodeSize * r : off + kNodeSize;
-            }
-            if ((has_l && l_off > kBlockSize - 8) || (has_r && r_off > kBlockSize - 8)) return true;  // damaged
-
-            const float o = org[axis];
-            const float t_split = (split - o) * inv[axis];
-            const float abs_split = std::abs(t_split);
-            const float slack = abs_split < std::numeric_limits<float>::infinity() ? abs_split * kSplitSlack : 0.0f;
-            const float ts_lo = t_split - slack, ts_hi = t_split + slack;
-            const bool below_first = o < split || (o == split && dir_negative[axis]);
-            const bool has_first = below_first ? has_l : has_r, has_second = below_first ? has_r : has_l;
-            const std::uint32_t first_off = below_first ? l_off : r_off, second_off = below_first ? r_off : l_off;
-            // Pushes the second child with its segment (and, quantized, its cell).
-            auto push_second = [&](float t0, float t1, int ax) {
-                if (!has_second || top >= 64) return;
-                if constexpr (Quantized) {
-                    float* c = cells[top];
-                    for (int a = 0; a < 3; ++a) {
-                        c[a] = lo[a];
-                        c[3 + a] = hi[a];
-                    }
-                    if (below_first) c[axis] = split;  // the second child lies above the plane
-                    else c[3 + axis] = split;
-                }
-                stack[top++] = {child_block, second_off, child_level, t0, t1, ax, voxel};
-            };
-            bool to_first;
-            if (t_split != t_split) {
-                push_second(tmin, tmax, entry_axis);
-                to_first = true;
-            } else if (ts_lo > tmax || t_split <= 0.0f) {
-                to_first = true;
-            } else if (ts_hi < tmin) {
-                to_first = false;
-            } else if (!has_first) {
-                to_first = false;
-                if (ts_lo > tmin) {
-                    tmin = ts_lo;
-                    entry_axis = axis;
-                }
-            } else {
-                push_second(std::max(tmin, ts_lo), tmax, ts_lo > tmin ? axis : entry_axis);
-                to_first = true;
-                tmax = std::min(tmax, ts_hi);
-            }
-            if (!(to_first ? has_first : has_second)) break;
-            if constexpr (Quantized) {
-                // The child below the plane keeps lo, the one above keeps hi.
-                if (to_first == below_first) hi[axis] = split;
-                else lo[axis] = split;
-            }
-            block = child_block;
-            off = to_first ? first_off : second_off;
-            level = child_level;
-        }
-        if (leaf) {
-            const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + tmin, 1e-30f) : 0.0f;
-            LeafTriangles triangles(lane, block + off, priority);
-            Vec3f v0, v1, v2;
-            std::uint32_t local;
-            while (triangles.next(v0, v1, v2, local)) {
-                if (skip != kNoHit && triangles.id(local) == skip) continue;
-                ++lane.triangle_tests;
-                if (intersect_triangle(ray, sheared, v0, v1, v2, hit)) {
-                    hit.prim = triangles.id(local);
-                    hit.tri_block = triangles.block();
-                    hit.local = local;
-                    if (AnyHit) return true;
-                }
-            }
-            if (triangles.missing()) {
-                // Triangles not here yet: the last voxel passed stands in for them.
-                if (voxel.samples) return take_voxel(voxel, tmin);
-            } else if (hit.prim != kNoHit && hit.t * (1.0f + kSplitSlack) < tmax) {
-                return true;
-            }
-        }
-        for (;;) {
-            if (top == 0) return false;
-            const Entry& e = stack[--top];
-            if (e.tmin > hit.t) continue;
-            block = e.block;
-            off = e.off;
-            level = e.level;
-            tmin = e.tmin;
-            tmax = e.tmax;
-            entry_axis = e.entry_axis;
-            voxel = e.voxel;
-            if constexpr (Quantized) {
-                for (int a = 0; a < 3; ++a) {
-                    lo[a] = cells[top][a];
-                    hi[a] = cells[top][3 + a];
-                }
-            }
-            break;
-        }
-    }
+template <bool AnyHit, bool Quantized>
+inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const NodeRef& start, float tmin,
+                 float tmax, int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
+    Walker<AnyHit, Quantized, false> walker;
+    walker.start(lray, sheared, start, tmin, tmax, entry_axis, voxel, hit, skip);
+    walker.run(lane);
+    return walker.finished();
 }
 
 }  // namespace lod_detail
@@ -494,6 +686,60 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     lod_walk<AnyHit>(lane, lray, ShearedRay(ray.dir), lod_detail::root_ref(block, root_cell), tmin, tmax, entry_axis,
                      {nullptr, 0.0f}, hit, skip);
     return hit.prim != kNoHit;
+}
+
+namespace lod_detail {
+
+template <bool Quantized, int G>
+inline void trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits, int n) {
+    using W = Walker<false, Quantized, true>;
+    W walkers[G];
+    int next = 0;
+    // Starts the next ray that enters the model in walker g; false when none is left.
+    auto launch = [&](int g) {
+        while (next < n) {
+            const int i = next++;
+            const Ray& ray = rays[i].ray;
+            LodHit& hit = hits[i];
+            hit.t = ray.tmax;
+            hit.prim = kNoHit;
+            float tmin, tmax;
+            int entry_axis;
+            if (!clip_with_axis(ray, root_cell, tmin, tmax, entry_axis)) continue;
+            const std::uint8_t* root = lane.lookup(lane.level_first[0], 0.0f);
+            if (!root) continue;
+            walkers[g].start(rays[i], ShearedRay(ray.dir), root_ref(root, root_cell), tmin, tmax, entry_axis,
+                             {nullptr, 0.0f}, hit, kNoHit);
+            return true;
+        }
+        return false;
+    };
+    std::uint32_t live = 0;
+    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
+    while (live) {
+        for (int g = 0; g < G; ++g) {
+            if ((live >> g & 1u) && walkers[g].run(lane) == W::Stop::Done && !launch(g)) live &= ~(1u << g);
+        }
+    }
+}
+
+}  // namespace lod_detail
+
+// Closest hits of n independent rays, several walks in flight at once (lod_detail::
+// Walker with Yield): while one waits for a treelet or a triangle block from memory, the
+// others go on. hits[i] is exactly what lod_traverse<false> gives rays[i].
+inline void lod_trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits, int n) {
+    constexpr int kInFlight = 8;
+    static const int dev = std::getenv("VR_G") ? std::atoi(std::getenv("VR_G")) : 8;
+    if (dev == 1) { for (int i = 0; i < n; ++i) lod_traverse<false>(lane, root_cell, rays[i], hits[i]); return; }
+    if (dev == 4) { lod_detail::trace_stream<false, 4>(lane, root_cell, rays, hits, n); return; }
+    if (dev == 16) { lod_detail::trace_stream<false, 16>(lane, root_cell, rays, hits, n); return; }
+    if (dev == 2) { lod_detail::trace_stream<false, 2>(lane, root_cell, rays, hits, n); return; }
+    if (lane.quantized_splits) {
+        lod_detail::trace_stream<true, kInFlight>(lane, root_cell, rays, hits, n);
+    } else {
+        lod_detail::trace_stream<false, kInFlight>(lane, root_cell, rays, hits, n);
+    }
 }
 
 VASTRAY_KERNEL_END
