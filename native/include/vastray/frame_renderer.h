@@ -34,6 +34,7 @@
 #include <cstdint>
 #include <limits>
 #include <memory>
+#include <new>
 #include <vector>
 
 #include "vastray/denoise.h"
@@ -95,6 +96,14 @@ private:
         float d;
     };
     std::vector<Plane> planes_;
+};
+
+// Storage for N objects of type T that constructs none of them (placement new does, one
+// by one): for scratch arrays whose element types have default member initialisers.
+template <typename T, int N>
+struct Uninitialised {
+    alignas(T) unsigned char bytes[sizeof(T) * N];
+    T* data() { return reinterpret_cast<T*>(bytes); }
 };
 
 // A cut solid's cap: flat, in a colour no model part has by default, lit from the eye.
@@ -198,23 +207,28 @@ private:
     // them as it likes (several in flight), and are then shaded pixel by pixel.
     void stream_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
         constexpr int kRun = 256;
-        Block<1> px[kRun];
-        Ray traced[kRun];
-        Hit hits[kRun];
+        // Left uninitialised: default member initialisers would clear the three arrays
+        // (some 60 KB) for every tile, and every element is written before it is read.
+        Uninitialised<Block<1>, kRun> px_store;
+        Uninitialised<Ray, kRun> traced_store;
+        Uninitialised<Hit, kRun> hits_store;
+        Block<1>* px = px_store.data();
+        Ray* traced = traced_store.data();
+        Hit* hits = hits_store.data();
         int slot[kRun];
         const int width = x1 - x0, pixels = width * (y1 - y0);
         for (int p0 = 0; p0 < pixels; p0 += kRun) {
             const int count = std::min(kRun, pixels - p0);
             int n = 0;
             for (int k = 0; k < count; ++k) {
-                Block<1>& b = px[k];
-                b.lit = b.marked = 0;  // (the array serves every run)
+                Block<1>& b = *new (px + k) Block<1>;  // (only its masks have initialisers)
                 b.x[0] = x0 + (p0 + k) % width;
                 b.y[0] = y0 + (p0 + k) / width;
                 b.ray[0] = backend_.primary_ray(b.x[0], b.y[0]);
                 b.hit[0].prim = kNoHit;  // stays so when the whole ray lies on the cut side
                 if (clip(b.ray[0], b.entered[0])) {
-                    traced[n] = b.ray[0];
+                    new (traced + n) Ray(b.ray[0]);
+                    new (hits + n) Hit;
                     slot[n++] = k;
                 }
             }

@@ -61,6 +61,14 @@ struct alignas(64) LodLane {
 
     const std::uint8_t* lookup(std::uint32_t block, float priority) {
         ++lookups;
+        // Blocks are published and evicted only between frames, and a lane lives for one
+        // frame, so a block found once stays where it is: neighbouring rays cross into the
+        // same treelets and leaves, and find them here without the cache's tables.
+        Seen& seen = seen_[block % kSeen];
+        if (seen.block == block) {
+            ++hits;
+            return seen.data;
+        }
         const std::int32_t slot = model->slot(block);
         if (slot >= 0) {
             ++hits;
@@ -68,7 +76,8 @@ struct alignas(64) LodLane {
                 ++ws_blocks;
                 ws_bytes += cache->slot_raw_size(slot);
             }
-            return cache->slot_data(slot);
+            seen = {block, cache->slot_data(slot)};
+            return seen.data;
         }
         ++missing;
         if (slot == CachedModel::kBad) {
@@ -78,6 +87,14 @@ struct alignas(64) LodLane {
         }
         return nullptr;
     }
+
+private:
+    static constexpr std::uint32_t kSeen = 64;
+    struct Seen {
+        std::uint32_t block = ~0u;  // no block id is that large (the index holds fewer)
+        const std::uint8_t* data = nullptr;
+    };
+    Seen seen_[kSeen];
 };
 
 namespace lod_detail {
