@@ -34,12 +34,12 @@
 #include <cstdint>
 #include <limits>
 #include <memory>
-#include <new>
 #include <vector>
 
 #include "vastray/denoise.h"
 #include "vastray/isa.h"
 #include "vastray/render.h"
+#include "vastray/scratch.h"
 #include "vastray/shading.h"
 
 VASTRAY_KERNEL_BEGIN
@@ -96,14 +96,6 @@ private:
         float d;
     };
     std::vector<Plane> planes_;
-};
-
-// Storage for N objects of type T that constructs none of them (placement new does, one
-// by one): for scratch arrays whose element types have default member initialisers.
-template <typename T, int N>
-struct Uninitialised {
-    alignas(T) unsigned char bytes[sizeof(T) * N];
-    T* data() { return reinterpret_cast<T*>(bytes); }
 };
 
 // A cut solid's cap: flat, in a colour no model part has by default, lit from the eye.

@@ -336,6 +336,20 @@ public:
         leaf_stage_ = 0;
     }
 
+    // Queues a subtree to walk after the start node's, as if the walk had put it aside
+    // itself (a packet hands over the far children it kept for this ray, bottom of its
+    // stack first).
+    void push(const NodeRef& at, float tmin, float tmax, int entry_axis, Voxel voxel) {
+        if (top_ >= kStack) return;
+        if constexpr (Quantized) {
+            for (int a = 0; a < 3; ++a) {
+                cells_[top_][a] = at.lo[a];
+                cells_[top_][3 + a] = at.hi[a];
+            }
+        }
+        stack_[top_++] = {at.block, at.off, at.level, tmin, tmax, entry_axis, voxel};
+    }
+
     // Walks on to the next stop. After Stop::Done, finished() is the walk's answer: true
     // when the ray is finished (its hit can no longer change), false when the subtree is
     // done and cells beyond it may still hold a nearer hit.

@@ -25,6 +25,7 @@
 #include "vastray/isa.h"
 #include "vastray/lod_traverse.h"
 #include "vastray/packet.h"
+#include "vastray/scratch.h"
 
 VASTRAY_KERNEL_BEGIN
 
@@ -58,14 +59,14 @@ inline int equal_lanes(const std::uint32_t* ids, std::uint32_t id) {
 
 }  // namespace lod_detail
 
-// The packet walk. Rays (and skips, hits) are in lane order; `mask` selects the rays to
-// trace. Closest hit (AnyHit = false): hits[i] gets ray i's hit. Any hit: returns the
-// rays that hit something (a triangle other than skip[i], or a voxel); hits are scratch.
-// SharedOrigin needs a shared origin; SharedSigns non-zero direction components whose
-// signs agree across the packet; both a shared cone slope.
-template <int N, bool AnyHit, LodPacketOrder Order>
-inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
-                                     const std::uint32_t* skip, std::uint32_t mask) {
+namespace lod_detail {
+
+// lod_packet_walk for a full-precision (Quantized = false) or quantized model: only the
+// rays that part from the packet (Walker) need to know which at compile time.
+
+template <int N, bool AnyHit, LodPacketOrder Order, bool Quantized>
+inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
+                                 const std::uint32_t* skip, std::uint32_t mask) {
     static_assert(N <= 32, "ray masks are 32-bit");
     constexpr int W = packet_width<N>();
     constexpr int K = N / W;
@@ -162,28 +163,53 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
         }
         live[v] = andnot(vm::from_bits(static_cast<unsigned>(which)), live[v]);
     };
-    // The one active lane of `act` finishes the subtree at `at` as a single ray.
+    // Rays that parted from the packet finish alone, as walkers that run side by side
+    // once the packet is done, so that their waits for memory (they are at the bottom of
+    // the tree, where each reaches data its neighbours do not) overlap.
+    using Tail = Walker<AnyHit, Quantized, true>;
+    Uninitialised<Tail, N> tail_store;
+    Tail* tails = tail_store.data();
+    int tail_ray[N];
+    int tail_count = 0;
+    // The one active lane of `act` leaves the packet: it walks the subtree at `at`, then
+    // the far children the packet kept for it, as lod_walk would have.
     auto hand_off = [&](const NodeRef& at, const Voxel& last, const vm* act) {
         for (int v = 0; v < K; ++v) {
             const int bits = act[v].bits();
             if (!bits) continue;
             const int k = __builtin_ctz(static_cast<unsigned>(bits));
             const int i = W * v + k;
-            alignas(32) float t0v[W], t1v[W], axv[W];
+            alignas(64) float t0v[W], t1v[W], axv[W];
             tmin[v].store(t0v);
             tmax[v].store(t1v);
             axis_in[v].store(axv);
-            LodHit& h = hits[i];
-            const bool finished = lod_walk<AnyHit>(lane, rays[i], sheared[i], at, t0v[k], t1v[k],
-                                                   static_cast<int>(axv[k]), last, h, skip ? skip[i] : kNoHit);
-            if (AnyHit) {
-                if (h.prim != kNoHit) occluded |= 1u << i;
-            } else {
-                hit_t[v] = HitV<W>::load(hits + W * v).t;
+            Tail& tail = *new (tails + tail_count) Tail;
+            tail_ray[tail_count++] = i;
+            tail.start(rays[i], sheared[i], at, t0v[k], t1v[k], static_cast<int>(axv[k]), last, hits[i],
+                       skip ? skip[i] : kNoHit);
+            for (int e = 0; e < top; ++e) {
+                const Entry& en = stack[e];
+                en.tmin[v].store(t0v);
+                en.tmax[v].store(t1v);
+                en.axis[v].store(axv);
+                if (t0v[k] <= t1v[k]) tail.push(en.node, t0v[k], t1v[k], static_cast<int>(axv[k]), en.voxel);
             }
-            if (finished || (AnyHit && h.prim != kNoHit)) live[v] = andnot(vm::from_bits(1u << k), live[v]);
+            live[v] = andnot(vm::from_bits(1u << k), live[v]);
             return;
         }
+    };
+    // Runs the parted rays to the end, in turns, and adds the any-hit ones that hit.
+    auto finish = [&]() {
+        std::uint32_t running = tail_count == 32 ? ~0u : (1u << tail_count) - 1;
+        while (running) {
+            for (std::uint32_t r = running; r; r &= r - 1) {
+                const int t = __builtin_ctz(r);
+                if (tails[t].run(lane) != Tail::Stop::Done) continue;
+                running &= ~(1u << t);
+                if (AnyHit && hits[tail_ray[t]].prim != kNoHit) occluded |= 1u << tail_ray[t];
+            }
+        }
+        return occluded;
     };
     auto nearest_of = [&](const vm* act) {
         vf nearest = v_inf;
@@ -244,7 +270,7 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
             }
             NodeRef left, right;
             if (!lod_detail::children_of(lane.quantized_splits, node, w, split, child, left, right)) {
-                return occluded;  // damaged node
+                return finish();  // damaged node
             }
             // The packet's near child: the origin's side (shared origin), else the side
             // the directions leave.
@@ -361,7 +387,7 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
         for (;;) {
             int live_bits = 0;
             for (int v = 0; v < K; ++v) live_bits |= live[v].bits();
-            if (top == 0 || !live_bits) return occluded;
+            if (top == 0 || !live_bits) return finish();
             const Entry& e = stack[--top];
             int any = 0;
             for (int v = 0; v < K; ++v) {
@@ -377,6 +403,21 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
             break;
         }
     }
+}
+
+}  // namespace lod_detail
+
+// The packet walk. Rays (and skips, hits) are in lane order; `mask` selects the rays to
+// trace. Closest hit (AnyHit = false): hits[i] gets ray i's hit. Any hit: returns the
+// rays that hit something (a triangle other than skip[i], or a voxel); hits are scratch.
+// SharedOrigin needs a shared origin; SharedSigns non-zero direction components whose
+// signs agree across the packet; both a shared cone slope.
+template <int N, bool AnyHit, LodPacketOrder Order>
+inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
+                                     const std::uint32_t* skip, std::uint32_t mask) {
+    return lane.quantized_splits
+               ? lod_detail::packet_walk<N, AnyHit, Order, true>(lane, root_cell, rays, hits, skip, mask)
+               : lod_detail::packet_walk<N, AnyHit, Order, false>(lane, root_cell, rays, hits, skip, mask);
 }
 
 // Closest hits of N coherent primary rays given in row order (lod_packet_is_coherent);
