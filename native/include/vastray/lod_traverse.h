@@ -12,7 +12,6 @@
 
 #include <cstdint>
 #include <cstring>
-#include <cstdlib>
 #include <utility>
 #include <vector>
 
@@ -760,12 +759,8 @@ inline void trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* ra
 // Walker with Yield): while one waits for a treelet or a triangle block from memory, the
 // others go on. hits[i] is exactly what lod_traverse<false> gives rays[i].
 inline void lod_trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits, int n) {
+    // 8 walks in flight: 1.07x one at a time on a 10^8 overview (4: 1.05x, 16: 1.05x).
     constexpr int kInFlight = 8;
-    static const int dev = std::getenv("VR_G") ? std::atoi(std::getenv("VR_G")) : 8;
-    if (dev == 1) { for (int i = 0; i < n; ++i) lod_traverse<false>(lane, root_cell, rays[i], hits[i]); return; }
-    if (dev == 4) { lod_detail::trace_stream<false, 4>(lane, root_cell, rays, hits, n); return; }
-    if (dev == 16) { lod_detail::trace_stream<false, 16>(lane, root_cell, rays, hits, n); return; }
-    if (dev == 2) { lod_detail::trace_stream<false, 2>(lane, root_cell, rays, hits, n); return; }
     if (lane.quantized_splits) {
         lod_detail::trace_stream<true, kInFlight>(lane, root_cell, rays, hits, n);
     } else {
