@@ -442,7 +442,10 @@ public:
                     l_off = off + kNodeSize;
                     r_off = has_l ? off + kNodeSize * r : off + kNodeSize;
                 }
-                if ((has_l && l_off > kBlockSize - 8) || (has_r && r_off > kBlockSize - 8)) goto done;  // damaged
+                // Damaged offsets leave the block. The right child never lies before the left
+                // (a basic node's offset is at least 2 nodes, a LOD node's at least 0), so the
+                // one furthest on is the right when present.
+                if ((has_r ? r_off : l_off) > kBlockSize - 8) goto done;
 
                 const float o = org_[axis];
                 const float t_split = (split - o) * inv_[axis];
