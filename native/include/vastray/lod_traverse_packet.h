@@ -245,11 +245,12 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
                 break;
             }
             ++lane.node_visits;
-            const int axis = axis_of(w);
-            const float split = lod_detail::split_of(lane.quantized_splits, node, w);
-            const std::uint8_t* child = nullptr;
+            const int axis = std::min(axis_of(w), 2);
+            const float split = lod_detail::split_of(Quantized, node, w);
+            const std::uint8_t* child_block = node.block;
+            std::uint32_t child_level = node.level;
             if (is_lod(w)) {
-                const Voxel here = lod_detail::voxel_of(lane.quantized_splits, node, w);
+                const Voxel here = lod_detail::voxel_of(Quantized, node, w);
                 const vf radius = vf::broadcast(here.radius);
                 int rest = 0;
                 for (int v = 0; v < K; ++v) {
@@ -259,19 +260,31 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
                     rest |= active[v].bits();
                 }
                 if (!rest) break;
-                child = lod_detail::lod_child_block(lane, node, here.radius / std::max(nearest_of(active), 1e-30f));
-                if (!child) {
+                child_block = lod_detail::lod_child_block(lane, node, here.radius / std::max(nearest_of(active), 1e-30f));
+                if (!child_block) {
                     for (int v = 0; v < K; ++v) {
                         if (const int a = active[v].bits(); a != 0) take_voxels(here, v, a);
                     }
                     break;
                 }
                 voxel = here;
+                child_level = node.level + 1;
             }
-            NodeRef left, right;
-            if (!lod_detail::children_of(lane.quantized_splits, node, w, split, child, left, right)) {
-                return finish();  // damaged node
+            // The children's offsets, as lod_detail::Walker finds them (no NodeRef copies:
+            // only the child the packet enters and the one it puts aside are written).
+            const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
+            std::uint32_t l_off, r_off;
+            if (is_lod(w)) {
+                l_off = 8 * lod_child_off8(w);
+                r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
+            } else {
+                constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;
+                const std::uint32_t r = basic_right_off8(w);
+                if (has_l && has_r && r < 2) return finish();  // damaged: the offsets would loop
+                l_off = node.off + kNodeSize;
+                r_off = has_l ? node.off + kNodeSize * r : l_off;
             }
+            if ((has_r ? r_off : l_off) > kBlockSize - 8) return finish();  // damaged
             // The packet's near child: the origin's side (shared origin), else the side
             // the directions leave.
             bool near_is_left, may_flip = true;
@@ -282,19 +295,29 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
             } else {
                 near_is_left = !sign_negative[axis];
             }
-            const NodeRef near_node = near_is_left ? left : right;
-            const NodeRef far_node = near_is_left ? right : left;
+            const bool has_near = near_is_left ? has_l : has_r, has_far = near_is_left ? has_r : has_l;
+            const std::uint32_t near_off = near_is_left ? l_off : r_off, far_off = near_is_left ? r_off : l_off;
+            // Moves `to` (a copy of the node) to one of its children: the left one keeps the
+            // cell's low side, the right one its high side (quantized models only).
+            auto enter = [&](NodeRef& to, bool left, std::uint32_t child_off) {
+                to.block = child_block;
+                to.off = child_off;
+                to.level = child_level;
+                if constexpr (Quantized) {
+                    if (left) to.hi[axis] = split;
+                    else to.lo[axis] = split;
+                }
+            };
             PacketSplit<W, K> seg(split, near_is_left, may_flip, org[axis], inv[axis], dir_neg[axis], tmin, tmax,
                                   active);
-            int any_near = seg.any_near, any_far = seg.any_far;
-            if (!near_node.block) any_near = 0;
-            if (!far_node.block) any_far = 0;
+            int any_near = has_near ? seg.any_near : 0, any_far = has_far ? seg.any_far : 0;
             const vf axis_v = vf::broadcast(static_cast<float>(axis));
             if (any_near && any_far && top < 64) {
                 // The far child is needed later: start its load now, beside the near one's.
-                __builtin_prefetch(far_node.block + far_node.off);
+                __builtin_prefetch(child_block + far_off);
                 Entry& e = stack[top++];
-                e.node = far_node;
+                if constexpr (Quantized) e.node = node;  // (its cell; the rest is set below)
+                enter(e.node, !near_is_left, far_off);
                 e.voxel = voxel;
                 for (int v = 0; v < K; ++v) {
                     e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
@@ -311,7 +334,7 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
                 tmin[v] = select(in_v[v], lo_v[v], v_inf);
                 tmax[v] = select(in_v[v], hi_v[v], v_neg_inf);
             }
-            node = any_near ? near_node : far_node;
+            enter(node, any_near ? near_is_left : !near_is_left, any_near ? near_off : far_off);
         }
         if (leaf) {
             const float priority = voxel.samples ? voxel.radius / std::max(nearest_of(active), 1e-30f) : 0.0f;
