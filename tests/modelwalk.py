@@ -67,6 +67,7 @@ class Node:
     hi: np.ndarray
     tier: int = 0  # the tier of the stream whose block holds the node's treelet
     block: int = 0  # that block's global id
+    offset: int = 0  # the node's offset in it
     # inner nodes
     axis: int = -1
     split: float = 0.0
@@ -262,10 +263,11 @@ class Walker:
             data = self.read(block)
             w, w1 = self.word(data, off), self.word(data, off + 4)
             if not w & INNER:
-                leaf = Node("leaf", level, depth, lo, hi, tier=tier, block=block)
+                leaf = Node("leaf", level, depth, lo, hi, tier=tier, block=block, offset=off)
                 yield self.leaf(leaf, w & 0xFFFF, (w >> 16) & 0x7FFF, w1)
                 continue
-            node = Node("lod" if w & LOD else "basic", level, depth, lo, hi, tier=tier, block=block)
+            kind = "lod" if w & LOD else "basic"
+            node = Node(kind, level, depth, lo, hi, tier=tier, block=block, offset=off)
             node.axis = w & 3
             has_l, has_r = not w & LEFT_EMPTY, not w & RIGHT_EMPTY
             node.empty = (not has_l, not has_r)

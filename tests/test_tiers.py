@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from modelwalk import Node, Walker
+from modelwalk import Node, Walker, WalkError
 from test_build import SMALL_MEMORY, header_offset, write_soup
 from views import render_camera
 
@@ -320,3 +320,34 @@ def test_tiered_and_unknown_flags_are_refused_clearly(pair: Callable[[str], Pair
     refused(variant("too-many", tier_count=MAX_TIERS + 1), "implausible tier count")
     # A newer version is refused by its number, before anything else.
     refused(variant("v6", version=VERSION + 1), rf"format version {VERSION + 1} is not supported")
+
+
+def test_a_damaged_block_reference_is_named(pair: Callable[[str], Pair]) -> None:
+    """A LOD node of the root treelet made to name a tier the model does not have, or a
+    block past the end of its stream: the native decoder and the walker both refuse it
+    (the out-of-core walk treats such a node like a missing block: lod_traverse.h)."""
+    path = pair("plant").tiered
+    with ModelFile(path) as model:
+        raw = [model.read_block(i) for i in range(len(model.blocks))]
+        lod = next(n for n in Walker(model).walk() if n.kind == "lod" and n.level == 0)
+        tier, tiers = lod.child_tier, model.tier_count
+        first, count = model.stream(1, tier).first, model.stream(1, tier).count
+        h = model.header
+        for reference, message in (
+            (tiers << 26, rf"child block 0 of tier {tiers} is outside level 1"),
+            (tier << 26 | count, rf"child block {count} of tier {tier} is outside level 1"),
+        ):
+            root = bytearray(raw[0])
+            struct.pack_into("<I", root, lod.offset + 12, reference)
+            blocks = [bytes(root), *raw[1:]]
+            with pytest.raises(RuntimeError, match=rf"model block 0: {message}"):
+                native.decode_model(
+                    blocks, [s.first for s in model.streams], list(h["centre"]), list(h["cell_lo"]),
+                    list(h["cell_hi"]), h["input_triangles"], model.has_colours, False, False, tiers, True,
+                )  # fmt: skip
+            walker = Walker(model)
+            walker.raw[0] = bytes(root)
+            with pytest.raises(WalkError, match=f"names tier {tiers} of {tiers}|outside level 1 tier {tier}"):
+                for _ in walker.walk():
+                    pass
+        assert first >= 1
