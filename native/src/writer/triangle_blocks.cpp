@@ -1,11 +1,11 @@
 #include "writer/triangle_blocks.h"
 
-#include "writer/treelet.h"
-
 #include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <limits>
+
+#include "writer/treelet.h"
 
 namespace vastray::writer {
 
