@@ -340,8 +340,10 @@ def read_parts(path: str | os.PathLike[str]) -> PartsSection | None:
     parts_offset, parts_size, parts_crc, part_count = (
         struct.unpack_from("<QQII", data, 200) if version >= 2 else (0, 0, 0, 0)
     )
-    # The blocks, in order, end where the parts section (or the file) starts.
-    entry_at = index_offset + 24 * level_count
+    # The blocks, in order, end where the parts section (or the file) starts; a tiered
+    # model's level table has a record per stream.
+    tiers = struct.unpack_from("<I", data, TIER_COUNT_AT)[0] if version >= 5 and flags & TIERED else 1
+    entry_at = index_offset + 24 * level_count * tiers
     end = data_offset
     for i in range(block_count):
         offset, stored = struct.unpack_from("<QI", data, entry_at + 24 * i)
