@@ -12,6 +12,11 @@ packed record's, FORMAT.md §11).
 
     python bench/bytes.py bench/.cache/plant-1e6-s1.ply ../shared/models/stanford-bunny.obj
     python bench/bytes.py --quantized-vertices --name bytes-qv MODELS...
+    python bench/bytes.py --tier-width 0 MODELS...   # untiered, to compare
+
+A tiered model (FORMAT.md §15) stores a triangle once per tier block that references it,
+so its stored triangles and vertices per triangle are higher: the *tiers* column says how
+many tiers a level has.
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ def breakdown(path: Path) -> dict[str, Any]:
         row["tri_stored"] = sum(e.stored_size for e in m.blocks[tri_first:])
         row["index"] = h["data_offset"]
         row["parts"] = h["parts_size"]
+        row["tiers"] = m.tier_count if m.tiered else 0
         entries = tris = verts = 0
         for b in range(tri_first, tri_first + tri_count):
             data = m.read_block(b)
@@ -91,6 +97,7 @@ def main() -> None:
     ap.add_argument("inputs", nargs="+", type=Path, help="built models (.vast) or inputs to build")
     ap.add_argument("--quantized-splits", action="store_true")
     ap.add_argument("--quantized-vertices", action="store_true")
+    ap.add_argument("--tier-width", type=float, default=BuildOptions.tier_width, help="0: untiered")
     ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--name", default=None, help="write NAME.md to --out (default: print only)")
     args = ap.parse_args()
@@ -104,6 +111,7 @@ def main() -> None:
                 opts = BuildOptions(
                     quantized_splits=args.quantized_splits,
                     quantized_vertices=args.quantized_vertices,
+                    tier_width=args.tier_width,
                     overwrite=True,
                 )
                 t0 = time.perf_counter()
@@ -120,13 +128,14 @@ def main() -> None:
             return f"{r[key] / n:.2f}"
 
         table.append([
-            r["model"], f"{n:,}", f"**{r['file'] / n:.2f}**", bt("node_raw"), bt("node_stored"),
+            r["model"], f"{n:,}", str(r["tiers"]), f"**{r['file'] / n:.2f}**", bt("node_raw"),
+            bt("node_stored"),
             *[f"{r[f'{s}_raw'] / n:.2f} / {r[f'{s}_lz4'] / n:.2f}" for s in SECTIONS],
             bt("tri_stored"), f"{r['refs_per_tri']:.2f}", f"{r['entries_per_tri']:.2f}",
             f"{r['stored_per_tri']:.2f}", f"{r['verts_per_stored']:.2f}", f"{r['vertex_bytes']:.2f}",
         ])  # fmt: skip
     md = markdown_table(
-        ["model", "triangles", "**file B/tri**", "nodes raw", "nodes stored",
+        ["model", "triangles", "tiers", "**file B/tri**", "nodes raw", "nodes stored",
          *[f"{s} raw / lz4" for s in SECTIONS], "triangle blocks stored", "refs/tri", "list entries/tri",
          "stored tris/tri", "vertices/stored tri", "bytes/vertex"],
         table,

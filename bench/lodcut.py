@@ -69,7 +69,7 @@ def main() -> int:
         walker = Walker(f)
         tri_level = walker.tri_level
         t0 = time.perf_counter()
-        # (level, block, off, depth, lo, hi, last LOD radius, kd depth below it)
+        # (level, global block, off, depth, lo, hi, last LOD radius, kd depth below it)
         root_lo, root_hi = np.array(h["cell_lo"], np.float32), np.array(h["cell_hi"], np.float32)
         stack = [(0, 0, 0, 0, root_lo, root_hi, math.inf, 0, math.inf)]
         cut: Counter[str] = Counter()
@@ -82,11 +82,11 @@ def main() -> int:
             level, block, off, depth, lo, hi, last_r, below, parent_r = stack.pop()
             if np.any(hi < r_lo) or np.any(lo > r_hi):
                 continue
-            data = walker.block(level, block)
-            lod_blocks.add(f.levels[level][0] + block)
+            data = walker.read(block)
+            lod_blocks.add(block)
             w, w1 = struct.unpack_from("<II", data, off)
             if not w & INNER:
-                count, tri_block = (w >> 16) & 0x7FFF, w1
+                count, tri_block = (w >> 16) & 0x7FFF, walker.resolve(tri_level, w1)[1]
                 ext = np.sort(hi.astype(np.float64) - lo.astype(np.float64))
                 t = box_distance(eye, lo, hi)
                 leaf_r = 0.5 * float(np.linalg.norm(ext))
@@ -119,7 +119,8 @@ def main() -> int:
                     continue
                 if level + 1 >= tri_level:
                     raise SystemExit("LOD node in the last node level")
-                child_level, child_block = level + 1, struct.unpack_from("<I", data, off + 12)[0]
+                child_level = level + 1
+                child_block = walker.resolve(child_level, struct.unpack_from("<I", data, off + 12)[0])[1]
                 l_off = 8 * ((w >> 17) & 8191)
                 r_off = l_off + 8 * ((w >> 11) & 63) if has_l else l_off
                 child_depth, last_r, below = 0, radius, 0

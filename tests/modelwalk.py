@@ -1,7 +1,9 @@
 """An independent pure-Python walker of a built model (a test helper).
 
 It reads blocks through `ModelFile.read_block` and decodes them from the bit layouts in
-native/include/vastray/format.h alone, without the native decoder: treelets from the
+native/include/vastray/format.h alone, without the native decoder: the level table from
+the file's bytes (a tiered model's streams, FORMAT.md §5, and the tier and stream-relative
+id in every block reference, §7-8), treelets from the
 root (level 0, block 0, offset 0), node cells from the root cell and the split planes
 (a quantized model's 4-byte basic nodes: the split as a step of the cell, and its
 12-byte LOD nodes: the radius from the cell, FORMAT.md §8),
@@ -33,6 +35,9 @@ TREELET_HEIGHT = 3
 QUANTIZED_SPLITS = 1 << 3  # header flag (version 3): 4-byte basic nodes, splits as grid steps
 SPLIT_STEPS = 1 << 20
 QUANTIZED_VERTICES = 1 << 4  # header flag (version 4): vertices on the root cell's grid, packed per block
+TIERED = 1 << 6  # header flag (version 5): each level in streams by coarseness tier
+TIER_COUNT_AT = 224  # the header's u32 tier count (tiers per level)
+TIER_SHIFT = 26  # a block reference: tier in bits 26-31, stream-relative id below
 
 
 def grid_step(lo: float, hi: float) -> float:
@@ -60,6 +65,9 @@ class Node:
     depth: int  # depth inside its treelet (0, 1 or 2)
     lo: np.ndarray  # float32 (3,) cell
     hi: np.ndarray
+    tier: int = 0  # the tier of the stream whose block holds the node's treelet
+    block: int = 0  # that block's global id
+    offset: int = 0  # the node's offset in it
     # inner nodes
     axis: int = -1
     split: float = 0.0
@@ -67,7 +75,10 @@ class Node:
     # LOD nodes
     radius: float = 0.0
     samples: list[int] = field(default_factory=list)  # raw 32-bit samples, 1 or 6
+    child_tier: int = 0  # the tier of the block holding its child treelets
     # leaves
+    tri_tier: int = 0  # the tier of its (first) triangle block
+    tri_blocks: list[int] = field(default_factory=list)  # global ids of the blocks its list runs through
     ids: np.ndarray | None = None  # (k,) uint32 input triangle ids
     vertices: np.ndarray | None = None  # (k, 3, 3) float32, relative to the model centre
     colours: np.ndarray | None = None  # (k,) uint32 0x00BBGGRR, when the model has colours
@@ -151,47 +162,75 @@ class TriangleBlock:
         )
 
 
+def read_streams(path: str | os.PathLike[str]) -> tuple[int, list[list[tuple[int, int]]]]:
+    """(tiers per level, per level per tier (first block, count)), from the file's header
+    and level table alone: level_count x T records, level-major (T = 1 untiered)."""
+    with open(path, "rb") as f:
+        head = f.read(256)
+        version, _, flags = struct.unpack_from("<III", head, 8)
+        level_count = struct.unpack_from("<I", head, 28)[0]
+        tiers = struct.unpack_from("<I", head, TIER_COUNT_AT)[0] if version >= 5 and flags & TIERED else 1
+        index_offset = struct.unpack_from("<Q", head, 160)[0]
+        f.seek(index_offset)
+        table = f.read(24 * level_count * tiers)
+    records = [struct.unpack_from("<II", table, 24 * i) for i in range(level_count * tiers)]
+    return tiers, [records[level * tiers : (level + 1) * tiers] for level in range(level_count)]
+
+
 class Walker:
     def __init__(self, model: ModelFile) -> None:
         self.model = model
-        self.tri_level = len(model.levels) - 1
+        self.tiers, self.streams = read_streams(model.path)
+        self.tiered = bool(model.header["flags"] & TIERED)
+        self.tri_level = len(self.streams) - 1
         self.raw: dict[int, bytes] = {}  # the blocks read so far, by block id
-        self.tri_blocks: dict[int, TriangleBlock] = {}  # parsed so far, by id relative to the level
+        self.tri_blocks: dict[int, TriangleBlock] = {}  # parsed so far, by global block id
 
-    def block(self, level: int, relative: int) -> bytes:
-        first, count = self.model.levels[level]
+    def resolve(self, level: int, reference: int) -> tuple[int, int, int]:
+        """(tier, global block id, end of its stream) of a block reference in `level`."""
+        tier, relative = 0, reference
+        if self.tiered:
+            tier, relative = reference >> TIER_SHIFT, reference & ((1 << TIER_SHIFT) - 1)
+        if tier >= self.tiers:
+            raise WalkError(f"block reference {reference:#x} names tier {tier} of {self.tiers}")
+        first, count = self.streams[level][tier]
         if not 0 <= relative < count:
-            raise WalkError(f"block {relative} is outside level {level} ({count} blocks)")
-        key = first + relative
-        if key not in self.raw:
-            self.raw[key] = self.model.read_block(key)
-        return self.raw[key]
+            raise WalkError(f"block {relative} is outside level {level} tier {tier} ({count} blocks)")
+        return tier, first + relative, first + count
+
+    def read(self, block: int) -> bytes:
+        if block not in self.raw:
+            self.raw[block] = self.model.read_block(block)
+        return self.raw[block]
 
     def word(self, data: bytes, off: int) -> int:
         if off + 4 > len(data):
             raise WalkError(f"node word at {off} runs past the block end ({len(data)} bytes)")
         return struct.unpack_from("<I", data, off)[0]
 
-    def triangles(self, relative: int) -> TriangleBlock:
-        if relative not in self.tri_blocks:
-            raw = self.block(self.tri_level, relative)
+    def triangles(self, block: int) -> TriangleBlock:
+        if block not in self.tri_blocks:
+            raw = self.read(block)
             h = self.model.header
             steps = None
             if h["flags"] & QUANTIZED_VERTICES:
                 steps = tuple(grid_step(a, b) for a, b in zip(h["cell_lo"], h["cell_hi"], strict=True))
-            self.tri_blocks[relative] = TriangleBlock.parse(raw, self.model.has_colours, steps)
-        return self.tri_blocks[relative]
+            self.tri_blocks[block] = TriangleBlock.parse(raw, self.model.has_colours, steps)
+        return self.tri_blocks[block]
 
-    def leaf(
-        self, level: int, depth: int, lo: np.ndarray, hi: np.ndarray, first: int, count: int, block: int
-    ) -> Node:
+    def leaf(self, node: Node, first: int, count: int, reference: int) -> Node:
         """A leaf's list entries run from `first` to the end of its triangle block's list
-        and, for a leaf too big for one block, on from entry 0 of the following blocks."""
+        and, for a leaf too big for one block, on from entry 0 of the following blocks of
+        its stream."""
         ids: list[np.ndarray] = []
         vertices: list[np.ndarray] = []
         colours: list[np.ndarray] = []
+        node.tri_tier, block, end = self.resolve(self.tri_level, reference)
         while count > 0:
+            if block >= end:
+                raise WalkError("leaf list runs past the last triangle block of its stream")
             tb = self.triangles(block)
+            node.tri_blocks.append(block)
             if first > len(tb.list):
                 raise WalkError("leaf list starts past the list section")
             local = tb.list[first : first + count].astype(np.int64)
@@ -201,12 +240,10 @@ class Walker:
                 colours.append(tb.colours[local])
             count -= len(local)
             block, first = block + 1, 0
-        return Node(
-            "leaf", level, depth, lo, hi,
-            ids=np.concatenate(ids) if ids else np.zeros(0, np.uint32),
-            vertices=np.concatenate(vertices) if vertices else np.zeros((0, 3, 3), np.float32),
-            colours=np.concatenate(colours) if colours else self._no_colours(),
-        )  # fmt: skip
+        node.ids = np.concatenate(ids) if ids else np.zeros(0, np.uint32)
+        node.vertices = np.concatenate(vertices) if vertices else np.zeros((0, 3, 3), np.float32)
+        node.colours = np.concatenate(colours) if colours else self._no_colours()
+        return node
 
     def _no_colours(self) -> np.ndarray | None:
         return np.zeros(0, np.uint32) if self.model.has_colours else None
@@ -215,17 +252,22 @@ class Walker:
         h = self.model.header
         lo = np.array(h["cell_lo"], dtype=np.float32)
         hi = np.array(h["cell_hi"], dtype=np.float32)
-        # (level, block relative to the level, offset, treelet depth, cell)
-        stack = [(0, 0, 0, 0, lo, hi)]
+        # (level, tier, global block, offset, treelet depth, cell); the root is block 0
+        first, count = self.streams[0][0]
+        if (first, count) != (0, 1):
+            raise WalkError("level 0 is not the root's single block, in tier 0")
+        stack = [(0, 0, 0, 0, 0, lo, hi)]
         quantized = bool(h["version"] >= 3 and h["flags"] & QUANTIZED_SPLITS)
         while stack:
-            level, block, off, depth, lo, hi = stack.pop()
-            data = self.block(level, block)
+            level, tier, block, off, depth, lo, hi = stack.pop()
+            data = self.read(block)
             w, w1 = self.word(data, off), self.word(data, off + 4)
             if not w & INNER:
-                yield self.leaf(level, depth, lo, hi, w & 0xFFFF, (w >> 16) & 0x7FFF, w1)
+                leaf = Node("leaf", level, depth, lo, hi, tier=tier, block=block, offset=off)
+                yield self.leaf(leaf, w & 0xFFFF, (w >> 16) & 0x7FFF, w1)
                 continue
-            node = Node("lod" if w & LOD else "basic", level, depth, lo, hi)
+            kind = "lod" if w & LOD else "basic"
+            node = Node(kind, level, depth, lo, hi, tier=tier, block=block, offset=off)
             node.axis = w & 3
             has_l, has_r = not w & LEFT_EMPTY, not w & RIGHT_EMPTY
             node.empty = (not has_l, not has_r)
@@ -246,23 +288,26 @@ class Walker:
                 first_sample = self.word(data, voxel)
                 n = 1 if first_sample & ONE_SAMPLE else 6
                 node.samples = [self.word(data, voxel + 4 * i) for i in range(n)]
-                child_level, child_block = level + 1, self.word(data, off + (8 if quantized else 12))
+                child_level = level + 1
                 if child_level >= self.tri_level:
                     raise WalkError("LOD node in the last node level")
+                reference = self.word(data, off + (8 if quantized else 12))
+                child_tier, child_block, _ = self.resolve(child_level, reference)
+                node.child_tier = child_tier
                 l_off = 8 * ((w >> 17) & 8191)
                 r_off = l_off + 8 * ((w >> 11) & 63) if has_l else l_off
                 child_depth = 0
             else:
-                child_level, child_block, child_depth = level, block, depth + 1
+                child_level, child_tier, child_block, child_depth = level, tier, block, depth + 1
                 size = 4 if small else 8
                 l_off = off + size
                 r_off = off + size * ((w >> 4) & 63) if has_l else off + size
             yield node
             # Right first on the stack so the left subtree is walked first.
             if has_r:
-                stack.append((child_level, child_block, r_off, child_depth, *node.child_cell(1)))
+                stack.append((child_level, child_tier, child_block, r_off, child_depth, *node.child_cell(1)))
             if has_l:
-                stack.append((child_level, child_block, l_off, child_depth, *node.child_cell(0)))
+                stack.append((child_level, child_tier, child_block, l_off, child_depth, *node.child_cell(0)))
 
 
 def walk(model: ModelFile) -> Iterator[Node]:
@@ -295,8 +340,10 @@ def read_parts(path: str | os.PathLike[str]) -> PartsSection | None:
     parts_offset, parts_size, parts_crc, part_count = (
         struct.unpack_from("<QQII", data, 200) if version >= 2 else (0, 0, 0, 0)
     )
-    # The blocks, in order, end where the parts section (or the file) starts.
-    entry_at = index_offset + 24 * level_count
+    # The blocks, in order, end where the parts section (or the file) starts; a tiered
+    # model's level table has a record per stream.
+    tiers = struct.unpack_from("<I", data, TIER_COUNT_AT)[0] if version >= 5 and flags & TIERED else 1
+    entry_at = index_offset + 24 * level_count * tiers
     end = data_offset
     for i in range(block_count):
         offset, stored = struct.unpack_from("<QI", data, entry_at + 24 * i)

@@ -159,8 +159,9 @@ def bunny_mesh(models_folder: Path, load_model: Callable[[Path], ModelMesh]) -> 
 @pytest.fixture(scope="module")
 def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
     """Builds each model once per module, on first use:
-    plant       60k coloured triangles, 50 blocks (11 levels)
-    big-plant   200k coloured triangles, 144 blocks
+    plant       60k coloured triangles, 11 levels
+    big-plant   200k coloured triangles, 262 blocks (144 untiered)
+    big-plant-untiered  the same, one stream per level (a view at PoE 0 reads most blocks)
     bunny       the Stanford bunny, no colours (from a float64 PLY)
     out-of-core a 60k plant built with the smallest memory budget (split on disk)
     tiles       three separate tiles (60k triangles) for views with disjoint blocks"""
@@ -168,6 +169,7 @@ def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
     sources: dict[str, tuple[Callable[[], str | Path], BuildOptions]] = {
         "plant": (lambda: "scene:plant:60000:3", BuildOptions()),
         "big-plant": (lambda: "scene:plant:200000:3", BuildOptions()),
+        "big-plant-untiered": (lambda: "scene:plant:200000:3", BuildOptions(tier_width=0)),
         "bunny": (
             lambda: write_ply(workdir / "bunny.ply", bunny_mesh.vertices, bunny_mesh.faces),
             BuildOptions(),
@@ -254,14 +256,14 @@ def check_frame_bookkeeping(before: dict[int, int], after: dict[int, int], stats
 
 
 def test_budget_and_invariants_over_a_moving_camera(built: Callable[[str], Built]) -> None:
-    """A 12-slot cache and a 144-block model: orbiting, zooming views at PoE 8, 2 and 0,
+    """A 12-slot cache and a 262-block model: orbiting, zooming views at PoE 8, 2 and 0,
     two frames each with the fetchers drained in between. Some views need more than the
     cache holds (every slot then belongs to the frame), others let old blocks go."""
     plant = built("big-plant")
     cache = native.BlockCache(12 * SLOT + 1000, fetchers=2)
     assert cache.slot_count == 12
     model = cache.open(str(plant.path))
-    assert model.block_count == 144 and model.block_count > 10 * cache.slot_count
+    assert model.block_count == 262 and model.block_count > 10 * cache.slot_count
     lo, hi = np.array(plant.bounds[0]), np.array(plant.bounds[1])
     centre, size = (lo + hi) / 2, hi - lo
     evicted = full = complete = 0
@@ -1170,12 +1172,12 @@ def test_queued_blocks_are_read_ahead(built: Callable[[str], Built]) -> None:
     small for the view (a quarter of the model's blocks: the fetchers stop when it is
     full), the blocks five frames asked for still reach the page cache with read-ahead;
     without it only what the fetchers read (and the kernel read around it) does. Both
-    ways the frames are the same."""
-    path = built("big-plant").path
+    ways the frames are the same. (An untiered model: this view reads nearly all of it.)"""
+    path = built("big-plant-untiered").path
     drop_page_cache(path)
     if not resident_fraction(path) <= 0.2:  # NaN: no mincore here
         pytest.skip("the page cache keeps this file (tmpfs?) or cannot be read: read-ahead cannot show")
-    camera = built("big-plant").camera(direction=(1.0, 0.7, 1.3))
+    camera = built("big-plant-untiered").camera(direction=(1.0, 0.7, 1.3))
     with ModelFile(path) as f:
         slots = max(8, len(f.blocks) // 4)
     resident, images = {}, {}

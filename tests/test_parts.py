@@ -293,17 +293,20 @@ def test_a_float_ply_property_named_part_is_not_a_part(tmp_path: Path) -> None:
 
 @pytest.fixture
 def plain(tmp_path: Path) -> Path:
-    """A model whose input has no parts (an OBJ without o, g or usemtl)."""
+    """A model whose input has no parts (an OBJ without o, g or usemtl), untiered: the
+    layout of version 1 (a tiered file is version 5's alone, tests/test_tiers.py)."""
     text = "\n".join(line for line in parts_obj(600).splitlines() if line.split()[0] in ("v", "f"))
     (tmp_path / "plain.obj").write_text(text + "\n")
-    assert build_model(tmp_path / "plain.obj", tmp_path / "plain.vast")["parts"] == 0
+    options = BuildOptions(tier_width=0)
+    assert build_model(tmp_path / "plain.obj", tmp_path / "plain.vast", options)["parts"] == 0
     return tmp_path / "plain.vast"
 
 
 @pytest.fixture
 def with_parts(tmp_path: Path) -> Path:
+    """Untiered, so that relabelled as version 1 only its parts flag is unknown."""
     (tmp_path / "some.obj").write_text(parts_obj(600))
-    build_model(tmp_path / "some.obj", tmp_path / "some.vast")
+    build_model(tmp_path / "some.obj", tmp_path / "some.vast", BuildOptions(tier_width=0))
     return tmp_path / "some.vast"
 
 

@@ -204,11 +204,11 @@ def test_closed_mesh_stays_closed(models: dict[tuple[str, str], Path]) -> None:
 
 
 def test_old_files_still_read(tmp_path: Path, models: dict[tuple[str, str], Path]) -> None:
-    """A version-4 model without the flag, read as versions 1-3, renders as before; a
-    quantized model cannot pass for version 3 (the flag came with version 4); the
-    flag's absence keeps word 3 ignored."""
+    """A model without the flag (and untiered: the layout versions 1-4 had), read as
+    versions 1-3, renders as before; a quantized model cannot pass for version 3 (the
+    flag came with version 4); the flag's absence keeps word 3 ignored."""
     full = tmp_path / "spheres.vast"
-    build_model("scene:spheres:20000:3", full)
+    build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0))
     camera = views(full)[0]
     with ModelFile(full) as model:
         assert not model.quantized_vertices

@@ -107,6 +107,13 @@ class BuildOptions:
     # lossy, by at most one grid step, and watertight (a shared vertex snaps the same
     # everywhere).
     quantized_vertices: bool = False
+    # Coarseness tiers (FLAG_TIERED, docs/FORMAT.md §15): each level's treelet pairs and
+    # leaf triangles go to streams by the radius of the LOD node above them, so a far
+    # view reads the coarse streams only. Tier 0 holds radii down to R_root / 2^
+    # tier_coarse_octaves, then a tier per tier_width halvings; 0 writes one stream per
+    # level (the layout of version 4).
+    tier_width: float = 1.0
+    tier_coarse_octaves: int = 4
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -127,6 +134,10 @@ class BuildOptions:
             raise ValueError(f"leaf_size must be at least 1, got {self.leaf_size}")
         if not 1 <= number("voxel_rays", numbers.Integral) <= 8:
             raise ValueError(f"voxel_rays must be 1 ... 8, got {self.voxel_rays}")
+        if not 0 <= number("tier_width", numbers.Real) <= 16:
+            raise ValueError(f"tier_width must be 0 (untiered) ... 16 octaves, got {self.tier_width!r}")
+        if not 0 <= number("tier_coarse_octaves", numbers.Integral) <= 32:
+            raise ValueError(f"tier_coarse_octaves must be 0 ... 32, got {self.tier_coarse_octaves}")
         for name in ("traversal_cost", "intersection_cost"):
             value = number(name, numbers.Real)
             if not (np.isfinite(value) and value > 0):
@@ -375,6 +386,8 @@ class _Split:
     splits: list[float]
     slot_lo: np.ndarray  # (8, 3) float32: the cells of the eight children
     slot_hi: np.ndarray
+    lod_lo: np.ndarray  # (4, 3) float32: the cells of its LOD nodes, child slots 2j and 2j + 1's parent j
+    lod_hi: np.ndarray
     children: list[_Part | _Split | None] = field(default_factory=list)
 
 
@@ -695,9 +708,22 @@ class _Builder:
 
     # -- phase 4: build ---------------------------------------------------------------------
 
-    def emit(self, node: _Part | _Split, writer: native.ModelWriter) -> int:
+    def emit(
+        self,
+        node: _Part | _Split,
+        writer: native.ModelWriter,
+        lod_parent: tuple[list[float], list[float]] | None = None,
+    ) -> int:
+        """Hands a subtree to the writer, bottom-up; `lod_parent` is the cell of the LOD
+        node above it (None at the root), whose radius tiers the leaves of a part's root
+        treelet (the writer knows it for everything deeper)."""
         if isinstance(node, _Split):
-            handles = [self.emit(k, writer) if k is not None else -1 for k in node.children]
+            handles = [
+                self.emit(k, writer, (node.lod_lo[i // 2].tolist(), node.lod_hi[i // 2].tolist()))
+                if k is not None
+                else -1
+                for i, k in enumerate(node.children)
+            ]
             return writer.add_inner_treelet(
                 node.level, node.lo.tolist(), node.hi.tolist(), node.axes, node.splits, handles
             )
@@ -710,7 +736,7 @@ class _Builder:
         self.part_base = self.built
         self.part_refs0 = self.refs_seen
         self.part_count = node.count
-        handle = writer.add_subtree(recs, node.lo.tolist(), node.hi.tolist(), node.level)
+        handle = writer.add_subtree(recs, node.lo.tolist(), node.hi.tolist(), node.level, lod_parent)
         del recs
         part_refs = self.refs_seen - self.part_refs0
         if node.count:
@@ -777,26 +803,21 @@ class _Builder:
             threads=self.opt.threads,
             quantized_splits=self.opt.quantized_splits,
             vertex_steps=steps,
+            tier_width=self.opt.tier_width,
+            tier_coarse_octaves=self.opt.tier_coarse_octaves,
+            root_cell=(lo.tolist(), hi.tolist()),
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
         stats = writer.stats
-        level_files = writer.levels  # {level: (path, (n, 4) stored size, raw size, crc32, codec)}
+        # {level: (path, (n, 5) stored size, raw size, crc32, codec, tier in file order)}
+        level_files = writer.levels
         t = self.timed("build", t)
 
-        node_levels = len(stats["level_blocks"])
-        order = [*range(node_levels), -1]
-        levels: list[tuple[int, int, int, int]] = []
-        entries: list[tuple[int, int, int, int]] = []
-        for level in order:
-            es = [tuple(int(x) for x in e) for e in level_files[level][1]] if level in level_files else []
-            if level >= 0:
-                contents = (stats["level_nodes"][level], stats["level_voxels"][level])
-            else:
-                contents = (stats["stored_triangles"], stats["stored_vertices"])
-            levels.append((len(entries), len(es), *contents))
-            entries.extend(es)
+        layout = _assemble_streams(stats, level_files, tiered=self.opt.tier_width > 0)
+        levels, entries, reads = layout.records, layout.entries, layout.reads
+        node_levels = len(stats["node_streams"])
         stored_total = sum(e[0] for e in entries)
         fields = {
             "flags": modelfile.FLAG_TRIANGLE_IDS
@@ -820,19 +841,26 @@ class _Builder:
 
         def blocks() -> Iterator[bytes]:
             nonlocal written
-            for level in order:
-                if level not in level_files:
-                    continue
-                path = Path(level_files[level][0])
-                with open(path, "rb") as f:
-                    while chunk := f.read(8 << 20):
-                        written += len(chunk)
-                        self.report("write", written, stored_total, unit="bytes")
-                        yield chunk
-                path.unlink()
+            for path, runs in reads:
+                fd = os.open(path, os.O_RDONLY)
+                try:
+                    for offset, size in runs:
+                        while size > 0:
+                            chunk = os.pread(fd, min(size, 8 << 20), offset)
+                            if not chunk:
+                                raise RuntimeError(f"{path}: shorter than the blocks written to it")
+                            offset, size = offset + len(chunk), size - len(chunk)
+                            written += len(chunk)
+                            self.report("write", written, stored_total, unit="bytes")
+                            yield chunk
+                finally:
+                    os.close(fd)
+                os.unlink(path)
 
         with open(partial, "wb") as out:
-            size = modelfile.write_model_file(out, fields, levels, entries, blocks(), part_table)
+            size = modelfile.write_model_file(
+                out, fields, levels, entries, blocks(), part_table, layout.tier_count
+            )
             out.flush()
             os.fsync(out.fileno())
         t = self.timed("write", t)
@@ -862,8 +890,54 @@ class _Builder:
             "warnings": self.warnings,
             **{k: stats[k] for k in ("basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six",
                                      "references", "stored_triangles", "stored_vertices", "vertex_bytes",
-                                     "kd_build_ms", "emit_ms", "max_depth")},
+                                     "kd_build_ms", "emit_ms", "max_depth", "emission_jobs")},
+            "tiers": layout.tier_count,
         }  # fmt: skip
+
+
+@dataclass
+class _StreamLayout:
+    """How the level files become the model's blocks: the level table's records (first,
+    count, items, extra), the block index entries (stored size, raw size, crc32, codec)
+    in file order, and per level file the (offset, size) runs to copy, in that order."""
+
+    records: list[tuple[int, int, int, int]]
+    entries: list[tuple[int, int, int, int]]
+    reads: list[tuple[str, list[tuple[int, int]]]]
+    tier_count: int  # 0: untiered (one record per level)
+
+
+def _assemble_streams(stats: dict[str, Any], level_files: dict[int, Any], tiered: bool) -> _StreamLayout:
+    """Lays the streams out level by level, and within a level coarsest tier first
+    (docs/FORMAT.md §3, §5). A level file holds its tiers' blocks in the order they were
+    finished, each tier's in its stream's order."""
+    node_streams: list[list[tuple[int, int, int, int]]] = stats["node_streams"]
+    triangle_streams: list[tuple[int, int, int, int]] = stats["triangle_streams"]
+    tiers = max(len(t) for t in [*node_streams, triangle_streams]) if tiered else 1
+    records: list[tuple[int, int, int, int]] = []
+    entries: list[tuple[int, int, int, int]] = []
+    reads: list[tuple[str, list[tuple[int, int]]]] = []
+    for level, counts in [*enumerate(node_streams), (-1, triangle_streams)]:
+        path, rows = level_files.get(level, ("", np.zeros((0, 5), np.uint32)))
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1, 5)
+        offsets = np.concatenate([[0], np.cumsum(rows[:, 0])])
+        runs: list[tuple[int, int]] = []
+        for tier in range(tiers):
+            mine = np.flatnonzero(rows[:, 4] == tier)
+            blocks, _, items, extra = counts[tier] if tier < len(counts) else (0, 0, 0, 0)
+            if len(mine) != blocks:
+                raise RuntimeError(f"level {level} tier {tier}: {len(mine)} blocks written, {blocks} counted")
+            records.append((len(entries), len(mine), items, extra))
+            entries.extend(tuple(int(x) for x in rows[i, :4]) for i in mine)
+            for i in mine:  # consecutive blocks of the file are read at once
+                start, size = int(offsets[i]), int(rows[i, 0])
+                if runs and runs[-1][0] + runs[-1][1] == start:
+                    runs[-1] = (runs[-1][0], runs[-1][1] + size)
+                else:
+                    runs.append((start, size))
+        if path:
+            reads.append((path, runs))
+    return _StreamLayout(records, entries, reads, tiers if tiered else 0)
 
 
 def peak_rss_bytes() -> int:
@@ -932,7 +1006,11 @@ def _choose_splits(
             boxes[child] = (np.maximum(blo, c_lo), np.minimum(bhi, c_hi))
     slot_lo = np.array([cells[7 + s][0] for s in range(8)], dtype=np.float32)
     slot_hi = np.array([cells[7 + s][1] for s in range(8)], dtype=np.float32)
-    return _Split(lo.astype(np.float32), hi.astype(np.float32), level, axes, splits, slot_lo, slot_hi)
+    lod_lo = np.array([cells[3 + j][0] for j in range(4)], dtype=np.float32)
+    lod_hi = np.array([cells[3 + j][1] for j in range(4)], dtype=np.float32)
+    return _Split(
+        lo.astype(np.float32), hi.astype(np.float32), level, axes, splits, slot_lo, slot_hi, lod_lo, lod_hi
+    )
 
 
 def _parts(node: _Part | _Split | None) -> Iterator[_Part]:

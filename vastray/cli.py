@@ -189,6 +189,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         scratch_dir=args.scratch_dir,
         quantized_splits=args.quantized_splits,
         quantized_vertices=args.quantized_vertices,
+        tier_width=args.tier_width,
     )
     options.check()  # a bad option is a clear error before any work
     # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
@@ -259,6 +260,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     lo, hi = stats["bounds"]
     splits = ", quantized splits" if stats.get("quantized_splits") else ""
     splits += ", quantized vertices" if stats.get("quantized_vertices") else ""
+    splits += f", {stats['tiers']} coarseness tiers" if stats.get("tiers") else ""
     print(f"model      {stats['path']} (format version {stats['version']}{splits})")
     print(
         f"triangles  {stats['triangles']:,} (input {stats['input_triangles']:,}, "
@@ -292,7 +294,21 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
             f"{lv['level']!s:>10} {counts} {lv['blocks']:>8,} {lv['raw_bytes'] / 2**20:>10.2f} "
             f"{lv['stored_bytes'] / 2**20:>11.2f} {ratio:>6.2f}"
         )
+        for tier in lv.get("tiers", []):
+            if not tier["blocks"]:
+                continue
+            tier_ratio = tier["raw_bytes"] / tier["stored_bytes"] if tier["stored_bytes"] else 1.0
+            print(
+                f"{'tier ' + str(tier['tier']):>10} {tier['items']:>12,} {tier['extra']:>12,} "
+                f"{tier['blocks']:>8,} {tier['raw_bytes'] / 2**20:>10.2f} "
+                f"{tier['stored_bytes'] / 2**20:>11.2f} {tier_ratio:>6.2f}"
+            )
     print("(triangle level: triangle records and vertices, counted once per block that stores them)")
+    if stats.get("tiers"):
+        print(
+            "(tiers: a level's blocks by the size of the LOD node above them; tier 0 is what any view of "
+            "the whole model needs, each further tier what only nearer views need)"
+        )
     if args.verify:
         print(f"verified   all {stats['blocks']:,} blocks (checksums and decompression)")
     return 0
@@ -398,6 +414,15 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="vertices on a 2^21-step grid of the model's box, bit-packed per block: smaller, "
         "lossy by at most one grid step, watertight (docs/FORMAT.md)",
+    )
+    b.add_argument(
+        "--tier-width",
+        type=float,
+        default=1.0,
+        metavar="OCTAVES",
+        help="coarseness tiers: blocks hold data a view needs from about the same distance, so "
+        "far views read less; a tier per this many halvings of the LOD radius (default 1; "
+        "0: one stream per level, the layout of format version 4)",
     )
     b.set_defaults(func=_cmd_build)
 

@@ -2,8 +2,9 @@
 named parts, a parts section (docs/FORMAT.md).
 
 `ModelFile` opens a model, verifies its header, index and parts section, reads and
-verifies any block, reports statistics per LOD level, tells the part of any input
-triangle, and decodes the whole model into an in-core scene for full-detail renders.
+verifies any block, reports statistics per LOD level and per coarseness tier, tells the
+part of any input triangle, and decodes the whole model into an in-core scene for
+full-detail renders.
 The block contents (treelets, voxels, triangle blocks) are produced and walked by the
 native core; their bit layouts are in native/include/vastray/format.h.
 """
@@ -26,7 +27,7 @@ from vastray import native
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-3: version 4 without its later flags
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-4: version 5 without its later flags
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -39,6 +40,10 @@ FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (ve
 FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
 # Vertices on a grid of the root cell, bit-packed offsets per triangle block (FORMAT.md §11)
 FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
+# Each level split into streams by coarseness tier, T of them per level (version 5, §5, §15)
+FLAG_TIERED: int = _F["flag_tiered"]
+TIER_SHIFT: int = _F["tier_shift"]  # a node's block reference: tier << TIER_SHIFT | relative id
+MAX_TIERS: int = _F["max_tiers"]
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
 SPLIT_STEPS: int = 1 << SPLIT_BITS
@@ -110,13 +115,24 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
     ("parts_size", "Q"),
     ("parts_crc32", "I"),
     ("part_count", "I"),
+    # version 5: tiers per level with FLAG_TIERED, else zero (padding before)
+    ("tier_count", "I"),
 )
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
-_HEADER_CRC_AT = _HEADER_STRUCT.size - 28
+
+
+def _field_offset(name: str) -> int:
+    codes = [code for _, code in _HEADER_FIELDS[: [n for n, _ in _HEADER_FIELDS].index(name)]]
+    return struct.calcsize("<" + "".join(codes))
+
+
+_HEADER_CRC_AT = _field_offset("header_crc32")
 assert _HEADER_STRUCT.size <= HEADER_SIZE and _HEADER_CRC_AT == _F["header_crc_at"]
-assert _HEADER_STRUCT.size - 24 == _F["parts_offset_at"]
-# first block, block count, then what the level holds: node levels count their nodes
-# and LOD voxels, the triangle level its triangle records and vertices.
+assert _field_offset("parts_offset") == _F["parts_offset_at"]
+assert _field_offset("tier_count") == _F["tier_count_at"]
+# One per stream (a level, or a tier of a level in a tiered file): first block, block
+# count, then what it holds: node levels count their nodes and LOD voxels, the triangle
+# level its triangle records and vertices.
 _LEVEL = struct.Struct("<IIQQ")
 _ENTRY = struct.Struct("<QIIII")  # offset, stored size, raw size, crc32 of stored bytes, codec
 assert _LEVEL.size == _F["level_record"] and _ENTRY.size == _F["entry_record"]
@@ -178,6 +194,19 @@ def part_name(obj: str, group: str, material: str) -> str:
     return " / ".join(n for n in (obj, group, material) if n) or "(unnamed)"
 
 
+@dataclass(frozen=True)
+class Stream:
+    """One stream of blocks: a level (untiered) or one coarseness tier of a level.
+    `items` and `extra` count what the level table says it holds (§5)."""
+
+    level: int
+    tier: int
+    first: int
+    count: int
+    items: int
+    extra: int
+
+
 @dataclass
 class BlockEntry:
     offset: int
@@ -216,11 +245,16 @@ def write_model_file(
     entries: list[tuple[int, int, int, int]],
     block_data: Iterator[bytes],
     parts: PartTable | None = None,
+    tier_count: int = 0,
 ) -> int:
     """Writes header, index, blocks and (when `parts` is given) the parts section.
-    `entries` are (stored size, raw size, crc, codec) in block order; `block_data`
-    yields the stored bytes in the same order (it may yield them in larger runs).
-    Returns the file size."""
+    `levels` are the level table's records (first, count, items, extra): one per level,
+    or with `tier_count` > 0 (FLAG_TIERED) that many per level, level-major. `entries`
+    are (stored size, raw size, crc, codec) in block order; `block_data` yields the
+    stored bytes in the same order (it may yield them in larger runs). Returns the file
+    size."""
+    if tier_count and len(levels) % tier_count:
+        raise ValueError("a tiered level table holds tier_count records per level")
     index_size = _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
     data_offset = HEADER_SIZE + index_size
     index = bytearray()
@@ -236,13 +270,18 @@ def write_model_file(
         header["flags"] = header["flags"] | FLAG_PART_IDS
     else:
         header["flags"] = header["flags"] & ~FLAG_PART_IDS
+    if tier_count:
+        header["flags"] = header["flags"] | FLAG_TIERED
+    else:
+        header["flags"] = header["flags"] & ~FLAG_TIERED
     header.update(
         magic=MAGIC,
         version=VERSION,
         header_size=HEADER_SIZE,
         block_size=BLOCK_SIZE,
         codec=CODEC_FAMILY_LZ4,
-        level_count=len(levels),
+        level_count=len(levels) // max(1, tier_count),
+        tier_count=tier_count,
         block_count=len(entries),
         index_offset=HEADER_SIZE,
         data_offset=data_offset,
@@ -324,32 +363,55 @@ class ModelFile:
         known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
         known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
         known |= FLAG_QUANTIZED_VERTICES if h["version"] >= 4 else 0
+        known |= FLAG_TIERED if h["version"] >= 5 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
             h.update(parts_offset=0, parts_size=0, parts_crc32=0, part_count=0)
+        if h["version"] < 5:  # bytes 224-227 were padding
+            h.update(tier_count=0)
+        tiered = bool(h["flags"] & FLAG_TIERED)
+        if not tiered and h["tier_count"]:
+            raise self._fail("tier count set without the tiered flag")
+        if tiered and not 1 <= h["tier_count"] <= MAX_TIERS:
+            raise self._fail(f"implausible tier count {h['tier_count']}")
         self.header = h
+        self.tier_count = h["tier_count"] if tiered else 1
         blocks_end = self._open_parts(h, size)
-        index_size = _LEVEL.size * h["level_count"] + _ENTRY.size * h["block_count"]
+        records = h["level_count"] * self.tier_count
+        index_size = _LEVEL.size * records + _ENTRY.size * h["block_count"]
         if h["index_offset"] + index_size != h["data_offset"] or h["data_offset"] > blocks_end:
             raise self._fail("index does not fit the file")
         self._file.seek(h["index_offset"])
         index = self._file.read(index_size)
         if zlib.crc32(index) != h["index_crc32"]:
             raise self._fail("block index checksum mismatch (the index is corrupted)")
-        table = [_LEVEL.unpack_from(index, _LEVEL.size * i) for i in range(h["level_count"])]
-        self.levels = [(first, count) for first, count, _, _ in table]
-        # Per level: (nodes, LOD voxels) for node levels, (triangle records, vertices) for the last.
-        self.level_contents = [(items, extra) for _, _, items, extra in table]
-        base = _LEVEL.size * h["level_count"]
+        table = [_LEVEL.unpack_from(index, _LEVEL.size * i) for i in range(records)]
+        t = self.tier_count
+        # Level-major: record L * T + k is level L's tier k (T = 1 untiered).
+        self.streams = [Stream(i // t, i % t, *record) for i, record in enumerate(table)]
+        # Per level, over its tiers: (first block, block count), and (nodes, LOD voxels)
+        # for node levels, (triangle records, vertices) for the last.
+        self.levels = [
+            (self.streams[L * t].first, sum(s.count for s in self.streams[L * t : (L + 1) * t]))
+            for L in range(h["level_count"])
+        ]
+        self.level_contents = [
+            (
+                sum(s.items for s in self.streams[L * t : (L + 1) * t]),
+                sum(s.extra for s in self.streams[L * t : (L + 1) * t]),
+            )
+            for L in range(h["level_count"])
+        ]
+        base = _LEVEL.size * records
         self.blocks = [
             BlockEntry(*_ENTRY.unpack_from(index, base + _ENTRY.size * i)) for i in range(h["block_count"])
         ]
         expected = 0
-        for first, count in self.levels:
-            if first != expected:
+        for s in self.streams:
+            if s.first != expected:
                 raise self._fail("levels do not tile the block index")
-            expected += count
+            expected += s.count
         if expected != len(self.blocks):
             raise self._fail("levels do not cover every block")
         for i, e in enumerate(self.blocks):
@@ -443,6 +505,23 @@ class ModelFile:
         """Vertices on the root cell's grid, bit-packed offsets in triangle blocks (version 4)."""
         return bool(self.header["flags"] & FLAG_QUANTIZED_VERTICES)
 
+    @property
+    def tiered(self) -> bool:
+        """Levels split into streams by coarseness tier (version 5)."""
+        return bool(self.header["flags"] & FLAG_TIERED)
+
+    def stream(self, level: int, tier: int) -> Stream:
+        """The stream of `level` (0 ... node_levels, the last the triangle level) and tier."""
+        if not (0 <= level < len(self.levels) and 0 <= tier < self.tier_count):
+            raise IndexError(f"no stream for level {level}, tier {tier}")
+        return self.streams[level * self.tier_count + tier]
+
+    def reference(self, word: int) -> tuple[int, int]:
+        """(tier, block id relative to the stream) of a block reference stored in a node."""
+        if not self.tiered:
+            return 0, word
+        return word >> TIER_SHIFT, word & ((1 << TIER_SHIFT) - 1)
+
     def triangle_layout(self, data: bytes) -> dict[str, int]:
         """The sections of a triangle block's raw bytes (FORMAT.md §11): counts, byte
         offsets and, with quantized vertices, the bits per axis and bytes per vertex.
@@ -524,7 +603,7 @@ class ModelFile:
         try:
             return native.decode_model(
                 raw,
-                [first for first, _ in self.levels],
+                [s.first for s in self.streams],
                 list(self.header["centre"]),
                 list(self.header["cell_lo"]),
                 list(self.header["cell_hi"]),
@@ -532,6 +611,8 @@ class ModelFile:
                 self.has_colours,
                 self.quantized_splits,
                 self.quantized_vertices,
+                self.tier_count,
+                self.tiered,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -553,6 +634,18 @@ class ModelFile:
             row.update(
                 raw_bytes=sum(e.raw_size for e in entries), stored_bytes=sum(e.stored_size for e in entries)
             )
+            if self.tiered:
+                row["tiers"] = [
+                    {
+                        "tier": s.tier,
+                        "blocks": s.count,
+                        "items": s.items,
+                        "extra": s.extra,
+                        "raw_bytes": sum(e.raw_size for e in self.blocks[s.first : s.first + s.count]),
+                        "stored_bytes": sum(e.stored_size for e in self.blocks[s.first : s.first + s.count]),
+                    }
+                    for s in self.streams[level * self.tier_count : (level + 1) * self.tier_count]
+                ]
             levels.append(row)
         stored = sum(e.stored_size for e in self.blocks)
         return {
@@ -565,6 +658,7 @@ class ModelFile:
             "colours": self.has_colours,
             "quantized_splits": self.quantized_splits,
             "quantized_vertices": self.quantized_vertices,
+            "tiers": self.tier_count if self.tiered else 0,
             "part_count": len(self._parts),
             "parts": [
                 {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}

@@ -247,6 +247,10 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_part_ids"] = format::kFlagPartIds;
     fmt["flag_quantized_splits"] = format::kFlagQuantizedSplits;
     fmt["flag_quantized_vertices"] = format::kFlagQuantizedVertices;
+    fmt["flag_tiered"] = format::kFlagTiered;
+    fmt["tier_count_at"] = format::kTierCountAt;
+    fmt["tier_shift"] = format::kTierShift;
+    fmt["max_tiers"] = format::kMaxTiers;
     fmt["vertex_grid_bits"] = format::kVertexGridBits;
     fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;

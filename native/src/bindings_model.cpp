@@ -42,7 +42,8 @@ class PyModelWriter {
 public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
-                  unsigned threads, bool quantized_splits, py::object vertex_steps)
+                  unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
+                  int tier_coarse_octaves, py::object root_cell)
         : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -59,11 +60,21 @@ public:
             p.vertex_steps = Vec3f(steps[0], steps[1], steps[2]);
         }
         p.voxel_rays_per_axis = voxel_rays;
+        if (!(tier_width >= 0 && tier_width <= 16) || tier_coarse_octaves < 0 || tier_coarse_octaves > 32) {
+            throw std::invalid_argument("tier width must be 0 ... 16 octaves and coarse octaves 0 ... 32");
+        }
+        if (tier_width > 0) {
+            if (root_cell.is_none()) throw std::invalid_argument("a tiered model needs its root cell");
+            const auto [lo, hi] = root_cell.cast<std::pair<std::vector<double>, std::vector<double>>>();
+            p.root_radius = format::cell_radius(to_box(lo, hi).extent());
+            p.tier_width = tier_width;
+            p.tier_coarse_octaves = tier_coarse_octaves;
+        }
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
         }
         // Blocks go straight to the level files, without the GIL.
-        BlockSink block_sink = [this](int level, StoredBlock&& block) { files_.write(level, block); };
+        BlockSink block_sink = [this](int level, std::uint32_t tier, StoredBlock&& block) { files_.write(level, tier, block); };
         ProgressSink progress_sink;
         if (!progress.is_none()) {
             progress_sink = [progress](std::uint64_t refs) {
@@ -75,16 +86,23 @@ public:
     }
 
     // records: (n, stride) uint8, one builder record per row (read in place).
+    // lod_parent: (lo, hi) of the LOD node above the subtree, or None at the model's root.
     int add_subtree(const py::array_t<std::uint8_t, py::array::c_style>& records, const std::vector<double>& lo,
-                    const std::vector<double>& hi, int level) {
+                    const std::vector<double>& hi, int level, const py::object& lod_parent) {
         if (records.ndim() != 2) throw std::invalid_argument("records must be (n, stride) bytes");
         const auto n = static_cast<std::size_t>(records.shape(0));
         const auto stride = static_cast<std::size_t>(records.shape(1));
         if (level < 0) throw std::invalid_argument("level must be >= 0");
         const Box3f cell = to_box(lo, hi);
+        Box3f parent;
+        const bool has_parent = !lod_parent.is_none();
+        if (has_parent) {
+            const auto [plo, phi] = lod_parent.cast<std::pair<std::vector<double>, std::vector<double>>>();
+            parent = to_box(plo, phi);
+        }
         const std::uint8_t* data = records.data();
         py::gil_scoped_release release;
-        return writer_->add_subtree(data, stride, n, cell, level);
+        return writer_->add_subtree(data, stride, n, cell, level, has_parent ? &parent : nullptr);
     }
 
     int add_inner_treelet(int level, const std::vector<double>& lo, const std::vector<double>& hi,
@@ -101,12 +119,12 @@ public:
         files_.close();
     }
 
-    // {level: (file path, (n, 4) uint32 of stored size, raw size, crc32, codec)}; level
-    // -1 is the triangle level.
+    // {level: (file path, (n, 5) uint32 of stored size, raw size, crc32, codec, tier)} in
+    // file order; level -1 is the triangle level.
     py::dict levels() const {
         py::dict d;
         for (const auto& [level, entries] : files_.entries()) {
-            py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{4}});
+            py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{5}});
             std::memcpy(a.mutable_data(), entries.data(), entries.size() * sizeof entries[0]);
             d[py::int_(level)] = py::make_tuple(files_.path(level), a);
         }
@@ -130,13 +148,21 @@ public:
         d["triangle_blocks"] = s.triangle_blocks;
         d["vertex_bytes"] = s.vertex_bytes;
         d["triangle_bytes"] = s.triangle_bytes;
-        d["level_blocks"] = s.level_blocks;
-        d["level_bytes"] = s.level_bytes;
-        d["level_nodes"] = s.level_nodes;
-        d["level_voxels"] = s.level_voxels;
+        // Per stream: (blocks, raw bytes, nodes, voxels) by [level][tier] for the node
+        // levels, (blocks, raw bytes, triangle records, vertices) by [tier] for triangles.
+        auto rows = [](const std::vector<StreamStats>& tiers) {
+            py::list out;
+            for (const StreamStats& t : tiers) out.append(py::make_tuple(t.blocks, t.bytes, t.items, t.extra));
+            return out;
+        };
+        py::list nodes;
+        for (const auto& tiers : s.node_streams) nodes.append(rows(tiers));
+        d["node_streams"] = nodes;
+        d["triangle_streams"] = rows(s.triangle_streams);
         d["kd_build_ms"] = s.kd_build_ms;
         d["emit_ms"] = s.emit_ms;
         d["max_depth"] = s.max_depth;
+        d["emission_jobs"] = s.emission_jobs;
         return d;
     }
 
@@ -145,10 +171,10 @@ private:
     std::unique_ptr<ModelWriter> writer_;
 };
 
-std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& level_first,
+std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& stream_first,
                               const std::vector<double>& centre, const std::vector<double>& lo,
                               const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
-                              bool quantized_splits, bool quantized_vertices) {
+                              bool quantized_splits, bool quantized_vertices, std::uint32_t tier_count, bool tiered) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -156,7 +182,9 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
         in.blocks.push_back(reinterpret_cast<const std::uint8_t*>(v.data()));
         in.sizes.push_back(v.size());
     }
-    in.level_first = level_first;
+    in.stream_first = stream_first;
+    in.tier_count = tier_count;
+    in.tiered = tiered;
     if (centre.size() != 3) throw std::invalid_argument("centre must have three components");
     in.centre = {centre[0], centre[1], centre[2]};
     in.root_cell = to_box(lo, hi);
@@ -164,7 +192,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.has_colours = has_colours;
     in.quantized_splits = quantized_splits;
     in.quantized_vertices = quantized_vertices;
-    for (std::uint32_t f : level_first) {
+    for (std::uint32_t f : stream_first) {
         if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
     }
     py::gil_scoped_release release;  // `blocks` keeps every bytes object alive meanwhile
@@ -638,14 +666,16 @@ py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const st
 void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
-        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object>(),
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object, double,
+                      int, py::object>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
-             py::arg("vertex_steps") = py::none())
+             py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
+             py::arg("root_cell") = py::none())
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
-             py::arg("level"))
+             py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
              py::arg("axes"), py::arg("splits"), py::arg("children"))
         .def("finish", &PyModelWriter::finish, py::arg("root"))
@@ -672,7 +702,9 @@ void bind_model(py::module_& m) {
     bind_ingest(m);
     m.def("sift8", &sift8, py::arg("records"), py::arg("axes"), py::arg("splits"), py::arg("cell_lo"),
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");
-    m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),
+    m.def("decode_model", &decode, py::arg("blocks"), py::arg("stream_first"), py::arg("centre"), py::arg("lo"),
           py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
-          py::arg("quantized_vertices") = false, "Decode a whole model (raw blocks by global id) into an in-core Scene");
+          py::arg("quantized_vertices") = false, py::arg("tier_count") = 1u, py::arg("tiered") = false,
+          "Decode a whole model (raw blocks by global id; the first block of each stream, level-major) into an "
+          "in-core Scene");
 }

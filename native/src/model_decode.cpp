@@ -2,6 +2,7 @@
 
 #include <stdexcept>
 #include <string>
+#include <utility>
 
 #include "vastray/format.h"
 
@@ -14,15 +15,18 @@ namespace {
 class Decoder {
 public:
     explicit Decoder(const DecodeInput& in) : in_(in), steps_(vertex_grid_steps(in.root_cell.lo, in.root_cell.hi)) {
-        if (in.level_first.size() < 2) throw std::runtime_error("model has no levels");
-        tri_level_ = in.level_first.size() - 1;
+        if (in.tier_count == 0 || in.stream_first.size() % in.tier_count != 0 ||
+            in.stream_first.size() / in.tier_count < 2) {
+            throw std::runtime_error("model has no levels");
+        }
+        tri_level_ = in.stream_first.size() / in.tier_count - 1;
         vertices_.resize(3 * in.triangle_ids);
         seen_.assign(in.triangle_ids, 0);
         if (in.has_colours) colours_.resize(3 * in.triangle_ids);
     }
 
     std::shared_ptr<Scene> run() {
-        walk(in_.level_first[0], 0, 0, 0, in_.root_cell);
+        walk(in_.stream_first[0], 0, 0, 0, in_.root_cell);
         KdTree tree;
         tree.nodes = std::move(nodes_);
         tree.tri_ids = std::move(tri_ids_);
@@ -44,11 +48,19 @@ private:
         return w;
     }
 
-    std::size_t block_of(std::size_t level, std::uint32_t relative, std::size_t from) const {
-        const std::size_t level_end = level + 1 < in_.level_first.size() ? in_.level_first[level + 1] : in_.blocks.size();
-        const std::size_t b = in_.level_first[level] + relative;
-        if (b >= level_end) bad(from, "child block " + std::to_string(relative) + " is outside level " + std::to_string(level));
-        return b;
+    // The global block a node's block reference names in `level`, and the end of its
+    // stream (a leaf too big for one block continues up to there).
+    std::pair<std::size_t, std::size_t> block_of(std::size_t level, std::uint32_t reference, std::size_t from) const {
+        const std::uint32_t tier = ref_tier(reference, in_.tiered), relative = ref_relative(reference, in_.tiered);
+        const std::string where = in_.tiered ? " of tier " + std::to_string(tier) : std::string();
+        if (tier >= in_.tier_count) {
+            bad(from, "child block " + std::to_string(relative) + where + " is outside level " + std::to_string(level));
+        }
+        const std::size_t s = stream_index(level, tier, in_.tier_count);
+        const std::size_t end = s + 1 < in_.stream_first.size() ? in_.stream_first[s + 1] : in_.blocks.size();
+        const std::size_t b = std::size_t{in_.stream_first[s]} + relative;
+        if (b >= end) bad(from, "child block " + std::to_string(relative) + where + " is outside level " + std::to_string(level));
+        return {b, end};
     }
 
     void walk(std::size_t block, std::size_t off, std::size_t level, int depth, const Box3f& cell) {
@@ -73,7 +85,7 @@ private:
         if (is_lod(w)) {
             if (level + 1 >= tri_level_) bad(block, "LOD node in the last node level");
             child_level = level + 1;
-            l_block = r_block = block_of(child_level, word(block, off + lod_child_block_at(in_.quantized_splits)), block);
+            l_block = r_block = block_of(child_level, word(block, off + lod_child_block_at(in_.quantized_splits)), block).first;
             l_off = 8 * static_cast<std::size_t>(lod_child_off8(w));
             r_off = has_l ? l_off + 8 * static_cast<std::size_t>(lod_right_from_left8(w)) : l_off;
         } else {
@@ -118,13 +130,14 @@ private:
     // A leaf's entries run from `first` to the end of its block's list and, for leaves
     // too big for one block, on from entry 0 of the following triangle blocks.
     void leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
-        TriangleBlockView tb = triangle_block(block_of(tri_level_, tri_block, from));
+        const auto [first_block, stream_end] = block_of(tri_level_, tri_block, from);
+        TriangleBlockView tb = triangle_block(first_block);
         std::uint32_t entry = leaf_first(w);
         const std::uint32_t count = leaf_count(w);
         nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), count));
         for (std::uint32_t i = 0; i < count; ++i, ++entry) {
             while (entry >= tb.lists) {
-                if (tb.block + 1 >= in_.blocks.size()) bad(tb.block, "leaf list runs past the last triangle block");
+                if (tb.block + 1 >= stream_end) bad(tb.block, "leaf list runs past the last triangle block");
                 tb = triangle_block(tb.block + 1);
                 entry = 0;
             }

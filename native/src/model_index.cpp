@@ -77,10 +77,17 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         if (load<std::uint32_t>(h + 24) != kCodecFamilyLz4) throw fail("unsupported block codec family");
         const auto flags = load<std::uint32_t>(h + 16);
         const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u) |
-                                    (version >= 3 ? kFlagQuantizedSplits : 0u) | (version >= 4 ? kFlagQuantizedVertices : 0u);
+                                    (version >= 3 ? kFlagQuantizedSplits : 0u) | (version >= 4 ? kFlagQuantizedVertices : 0u) |
+                                    (version >= 5 ? kFlagTiered : 0u);
         if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
         }
+        // Coarseness tiers (version 5): streams per level; bytes 224-227 were padding before.
+        tiered_ = (flags & kFlagTiered) != 0;
+        const std::uint32_t tier_field = version >= 5 ? load<std::uint32_t>(h + kTierCountAt) : 0;
+        if (!tiered_ && tier_field != 0) throw fail("tier count set without the tiered flag");
+        if (tiered_ && (tier_field == 0 || tier_field > kMaxTiers)) throw fail("implausible tier count");
+        tier_count_ = tiered_ ? tier_field : 1;
         // The parts section (version 2; docs/FORMAT.md §4a): the blocks end where it starts.
         std::uint64_t blocks_end = size;
         if (version >= 2) {
@@ -116,25 +123,34 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         const auto index_offset = load<std::uint64_t>(h + 160);
         const auto data_offset = load<std::uint64_t>(h + 168);
         if (level_count < 2 || block_count == 0 || block_count > (1ull << 32)) throw fail("implausible level or block count");
-        const std::uint64_t index_size = kLevelRecord * level_count + kEntryRecord * block_count;
+        const std::uint64_t streams = std::uint64_t{level_count} * tier_count_;
+        const std::uint64_t index_size = kLevelRecord * streams + kEntryRecord * block_count;
         if (index_offset + index_size != data_offset || data_offset > blocks_end) throw fail("index does not fit the file");
         std::vector<std::uint8_t> index(index_size);
         if (!read_exact(fd_, index.data(), index.size(), index_offset)) throw fail("cannot read the block index");
         if (crc32(index.data(), index.size()) != load<std::uint32_t>(h + 192)) {
             throw fail("block index checksum mismatch (the index is corrupted)");
         }
-        std::uint32_t expected = 0;
-        for (std::uint32_t l = 0; l < level_count; ++l) {
-            const auto first = load<std::uint32_t>(index.data() + kLevelRecord * l);
-            const auto count = load<std::uint32_t>(index.data() + kLevelRecord * l + 4);
-            if (first != expected || count == 0) throw fail("levels do not tile the block index");
-            level_first_.push_back(first);
+        // Streams tile the index in order. Untiered, every level has blocks; tiered, a
+        // stream may be empty, but each level has blocks and the root's stream begins it.
+        std::uint64_t expected = 0;
+        for (std::uint64_t r = 0; r < streams; ++r) {
+            const auto first = load<std::uint32_t>(index.data() + kLevelRecord * r);
+            const auto count = load<std::uint32_t>(index.data() + kLevelRecord * r + 4);
+            if (first != expected || (count == 0 && !tiered_)) throw fail("levels do not tile the block index");
+            if (r % tier_count_ == 0) level_first_.push_back(first);
+            stream_first_.push_back(first);
             expected += count;
         }
         if (expected != block_count) throw fail("levels do not cover every block");
-        level_first_.push_back(expected);
+        level_first_.push_back(static_cast<std::uint32_t>(expected));
+        stream_first_.push_back(static_cast<std::uint32_t>(expected));
+        for (std::size_t l = 0; l < level_count; ++l) {
+            if (level_first_[l] == level_first_[l + 1]) throw fail("levels do not tile the block index");
+        }
+        if (stream_first_[1] == 0) throw fail("levels do not tile the block index");
         entries_.resize(block_count);
-        const std::uint8_t* e = index.data() + kLevelRecord * level_count;
+        const std::uint8_t* e = index.data() + kLevelRecord * streams;
         for (std::size_t i = 0; i < block_count; ++i, e += kEntryRecord) {
             BlockEntry& b = entries_[i];
             b.offset = load<std::uint64_t>(e);

@@ -55,7 +55,9 @@ struct ModelWriter::Impl {
 
     Impl(const ModelWriterParams& params, BlockSink s, ProgressSink pr)
         : p(params), sink(std::move(s)),
-          main(p, counter, [this](int level, StoredBlock&& block) { sink(level, std::move(block)); }, false) {
+          main(p, counter,
+               [this](int level, std::uint32_t tier, StoredBlock&& block) { sink(level, tier, std::move(block)); },
+               false) {
         counter.sink = std::move(pr);
     }
 
@@ -78,7 +80,8 @@ ModelWriter::ModelWriter(const ModelWriterParams& params, BlockSink sink, Progre
 
 ModelWriter::~ModelWriter() = default;
 
-int ModelWriter::add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level) {
+int ModelWriter::add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level,
+                             const Box3f* lod_parent) {
     if (n == 0) throw std::invalid_argument("a subtree needs at least one triangle");
     if (stride != record_size(impl_->p.has_colours)) throw std::invalid_argument("records of the wrong size for this model");
     const auto t0 = std::chrono::steady_clock::now();
@@ -103,7 +106,8 @@ int ModelWriter::add_subtree(const std::uint8_t* records, std::size_t stride, st
     m.bind(&tree, src);
     const auto lvl = static_cast<std::size_t>(level);
 
-    Pending root = writer::emit_part(m, tree, src, cell, lvl, impl_->p, impl_->counter, lanes);
+    const std::uint32_t tier = lod_parent != nullptr ? m.tier_below(*lod_parent) : 0;
+    Pending root = writer::emit_part(m, tree, src, cell, lvl, tier, impl_->p, impl_->counter, lanes);
     m.bind(nullptr, {});
     stats_.emit_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t1).count();
     return impl_->keep(std::move(root));
@@ -161,7 +165,7 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
         if (has_r) r = impl_->take(n.child_handles[1]);
         m.finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
     }
-    m.serialise(nodes, static_cast<std::size_t>(level), self);
+    m.serialise(nodes, self);
     return impl_->keep(std::move(self));
 }
 
@@ -169,7 +173,7 @@ void ModelWriter::finish(int root) {
     SubtreeEmitter& m = impl_->main;
     Pending r = impl_->take(root);
     if (m.nodes.started(0)) throw std::logic_error("level 0 already written");
-    m.nodes.place(0, &r, nullptr);
+    m.nodes.place(0, 0, &r, nullptr);
     m.nodes.flush_all();
     m.triangles.flush();
     if (!impl_->pending.empty()) throw std::logic_error("treelets left unplaced: the tree has more than one root");

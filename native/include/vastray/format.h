@@ -3,9 +3,11 @@
 //
 // A model is a kd-tree cut into treelets of height 3. Treelets whose roots lie at depth
 // 3k form LOD level k and are packed into 64 KB blocks of that level; leaf triangles
-// live in triangle blocks, the last level. Block ids stored in nodes are relative to
-// the first block of the level they point into, so levels can be written as separate
-// streams and concatenated without patching.
+// live in triangle blocks, the last level. A tiered model (FLAG_TIERED) splits every
+// level into streams by coarseness tier, so the data a far view needs is packed apart
+// from what only a close view needs. Block ids stored in nodes are relative to the
+// first block of the stream they point into, so streams can be written separately and
+// concatenated without patching.
 #pragma once
 
 #include <algorithm>
@@ -25,8 +27,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 4;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-3 are version 4 without its later flags
+constexpr std::uint32_t kVersion = 5;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-4 are version 5 without its later flags
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -36,12 +38,37 @@ constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
 constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, bit-packed per block
+// Bit 5 is taken by another version-5 option (a triangle block encoding).
+constexpr std::uint32_t kFlagTiered = 1u << 6;  // levels split into streams by coarseness tier (version 5)
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
 constexpr std::size_t kPartsOffsetAt = 200, kPartsSizeAt = 208, kPartsCrcAt = 216, kPartCountAt = 220;
 constexpr std::size_t kPartsHead = 8, kPartRecord = 64, kRunRecord = 8;
 constexpr std::uint32_t kNoPart = 0xFFFFFFFFu;  // a run of triangles in no part
+
+// ---- coarseness tiers (version 5, FLAG_TIERED) -----------------------------------------
+// The header's u32 at kTierCountAt is T, the tiers of every level (0 without the flag).
+// The level table then has level_count * T records, level-major: record L * T + k is
+// the stream of level L, tier k (tier 0 the coarsest), and the streams follow one
+// another in that order in the file, empty ones included. A block reference in a node
+// (a LOD node's child block word, a leaf's word 1) holds the tier in bits 26-31 and the
+// block id relative to its stream's first block in bits 0-25. Untiered files are one
+// stream per level, and their references are the whole 32-bit relative id.
+constexpr std::size_t kTierCountAt = 224;
+constexpr int kTierShift = 26;
+constexpr std::uint32_t kMaxTiers = 1u << (32 - kTierShift);
+constexpr std::uint32_t kMaxStreamBlocks = 1u << kTierShift;
+
+inline std::uint32_t block_ref(std::uint32_t tier, std::uint32_t relative) { return (tier << kTierShift) | relative; }
+inline std::uint32_t ref_tier(std::uint32_t ref, bool tiered) { return tiered ? ref >> kTierShift : 0u; }
+inline std::uint32_t ref_relative(std::uint32_t ref, bool tiered) {
+    return tiered ? ref & (kMaxStreamBlocks - 1) : ref;
+}
+// The record (and stream) index of level `level`, tier `tier` among `tiers` per level.
+inline std::size_t stream_index(std::size_t level, std::uint32_t tier, std::uint32_t tiers) {
+    return level * tiers + tier;
+}
 
 // ---- node word 0 ---------------------------------------------------------------------
 // inner nodes (bit 31 set):  bits 0-1 split axis, bit 2 left child empty, bit 3 right
@@ -52,11 +79,12 @@ constexpr std::uint32_t kNoPart = 0xFFFFFFFFu;  // a run of triangles in no part
 //                 bits 11-16 right child treelet offset from the left one, 8-byte units
 //                 bits 17-29 first present child treelet's offset in the child block,
 //                            8-byte units
-//                 word 2 enclosing-sphere radius (f32), word 3 child block id (relative
-//                 to the next LOD level's first block).
+//                 word 2 enclosing-sphere radius (f32), word 3 the child block's
+//                 reference (its stream of the next LOD level, and its id relative to
+//                 the stream's first block; see the tiers above).
 // leaf (8 B, bit 31 clear):  bits 0-15 first entry in the triangle block's list section,
-//                            bits 16-30 triangle count; word 1 triangle block id
-//                            (relative to the triangle level's first block).
+//                            bits 16-30 triangle count; word 1 the triangle block's
+//                            reference (a stream of the triangle level).
 constexpr std::uint32_t kInner = 1u << 31;
 constexpr std::uint32_t kLod = 1u << 30;
 constexpr std::uint32_t kLeftEmpty = 1u << 2;

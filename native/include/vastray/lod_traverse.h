@@ -50,6 +50,11 @@ struct alignas(64) LodLane {
     std::uint32_t tick = 0;
     const std::uint32_t* level_first = nullptr;
     std::uint32_t tri_level = 0, block_count = 0;
+    // The streams of each level (FLAG_TIERED; one per level untiered): first block of
+    // stream L * tier_count + k, and past the last one block_count (ModelIndex).
+    const std::uint32_t* stream_first = nullptr;
+    std::uint32_t tier_count = 1;
+    bool tiered = false;
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
     bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: u16 grid offsets in triangle blocks
@@ -155,13 +160,23 @@ inline Voxel voxel_of(bool quantized, const NodeRef& node, std::uint32_t w) {
     return {node.block + node.off + 4 * format::lod_voxel_off4(w), radius};
 }
 
+// The stream a block reference of `level` names: its first block, and one past its last
+// (the end is the start for a reference to no stream, so every id is outside it).
+inline std::pair<std::uint64_t, std::uint64_t> referenced_stream(const LodLane& lane, std::uint32_t level,
+                                                                 std::uint32_t reference) {
+    const std::uint32_t tier = format::ref_tier(reference, lane.tiered);
+    if (tier >= lane.tier_count) return {0, 0};
+    const std::uint32_t* s = lane.stream_first + format::stream_index(level, tier, lane.tier_count);
+    return {std::uint64_t{s[0]} + format::ref_relative(reference, lane.tiered), s[1]};
+}
+
 // The block holding a LOD node's child treelets, or null when it is not cached (then it
 // is requested) or the node is damaged (points outside the next level).
 inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, float priority) {
     if (node.level + 1 >= lane.tri_level) return nullptr;  // no node level below: damaged
-    const std::uint32_t block = lane.level_first[node.level + 1] +
-                                load<std::uint32_t>(node.block + node.off + format::lod_child_block_at(lane.quantized_splits));
-    return block < lane.level_first[node.level + 2] ? lane.lookup(block, priority) : nullptr;
+    const auto [block, end] = referenced_stream(
+        lane, node.level + 1, load<std::uint32_t>(node.block + node.off + format::lod_child_block_at(lane.quantized_splits)));
+    return block < end ? lane.lookup(static_cast<std::uint32_t>(block), priority) : nullptr;
 }
 
 // An inner node's children (null block: empty child), with their cells split at
@@ -232,7 +247,9 @@ public:
         const std::uint32_t w = load<std::uint32_t>(leaf_node);
         left_ = format::leaf_count(w);
         entry_ = format::leaf_first(w);
-        block_id_ = lane.level_first[lane.tri_level] + load<std::uint32_t>(leaf_node + 4);
+        const auto [block, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(leaf_node + 4));
+        block_id_ = block;
+        end_ = end;
         open(block_id_);
     }
 
@@ -270,8 +287,9 @@ public:
     }
 
 private:
-    void open(std::uint32_t id) {
-        block_ = id < lane_.block_count ? lane_.lookup(id, priority_) : nullptr;
+    // A big leaf's list continues in the next blocks of its stream, never past it.
+    void open(std::uint64_t id) {
+        block_ = id < end_ ? lane_.lookup(static_cast<std::uint32_t>(id), priority_) : nullptr;
         if (!block_) return;
         entries_ = load<std::uint32_t>(block_);
         tris_ = load<std::uint32_t>(block_ + 4);
@@ -283,7 +301,8 @@ private:
     LodLane& lane_;
     float priority_;
     const std::uint8_t* block_ = nullptr;
-    std::uint32_t block_id_ = 0, left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
+    std::uint64_t block_id_ = 0, end_ = 0;
+    std::uint32_t left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
     format::TriangleBlockLayout layout_;
 };
 
@@ -595,9 +614,9 @@ private:
     // Asks for the triangle block header and the list entries of the leaf at `node`;
     // false when the block is not cached (the leaf's walk requests it and moves on).
     bool prefetch_leaf(const LodLane& lane, const std::uint8_t* node) {
-        const std::uint32_t id = lane.level_first[lane.tri_level] + load<std::uint32_t>(node + 4);
-        if (id >= lane.block_count) return false;
-        const std::int32_t slot = lane.model->slot(id);
+        const auto [id, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(node + 4));
+        if (id >= end) return false;
+        const std::int32_t slot = lane.model->slot(static_cast<std::uint32_t>(id));
         if (slot < 0) return false;
         leaf_block_ = lane.cache->slot_data(slot);
         __builtin_prefetch(leaf_block_);

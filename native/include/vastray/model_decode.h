@@ -15,7 +15,11 @@ namespace vastray {
 struct DecodeInput {
     std::vector<const std::uint8_t*> blocks;  // raw block bytes by global block id
     std::vector<std::size_t> sizes;
-    std::vector<std::uint32_t> level_first;   // first block of each level; the last level holds triangles
+    // First block of each stream, level-major with tier_count streams per level (one per
+    // level in an untiered file); the last level holds triangles.
+    std::vector<std::uint32_t> stream_first;
+    std::uint32_t tier_count = 1;
+    bool tiered = false;                      // FLAG_TIERED: block references carry a tier
     Vec3d centre;
     Box3f root_cell;
     std::uint64_t triangle_ids = 0;           // one more than the largest input triangle id

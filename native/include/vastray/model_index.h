@@ -40,6 +40,12 @@ public:
     std::size_t level_count() const { return level_first_.size() - 1; }
     // First global block id of each level; one extra entry holds block_count.
     const std::vector<std::uint32_t>& level_first() const { return level_first_; }
+    // FLAG_TIERED: each level is tier_count() streams (1 in an untiered file), and
+    // stream_first() the first block of stream L * tier_count() + k, level-major, with one
+    // extra entry holding block_count (format.h).
+    bool tiered() const { return tiered_; }
+    std::uint32_t tier_count() const { return tier_count_; }
+    const std::vector<std::uint32_t>& stream_first() const { return stream_first_; }
     const BlockEntry& entry(std::size_t block) const { return entries_[block]; }
     std::size_t level_of(std::size_t block) const;
     std::string level_name(std::size_t block) const;  // "LOD level 3" or "triangle level"
@@ -62,7 +68,9 @@ private:
     Box3f root_cell_;
     std::uint64_t triangle_count_ = 0, input_triangles_ = 0, file_size_ = 0;
     std::uint32_t part_count_ = 0;
-    std::vector<std::uint32_t> level_first_;
+    std::vector<std::uint32_t> level_first_, stream_first_;
+    bool tiered_ = false;
+    std::uint32_t tier_count_ = 1;
     std::vector<BlockEntry> entries_;
 };
 

@@ -35,6 +35,26 @@ struct ModelWriterParams {
     // these steps (format.h), and triangle blocks store them as u16 grid offsets.
     bool quantized_vertices = false;
     Vec3f vertex_steps{1, 1, 1};
+    // FLAG_TIERED (writer/tiers.h): each level's units go to streams by the radius of
+    // the LOD node above them, a tier per `tier_width` halvings below R_root / 2^
+    // `tier_coarse_octaves`, which is tier 0. Width 0: one stream per level.
+    double tier_width = 0;
+    int tier_coarse_octaves = 4;
+    float root_radius = 0;  // half the root cell's diagonal (format::cell_radius)
+};
+
+// What one stream of a level holds: its blocks and their raw bytes; nodes and LOD voxels
+// (node levels) or triangle records and vertices (the triangle level), as the level
+// table counts them (docs/FORMAT.md §5).
+struct StreamStats {
+    std::uint64_t blocks = 0, bytes = 0, items = 0, extra = 0;
+    StreamStats& operator+=(const StreamStats& o) {
+        blocks += o.blocks;
+        bytes += o.bytes;
+        items += o.items;
+        extra += o.extra;
+        return *this;
+    }
 };
 
 struct ModelWriterStats {
@@ -46,11 +66,12 @@ struct ModelWriterStats {
     std::uint64_t degenerate = 0;           // zero-area triangles left out
     std::uint64_t triangle_blocks = 0;
     std::uint64_t vertex_bytes = 0;  // raw bytes of the triangle blocks' vertex sections
-    std::vector<std::uint64_t> level_blocks, level_bytes;  // node levels (raw bytes)
-    std::vector<std::uint64_t> level_nodes, level_voxels;  // nodes and LOD voxels per node level
+    std::vector<std::vector<StreamStats>> node_streams;  // [level][tier]
+    std::vector<StreamStats> triangle_streams;           // [tier]
     std::uint64_t triangle_bytes = 0;       // raw bytes of the triangle blocks
     double kd_build_ms = 0, emit_ms = 0;
     int max_depth = 0;
+    std::uint64_t emission_jobs = 0;  // subtrees emitted in parallel and merged (parallel_emission.h)
 };
 
 // A finished block as the file stores it (docs/FORMAT.md §6): LZ4-compressed unless
@@ -62,10 +83,10 @@ struct StoredBlock {
 // Compresses and checksums one raw block.
 StoredBlock store_block(const std::vector<std::uint8_t>& raw);
 
-// Receives each finished block, in the order of its level: level >= 0 is a node level,
-// -1 the triangle level. Blocks of parts emitted in parallel are compressed on the
-// threads that made them; the sink is called from one thread at a time.
-using BlockSink = std::function<void(int level, StoredBlock&& block)>;
+// Receives each finished block, in the order of its stream (a level's tier): level >= 0
+// is a node level, -1 the triangle level. Blocks of parts emitted in parallel are
+// compressed on the threads that made them; the sink is called from one thread at a time.
+using BlockSink = std::function<void(int level, std::uint32_t tier, StoredBlock&& block)>;
 // Reports leaf triangle references written so far (for progress bars).
 using ProgressSink = std::function<void(std::uint64_t references)>;
 
@@ -83,8 +104,12 @@ public:
     // model-local; the u32 input id; the u32 colour 0x00BBGGRR when the model has
     // colours) inside `cell`, whose root sits at depth 3 * level, and writes all of it
     // except its root treelet, which stays pending under the returned handle. The
-    // records are read in place (no copy) until the call returns.
-    int add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level);
+    // records are read in place (no copy) until the call returns. `lod_parent`: the cell
+    // of the LOD node above the subtree's root (in the out-of-core treelet that will be
+    // added over it), whose radius is the tier key of the root treelet's leaves; null
+    // for the model's root.
+    int add_subtree(const std::uint8_t* records, std::size_t stride, std::size_t n, const Box3f& cell, int level,
+                    const Box3f* lod_parent = nullptr);
 
     // A treelet of three median-split levels above eight pending children. Nodes are in
     // heap order (0 root, 1-2 its children, 3-6 grandchildren); child slot 2j + s

@@ -2,14 +2,15 @@
 // buffer that a parallel part's merge hands on later.
 #pragma once
 
+#include <cstdint>
 #include <functional>
 
 #include "vastray/model_writer.h"
 
 namespace vastray::writer {
 
-// level >= 0: a node level; -1: the triangle level. Blocks arrive compressed
-// (store_block), on the thread that finished them.
-using BlockStream = std::function<void(int level, StoredBlock&& block)>;
+// level >= 0: a node level; -1: the triangle level; `tier` the stream of that level.
+// Blocks arrive compressed (store_block), on the thread that finished them.
+using BlockStream = std::function<void(int level, std::uint32_t tier, StoredBlock&& block)>;
 
 }  // namespace vastray::writer

@@ -14,7 +14,7 @@ std::string LevelFiles::path(int level) const {
     return dir_ + "/" + (level < 0 ? std::string("triangles.blk") : "level" + std::to_string(level) + ".blk");
 }
 
-void LevelFiles::write(int level, const StoredBlock& block) {
+void LevelFiles::write(int level, std::uint32_t tier, const StoredBlock& block) {
     auto it = files_.find(level);
     if (it == files_.end()) {
         std::FILE* f = std::fopen(path(level).c_str(), "wb");
@@ -25,7 +25,7 @@ void LevelFiles::write(int level, const StoredBlock& block) {
     if (std::fwrite(block.bytes.data(), 1, block.bytes.size(), it->second) != block.bytes.size()) {
         throw std::runtime_error(path(level) + ": write failed: " + std::strerror(errno));
     }
-    entries_[level].push_back({static_cast<std::uint32_t>(block.bytes.size()), block.raw_size, block.crc32, block.codec});
+    entries_[level].push_back({static_cast<std::uint32_t>(block.bytes.size()), block.raw_size, block.crc32, block.codec, tier});
 }
 
 void LevelFiles::close() {

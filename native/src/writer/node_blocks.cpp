@@ -2,41 +2,59 @@
 
 namespace vastray::writer {
 
-void NodeBlocks::ensure(std::size_t level) {
-    if (open_.size() > level) return;
-    open_.resize(level + 1);
-    ensure_level(stats_, level);
+std::vector<std::uint8_t>& NodeBlocks::open(std::size_t level, std::uint32_t tier) {
+    if (open_.size() <= level) open_.resize(level + 1);
+    if (open_[level].size() <= tier) open_[level].resize(tier + 1);
+    node_stream(stats_, level, tier);
+    return open_[level][tier];
 }
 
 bool NodeBlocks::started(std::size_t level) const {
-    return level < open_.size() && (!open_[level].empty() || stats_.level_blocks[level] > 0);
+    if (level < open_.size()) {
+        for (const auto& buf : open_[level]) {
+            if (!buf.empty()) return true;
+        }
+    }
+    if (level < stats_.node_streams.size()) {
+        for (const StreamStats& s : stats_.node_streams[level]) {
+            if (s.blocks > 0) return true;
+        }
+    }
+    return false;
 }
 
-void NodeBlocks::flush(std::size_t level) {
-    if (level >= open_.size()) return;
-    auto& buf = open_[level];
+void NodeBlocks::flush(std::size_t level, std::uint32_t tier) {
+    if (level >= open_.size() || tier >= open_[level].size()) return;
+    auto& buf = open_[level][tier];
     if (buf.empty()) return;
-    stats_.level_blocks[level]++;
-    stats_.level_bytes[level] += buf.size();
-    out_(static_cast<int>(level), store_block(buf));
+    StreamStats& s = node_stream(stats_, level, tier);
+    s.blocks++;
+    s.bytes += buf.size();
+    out_(static_cast<int>(level), tier, store_block(buf));
     buf.clear();
 }
 
 void NodeBlocks::flush_all() {
-    for (std::size_t level = 0; level < open_.size(); ++level) flush(level);
+    for (std::size_t level = 0; level < open_.size(); ++level) {
+        for (std::size_t tier = 0; tier < open_[level].size(); ++tier) flush(level, static_cast<std::uint32_t>(tier));
+    }
 }
 
-std::pair<std::uint32_t, std::size_t> NodeBlocks::place(std::size_t level, const Pending* a, const Pending* b) {
-    ensure(level);
-    auto& buf = open_[level];
+std::pair<std::uint32_t, std::size_t> NodeBlocks::place(std::size_t level, std::uint32_t tier, const Pending* a,
+                                                        const Pending* b) {
+    auto& buf = open(level, tier);
     const std::size_t need = (a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0);
-    if (buf.size() + need > format::kBlockSize) flush(level);
+    if (buf.size() + need > format::kBlockSize) flush(level, tier);
     const std::size_t off = buf.size();
+    StreamStats& s = node_stream(stats_, level, tier);
     for (const Pending* t : {a, b}) {
-        if (t != nullptr) buf.insert(buf.end(), t->bytes.begin(), t->bytes.end());
+        if (t == nullptr) continue;
+        buf.insert(buf.end(), t->bytes.begin(), t->bytes.end());
+        s.items += t->nodes;
+        s.extra += t->voxels;
+        stats_.treelets++;
     }
-    stats_.treelets += (a ? 1 : 0) + (b ? 1 : 0);
-    return {static_cast<std::uint32_t>(stats_.level_blocks[level]), off};
+    return {static_cast<std::uint32_t>(s.blocks), off};
 }
 
 }  // namespace vastray::writer

@@ -32,16 +32,18 @@ std::uint64_t subtree_references(const KdTree& tree, std::uint32_t node) {
 }
 
 // The roots of the treelets one LOD level below the treelet rooted at `job.node`.
-std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& job) {
+std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& job, const Tiering& tiering) {
     std::vector<TreeletNode> nodes;
     collect_kd_treelet(tree, job.node, job.cell, nodes);
     std::vector<EmissionJob> out;
     for (const TreeletNode& n : nodes) {
         if (n.kind != TreeletNode::Lod) continue;
+        const std::uint32_t tier = tiering.tier_of(format::cell_radius(n.cell.extent()));
         for (int side = 0; side < 2; ++side) {
             if ((n.empty & (side == 0 ? format::kLeftEmpty : format::kRightEmpty)) != 0) continue;
             const std::uint32_t kd = side == 0 ? n.kd_left : n.kd_right;
-            out.push_back({kd, child_cell(n.cell, n.axis, n.split, side), job.level + 1, subtree_references(tree, kd)});
+            out.push_back({kd, child_cell(n.cell, n.axis, n.split, side), job.level + 1, tier,
+                           subtree_references(tree, kd)});
         }
     }
     return out;
@@ -49,7 +51,7 @@ std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& j
 
 }  // namespace
 
-std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level) {
+std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const Tiering& tiering) {
     // Each job ends in a partly filled triangle block (its blocks close on their own), so
     // jobs are not made smaller than ~100 full blocks' worth of references.
     constexpr std::uint64_t kMinJob = 1 << 18;
@@ -57,7 +59,7 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
     constexpr std::size_t kMaxJobs = 512;  // ...within this many jobs
     const std::uint64_t total = subtree_references(tree, 0);
     if (total < 2 * kMinJob) return {};  // smaller parts emit on one thread
-    std::vector<EmissionJob> jobs = child_treelets(tree, {0, cell, level, total});
+    std::vector<EmissionJob> jobs = child_treelets(tree, {0, cell, level, 0, total}, tiering);
     std::vector<bool> final(jobs.size(), false);  // no child treelets: cannot be split
     while (jobs.size() < kMaxJobs) {
         std::size_t biggest = jobs.size();
@@ -66,7 +68,7 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
             if (biggest == jobs.size() || jobs[i].references > jobs[biggest].references) biggest = i;
         }
         if (biggest == jobs.size()) break;
-        std::vector<EmissionJob> below = child_treelets(tree, jobs[biggest]);
+        std::vector<EmissionJob> below = child_treelets(tree, jobs[biggest], tiering);
         if (below.empty()) {
             final[biggest] = true;
             continue;
@@ -82,30 +84,36 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
 }
 
 Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource& src, const Box3f& cell,
-                  std::size_t level, const ModelWriterParams& params, ProgressCounter& counter, unsigned lanes) {
-    const std::vector<EmissionJob> jobs = choose_jobs(tree, cell, level);
-    if (jobs.empty()) return main.emit_kd_treelet(0, cell, level);
+                  std::size_t level, std::uint32_t tier, const ModelWriterParams& params, ProgressCounter& counter,
+                  unsigned lanes) {
+    const std::vector<EmissionJob> jobs = choose_jobs(tree, cell, level, main.tiering());
+    if (jobs.empty()) return main.emit_kd_treelet(0, cell, level, tier);
     const std::size_t n = jobs.size();
+    main.stats.emission_jobs += n;
     // Jobs buffer only their triangle blocks: their treelets go out as placement units.
-    std::vector<std::vector<StoredBlock>> buffers(n);
+    std::vector<std::vector<BufferedBlock>> buffers(n);
     std::vector<std::unique_ptr<SubtreeEmitter>> parts(n);
     std::vector<Pending> roots(n);
     std::unordered_map<std::uint32_t, std::size_t> job_of;
     for (std::size_t i = 0; i < n; ++i) {
         parts[i] = std::make_unique<SubtreeEmitter>(
-            params, counter, [&buffers, i](int, StoredBlock&& block) { buffers[i].push_back(std::move(block)); }, true);
+            params, counter,
+            [&buffers, i](int, std::uint32_t block_tier, StoredBlock&& block) {
+                buffers[i].push_back({block_tier, std::move(block)});
+            },
+            true);
         parts[i]->bind(&tree, src);
         job_of.emplace(jobs[i].node, i);
     }
     auto run = [&](std::size_t i) {
-        roots[i] = parts[i]->emit_kd_treelet(jobs[i].node, jobs[i].cell, jobs[i].level);
-        parts[i]->triangles.flush();
+        roots[i] = parts[i]->emit_kd_treelet(jobs[i].node, jobs[i].cell, jobs[i].level, jobs[i].tier);
+        parts[i]->finish_deferred();
     };
     auto merge = [&](std::size_t i, Pending& root) {
         main.merge(*parts[i], buffers[i], roots[i]);
         root = std::move(roots[i]);
         parts[i].reset();
-        std::vector<StoredBlock>().swap(buffers[i]);
+        std::vector<BufferedBlock>().swap(buffers[i]);
     };
 
     if (lanes <= 1) {
@@ -117,7 +125,7 @@ Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource
             merge(it->second, root);
             return true;
         };
-        return main.emit_kd_treelet(0, cell, level, &inline_jobs);
+        return main.emit_kd_treelet(0, cell, level, tier, &inline_jobs);
     }
 
     std::mutex mutex;
@@ -161,7 +169,7 @@ Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource
     };
     Pending result;
     try {
-        result = main.emit_kd_treelet(0, cell, level, &parallel_jobs);
+        result = main.emit_kd_treelet(0, cell, level, tier, &parallel_jobs);
     } catch (...) {
         abandon.store(true);
         runner.join();

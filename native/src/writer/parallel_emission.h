@@ -22,6 +22,7 @@ struct EmissionJob {
     std::uint32_t node;  // the kd node that roots the job's treelet
     Box3f cell;
     std::size_t level;  // the LOD level of that treelet
+    std::uint32_t tier;  // its coarseness tier (its parent LOD node's)
     std::uint64_t references;
 };
 
@@ -29,10 +30,12 @@ struct EmissionJob {
 // its child treelets until none holds more than 1/32 of the part's leaf references (and
 // 2^18 at least), or it has no child treelets. Empty when the part is too small to be
 // worth it.
-std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level);
+std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const Tiering& tiering);
 
-// Emits the whole part through `main` (bound to the part), returns its root treelet.
+// Emits the whole part through `main` (bound to the part), returns its root treelet;
+// `tier` is the root treelet's (that of the LOD node above the part).
 Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource& src, const Box3f& cell,
-                  std::size_t level, const ModelWriterParams& params, ProgressCounter& counter, unsigned lanes);
+                  std::size_t level, std::uint32_t tier, const ModelWriterParams& params, ProgressCounter& counter,
+                  unsigned lanes);
 
 }  // namespace vastray::writer

@@ -1,5 +1,6 @@
 #include "writer/subtree_emitter.h"
 
+#include <algorithm>
 #include <cstring>
 #include <stdexcept>
 #include <utility>
@@ -20,8 +21,15 @@ void ProgressCounter::add(std::uint64_t n) {
 }
 
 SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
-    : p_(params), counter_(counter), out_(std::move(out)), defer_(defer), nodes(out_, stats),
+    : p_(params), counter_(counter), out_(std::move(out)), defer_(defer),
+      tiering_(params.root_radius, params.tier_width, params.tier_coarse_octaves), nodes(out_, stats),
       triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, out_, stats) {}
+
+std::uint32_t SubtreeEmitter::reference(std::uint32_t tier, std::uint32_t block) const {
+    if (!tiering_.enabled()) return block;
+    if (block >= kMaxStreamBlocks) throw std::length_error("a tier of a level holds more blocks than the format can number");
+    return block_ref(tier, block);
+}
 
 void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
     const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,
@@ -31,8 +39,9 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     node.sample_count = q.count;
     (q.count == 1 ? stats.voxels_one : stats.voxels_six)++;
     self.proxies.push_back({node.cell, q.seen});
+    const std::uint32_t tier = tier_below(node.cell);
     if (defer_) {
-        Unit u{level + 1, {}};
+        Unit u{level + 1, tier, {}};
         // One allocation each (this runs for every LOD node of a job).
         u.data.bytes.reserve((a ? a->bytes.size() : 0) + (b ? b->bytes.size() : 0));
         u.data.patches.reserve((a ? a->patches.size() : 0) + (b ? b->patches.size() : 0));
@@ -42,12 +51,14 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
                 u.data.patches.push_back({static_cast<std::uint32_t>(u.data.bytes.size()) + patch.offset, patch.unit});
             }
             u.data.bytes.insert(u.data.bytes.end(), t->bytes.begin(), t->bytes.end());
+            u.data.nodes += t->nodes;
+            u.data.voxels += t->voxels;
         }
         node.unit = static_cast<int>(units_.size());
         units_.push_back(std::move(u));
     } else {
-        const auto [block, off] = nodes.place(level + 1, a, b);
-        node.child_block = block;
+        const auto [block, off] = nodes.place(level + 1, tier, a, b);
+        node.child_block = reference(tier, block);
         node.child_off8 = static_cast<std::uint32_t>(off / 8);
     }
     node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
@@ -55,7 +66,8 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     node.radius = format::cell_radius(e);
 }
 
-Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, const JobLookup* jobs) {
+Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, std::size_t level, std::uint32_t tier,
+                                        const JobLookup* jobs) {
     // The treelet lists of the levels on the current path, kept between calls: a part
     // emits millions of treelets, and their allocations showed in the profile.
     if (depth_ == treelets_.size()) treelets_.emplace_back().reserve(7);
@@ -72,25 +84,26 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
         explicit Depth(std::size_t& depth) : d(depth) { ++d; }
         ~Depth() { --d; }
     } nested(depth_);
-    auto child = [&](std::uint32_t kd_node, const Box3f& child_cell) {
+    auto child = [&](std::uint32_t kd_node, const Box3f& child_cell, std::uint32_t child_tier) {
         Pending t;
-        if (jobs == nullptr || !(*jobs)(kd_node, t)) t = emit_kd_treelet(kd_node, child_cell, level + 1, jobs);
+        if (jobs == nullptr || !(*jobs)(kd_node, t)) t = emit_kd_treelet(kd_node, child_cell, level + 1, child_tier, jobs);
         return t;
     };
     for (TreeletNode& n : treelet) {
         if (n.kind == TreeletNode::Lod) {
             const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
+            const std::uint32_t below = tier_below(n.cell);
             Pending l, r;
-            if (has_l) l = child(n.kd_left, child_cell(n.cell, n.axis, n.split, 0));
-            if (has_r) r = child(n.kd_right, child_cell(n.cell, n.axis, n.split, 1));
+            if (has_l) l = child(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), below);
+            if (has_r) r = child(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), below);
             finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, level, self);
         } else if (n.kind == TreeletNode::Leaf) {
             const KdNode& k = tree_->nodes[n.kd_node];
             const std::uint32_t* tris = tree_->tri_ids.data() + k.first();
             n.count = k.count();
             if (n.count > kMaxLeafTriangles) throw std::length_error("kd-tree leaf too large for the format");
-            const auto [block, first] = triangles.add_leaf(tris, n.count, src_);
-            n.tri_block = block;
+            const auto [block, first] = triangles[tier].add_leaf(tris, n.count, src_);
+            n.tri_block = reference(tier, block);
             n.first = first;
             self.proxies.push_back(leaf_proxy(src_, tris, n.count, n.cell));
             stats.references += n.count;
@@ -102,7 +115,7 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
             }
         }
     }
-    serialise(treelet, level, self);
+    serialise(treelet, self);
     if (depth_ == 1 && unreported_ > 0) {  // the outermost treelet: all of it is counted
         counter_.add(unreported_);
         unreported_ = 0;
@@ -110,39 +123,84 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
     return self;
 }
 
-void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& triangle_blocks, Pending& root) {
-    triangles.flush();
-    const std::uint32_t tri_base = triangles.blocks();
-    for (StoredBlock& block : triangle_blocks) {
-        stats.triangle_blocks++;
-        stats.triangle_bytes += block.raw_size;
-        triangles.skip_block();
-        out_(-1, std::move(block));
+void SubtreeEmitter::finish_deferred() {
+    const std::uint32_t tiers = triangles.size();
+    closed_.assign(tiers, 0);
+    open_leaves_.assign(tiers, {});
+    for (std::uint32_t k = 0; k < tiers; ++k) {
+        TriangleBlocks* t = triangles.find(k);
+        if (t == nullptr) continue;
+        t->take_open_leaves(open_leaves_[k]);
+        closed_[k] = t->blocks();
+    }
+    triangles.release();
+}
+
+void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& triangle_blocks, Pending& root) {
+    const bool tiered = tiering_.enabled();
+    const auto tiers = static_cast<std::uint32_t>(part.closed_.size());
+    // Per tier: the part's closed blocks follow ours, after our open one is closed.
+    std::vector<std::uint32_t> base(tiers, 0);
+    for (std::uint32_t k = 0; k < tiers; ++k) {
+        if (part.closed_[k] == 0) continue;
+        TriangleBlocks& t = triangles[k];
+        t.flush();
+        base[k] = t.blocks();
+    }
+    for (BufferedBlock& b : triangle_blocks) {
+        triangles[b.tier].skip_block();
+        out_(-1, b.tier, std::move(b.block));
     }
     triangle_blocks.clear();
-    std::vector<std::pair<std::uint32_t, std::size_t>> placed(part.units_.size());
+    // The leaves of its open blocks join ours, in the order it added them.
+    std::vector<std::vector<std::pair<std::uint32_t, std::uint32_t>>> moved(tiers);
+    for (std::uint32_t k = 0; k < tiers; ++k) {
+        for (const OpenLeaf& leaf : part.open_leaves_[k]) moved[k].push_back(triangles[k].add_leaf(leaf.tris, leaf.count, src_));
+    }
+    struct Placed {
+        std::uint32_t reference;
+        std::size_t offset;
+    };
+    std::vector<Placed> placed(part.units_.size());
     auto resolve = [&](Pending& t) {
         for (const Patch& q : t.patches) {
             std::uint8_t* at = t.bytes.data() + q.offset;
             std::uint32_t w;
+            std::memcpy(&w, at, 4);
             if (q.unit < 0) {
-                std::memcpy(&w, at, 4);
-                w += tri_base;
+                const std::uint32_t k = ref_tier(w, tiered), rel = ref_relative(w, tiered);
+                if (k >= tiers) throw std::logic_error("a leaf refers to a tier its part never used");
+                const std::vector<OpenLeaf>& open = part.open_leaves_[k];
+                if (rel == part.closed_[k] && !open.empty()) {
+                    // A leaf of the part's open block: where the merge put it. Leaves in a
+                    // block have distinct first entries, added in rising order.
+                    std::uint32_t w0;
+                    std::memcpy(&w0, at - 4, 4);
+                    const auto it = std::lower_bound(open.begin(), open.end(), leaf_first(w0),
+                                                     [](const OpenLeaf& l, std::uint32_t f) { return l.first < f; });
+                    if (it == open.end() || it->first != leaf_first(w0)) throw std::logic_error("an open leaf was lost in the merge");
+                    const auto [block, first] = moved[k][static_cast<std::size_t>(it - open.begin())];
+                    w0 = (w0 & ~0xffffu) | first;
+                    std::memcpy(at - 4, &w0, 4);
+                    w = reference(k, block);
+                } else {
+                    w = reference(k, base[k] + rel);
+                }
                 std::memcpy(at, &w, 4);
                 continue;
             }
-            const auto [block, off] = placed[static_cast<std::size_t>(q.unit)];
-            std::memcpy(&w, at, 4);
-            w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(off / 8) << 17);
+            const Placed& p = placed[static_cast<std::size_t>(q.unit)];
+            w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(p.offset / 8) << 17);
             std::memcpy(at, &w, 4);
-            std::memcpy(at + format::lod_child_block_at(p_.kd.quantized_splits), &block, 4);
+            std::memcpy(at + format::lod_child_block_at(p_.kd.quantized_splits), &p.reference, 4);
         }
         t.patches.clear();
     };
     for (std::size_t u = 0; u < part.units_.size(); ++u) {
         Unit& unit = part.units_[u];
         resolve(unit.data);
-        placed[u] = nodes.place(unit.level, &unit.data, nullptr);
+        const auto [block, off] = nodes.place(unit.level, unit.tier, &unit.data, nullptr);
+        placed[u] = {reference(unit.tier, block), off};
     }
     part.units_.clear();
     resolve(root);
@@ -157,11 +215,9 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<StoredBlock>& trian
     stats.stored_triangles += s.stored_triangles;
     stats.stored_vertices += s.stored_vertices;
     stats.vertex_bytes += s.vertex_bytes;
-    for (std::size_t level = 0; level < s.level_nodes.size(); ++level) {
-        ensure_level(stats, level);
-        stats.level_nodes[level] += s.level_nodes[level];
-        stats.level_voxels[level] += s.level_voxels[level];
-    }
+    stats.triangle_blocks += s.triangle_blocks;
+    stats.triangle_bytes += s.triangle_bytes;
+    for (std::uint32_t k = 0; k < s.triangle_streams.size(); ++k) triangle_stream(stats, k) += s.triangle_streams[k];
 }
 
 }  // namespace vastray::writer

@@ -7,12 +7,16 @@ namespace vastray::writer {
 
 using namespace format;
 
-void ensure_level(ModelWriterStats& stats, std::size_t level) {
-    if (stats.level_nodes.size() > level) return;
-    stats.level_blocks.resize(level + 1, 0);
-    stats.level_bytes.resize(level + 1, 0);
-    stats.level_nodes.resize(level + 1, 0);
-    stats.level_voxels.resize(level + 1, 0);
+StreamStats& node_stream(ModelWriterStats& stats, std::size_t level, std::uint32_t tier) {
+    if (stats.node_streams.size() <= level) stats.node_streams.resize(level + 1);
+    auto& tiers = stats.node_streams[level];
+    if (tiers.size() <= tier) tiers.resize(tier + 1);
+    return tiers[tier];
+}
+
+StreamStats& triangle_stream(ModelWriterStats& stats, std::uint32_t tier) {
+    if (stats.triangle_streams.size() <= tier) stats.triangle_streams.resize(tier + 1);
+    return stats.triangle_streams[tier];
 }
 
 namespace {
@@ -56,11 +60,10 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
     collect(tree, root, cell, 0, nodes);
 }
 
-void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out,
-                       bool quantized) {
+void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized) {
     const std::size_t basic_size = quantized ? 4 : 8;
-    ensure_level(stats, level);
-    stats.level_nodes[level] += nodes.size();
+    out.nodes = static_cast<std::uint32_t>(nodes.size());
+    out.voxels = 0;
     std::size_t cursor = 0;
     for (TreeletNode& n : nodes) {
         n.offset = cursor;
@@ -102,7 +105,7 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, Model
                 break;
             }
             case TreeletNode::Lod: {
-                stats.level_voxels[level]++;
+                out.voxels++;
                 const auto voxel4 = static_cast<std::uint32_t>((voxel_at[i] - n.offset) / 4);
                 if (voxel4 > 127 || n.right_from_left8 > 63 || n.child_off8 > 8191) {
                     throw std::logic_error("LOD node field overflow");

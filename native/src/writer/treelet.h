@@ -14,8 +14,9 @@
 namespace vastray::writer {
 
 // A reference that the merge of a part emitted in parallel must resolve. unit < 0: the
-// u32 at `offset` is a triangle block id local to the part. unit >= 0: `offset` is a LOD
-// node whose child treelets are the part's placement unit `unit`, not yet in a block.
+// u32 at `offset` is a leaf's triangle block reference local to the part (word 0, its
+// first list entry, precedes it). unit >= 0: `offset` is a LOD node whose child
+// treelets are the part's placement unit `unit`, not yet in a block.
 struct Patch {
     std::uint32_t offset;
     int unit;
@@ -26,6 +27,7 @@ struct Pending {
     std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes
     std::vector<Proxy> proxies;       // what the LOD node above samples its voxel from
     std::vector<Patch> patches;       // ids to resolve when a parallel part is merged
+    std::uint32_t nodes = 0, voxels = 0;  // what the level table counts where it is placed
 };
 
 struct TreeletNode {
@@ -38,11 +40,11 @@ struct TreeletNode {
     std::uint32_t kd_left = 0, kd_right = 0;  // LOD (in-core): kd-tree indices of the children
     int child_handles[2] = {-1, -1};          // LOD (out of core): pending children
     float radius = 0;
-    std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;
+    std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;  // child_block: a block reference
     std::uint32_t samples[6] = {};
     int sample_count = 0;
     std::uint32_t kd_node = 0;  // leaf (in-core): its kd node
-    std::uint32_t tri_block = 0, first = 0, count = 0;
+    std::uint32_t tri_block = 0, first = 0, count = 0;  // tri_block: a block reference
     int unit = -1;  // LOD (deferred placement): the children's placement unit
     std::size_t offset = 0;
 };
@@ -53,8 +55,9 @@ inline Box3f child_cell(const Box3f& cell, int axis, float split, int side) {
     return c;
 }
 
-// Grows the per-level statistics to hold node level `level`.
-void ensure_level(ModelWriterStats& stats, std::size_t level);
+// The statistics of a stream, grown to hold it.
+StreamStats& node_stream(ModelWriterStats& stats, std::size_t level, std::uint32_t tier);
+StreamStats& triangle_stream(ModelWriterStats& stats, std::uint32_t tier);
 
 // The nodes of the treelet rooted at kd node `root` (preorder; LOD nodes at depth 2
 // keep the kd indices of their children, which root the next level's treelets).
@@ -62,10 +65,10 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
 
 // Lays out a finished treelet: nodes in preorder, then the voxels of its LOD nodes, padded
 // to 8 bytes. Leaves' triangle block ids are recorded as patches (a parallel part's ids
-// are local until it is merged). Counts every node in `stats`. `quantized`: basic nodes
+// are local until it is merged). Counts every node by kind in `stats`, and in `out` the
+// nodes and voxels its stream will count. `quantized`: basic nodes
 // take 4 bytes with their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS);
 // a split off that grid is a logic error.
-void serialise_treelet(std::vector<TreeletNode>& nodes, std::size_t level, ModelWriterStats& stats, Pending& out,
-                       bool quantized = false);
+void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized = false);
 
 }  // namespace vastray::writer

@@ -5,6 +5,8 @@
 #include <cstring>
 #include <limits>
 
+#include "writer/treelet.h"
+
 namespace vastray::writer {
 
 using format::kBlockSize;
@@ -14,11 +16,17 @@ std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint
     constexpr std::uint32_t kWhole = 4096;
     if (count <= kWhole) {
         const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
-        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
+        if (insert(tris, count, src) && layout().end <= kBlockSize) {
+            open_leaves_.push_back({static_cast<std::uint32_t>(list0), tris, count});
+            return {blocks_, static_cast<std::uint32_t>(list0)};
+        }
         // Too full: close the block as it was before this leaf and try a fresh one.
         truncate(list0, tri0, vert0);
         flush();
-        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, 0};
+        if (insert(tris, count, src) && layout().end <= kBlockSize) {
+            open_leaves_.push_back({0, tris, count});
+            return {blocks_, 0};
+        }
         truncate(0, 0, 0);
         id_map_.clear();
         vertex_map_.clear();
@@ -37,7 +45,19 @@ std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint
         flush();
         if (!insert(tris + i, 1, src)) throw std::logic_error("a triangle does not fit in an empty triangle block");
     }
+    open_continues_ = true;
     return {start, 0};
+}
+
+bool TriangleBlocks::take_open_leaves(std::vector<OpenLeaf>& out) {
+    if (list_.empty()) return false;
+    if (open_continues_) {
+        flush();
+        return false;
+    }
+    out = std::move(open_leaves_);
+    clear_open();
+    return true;
 }
 
 void TriangleBlocks::truncate(std::size_t list_size, std::size_t tris, std::size_t verts) {
@@ -98,8 +118,17 @@ void TriangleBlocks::flush() {
     stats_.stored_vertices += verts_.size();
     stats_.triangle_blocks++;
     stats_.triangle_bytes += bytes.size();
-    out_(-1, store_block(bytes));
+    StreamStats& stream = triangle_stream(stats_, tier_);
+    stream.blocks++;
+    stream.bytes += bytes.size();
+    stream.items += ids_.size();
+    stream.extra += verts_.size();
+    out_(-1, tier_, store_block(bytes));
     ++blocks_;
+    clear_open();
+}
+
+void TriangleBlocks::clear_open() {
     list_.clear();
     ids_.clear();
     tri_verts_.clear();
@@ -109,6 +138,8 @@ void TriangleBlocks::flush() {
     reset_span();
     id_map_.clear();
     vertex_map_.clear();
+    open_leaves_.clear();
+    open_continues_ = false;
 }
 
 std::array<std::int32_t, 3> TriangleBlocks::grid_index(const Vec3f& p) const {

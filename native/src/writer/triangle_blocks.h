@@ -1,9 +1,11 @@
 // Triangle blocks (docs/FORMAT.md §11): leaf triangle lists packed into 64 KB blocks of
-// list entries, triangle records and vertices shared within the block (paper 000 §4.6).
+// list entries, triangle records and vertices shared within the block (paper 000 §4.6),
+// one stream of blocks per coarseness tier (§15).
 #pragma once
 
 #include <array>
 #include <cstddef>
+#include <memory>
 #include <cstdint>
 #include <cstring>
 #include <stdexcept>
@@ -95,13 +97,23 @@ private:
     }
 };
 
+// A leaf whose triangles lie in a block that is still open: its first list entry there
+// and what add_leaf was given.
+struct OpenLeaf {
+    std::uint32_t first;
+    const std::uint32_t* tris;
+    std::uint32_t count;
+};
+
+// The triangle blocks of one tier.
 class TriangleBlocks {
 public:
     // `vertex_steps`: the grid of FLAG_QUANTIZED_VERTICES (null: f32 vertices as given).
-    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, BlockStream& out, ModelWriterStats& stats)
+    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, std::uint32_t tier, BlockStream& out,
+                   ModelWriterStats& stats)
         : has_colours_(has_colours), quantized_(vertex_steps != nullptr),
           steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)), max_vertices_(quantized_ ? 3 * kMaxTriangles : kMaxVertices),
-          out_(out), stats_(stats), vertex_map_(quantized_ ? 15 : 13) {
+          tier_(tier), out_(out), stats_(stats), vertex_map_(quantized_ ? 15 : 13) {
         reset_span();
     }
 
@@ -109,6 +121,12 @@ public:
     std::uint32_t blocks() const { return blocks_; }
     // A triangle block emitted elsewhere took the next id (parallel merge).
     void skip_block() { ++blocks_; }
+
+    // Ends a part emitted in parallel: the leaves of the open block go to `out` instead
+    // of a block of their own, for the merge to add to the block it has open (so a
+    // part's last, partly filled block does not stay one). Returns false, after closing
+    // the block, when it holds the end of a leaf that began in an earlier block.
+    bool take_open_leaves(std::vector<OpenLeaf>& out);
 
     // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
     // A leaf's list normally lies in one block. A leaf too big for one (a fan of
@@ -138,6 +156,7 @@ private:
                                                packing());
     }
     void reset_span();
+    void clear_open();
     std::array<std::int32_t, 3> grid_index(const Vec3f& p) const;
     void extend_span(const std::array<std::int32_t, 3>& k);
     void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
@@ -154,6 +173,7 @@ private:
     bool quantized_;
     Vec3f steps_;
     std::size_t max_vertices_;
+    std::uint32_t tier_;
     BlockStream& out_;
     ModelWriterStats& stats_;
     std::uint32_t blocks_ = 0;
@@ -162,9 +182,44 @@ private:
     std::vector<Vec3f> verts_;
     std::vector<std::array<std::int32_t, 3>> grid_;  // quantized: each vertex's grid index
     std::array<std::int32_t, 3> k_lo_{}, k_hi_{};    // and their bounds in this block
+    std::vector<OpenLeaf> open_leaves_;  // the leaves that began in the open block
+    bool open_continues_ = false;        // it holds the end of one that began earlier
     // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
     SmallMap<std::uint32_t, IdHash> id_map_{13};
     SmallMap<VertexKey, VertexHash> vertex_map_;  // 2^13 slots, 2^15 for packed vertices
+};
+
+// The triangle blocks of every tier, each made on first use (a part uses a few of the
+// tiers, and each tier's dedup tables take a few hundred KiB).
+class TriangleTiers {
+public:
+    TriangleTiers(bool has_colours, const Vec3f* vertex_steps, BlockStream& out, ModelWriterStats& stats)
+        : has_colours_(has_colours), steps_(vertex_steps), out_(out), stats_(stats) {}
+
+    TriangleBlocks& operator[](std::uint32_t tier) {
+        if (tiers_.size() <= tier) tiers_.resize(tier + 1);
+        if (!tiers_[tier]) tiers_[tier] = std::make_unique<TriangleBlocks>(has_colours_, steps_, tier, out_, stats_);
+        return *tiers_[tier];
+    }
+    // A tier's blocks, or null when nothing went to it.
+    TriangleBlocks* find(std::uint32_t tier) { return tier < tiers_.size() ? tiers_[tier].get() : nullptr; }
+    // One more than the highest tier used.
+    std::uint32_t size() const { return static_cast<std::uint32_t>(tiers_.size()); }
+    // Closes every tier's open block, coarsest first.
+    void flush() {
+        for (auto& t : tiers_) {
+            if (t) t->flush();
+        }
+    }
+    // Drops every tier (a finished parallel part keeps only what its merge needs).
+    void release() { tiers_.clear(); }
+
+private:
+    bool has_colours_;
+    const Vec3f* steps_;
+    BlockStream& out_;
+    ModelWriterStats& stats_;
+    std::vector<std::unique_ptr<TriangleBlocks>> tiers_;
 };
 
 }  // namespace vastray::writer
