@@ -107,6 +107,10 @@ class BuildOptions:
     # lossy, by at most one grid step, and watertight (a shared vertex snaps the same
     # everywhere).
     quantized_vertices: bool = False
+    # Triangle blocks in the compact layout (format version 5, FLAG_COMPACT_TRIANGLES):
+    # leaf lists, corners, ids and colours in bit fields as narrow as each block allows,
+    # still decoded per triangle (docs/FORMAT.md §11a). Lossless.
+    compact_triangles: bool = False
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -777,6 +781,7 @@ class _Builder:
             threads=self.opt.threads,
             quantized_splits=self.opt.quantized_splits,
             vertex_steps=steps,
+            compact_triangles=self.opt.compact_triangles,
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
@@ -802,7 +807,8 @@ class _Builder:
             "flags": modelfile.FLAG_TRIANGLE_IDS
             | (modelfile.FLAG_COLOURS if self.src.has_colours else 0)
             | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0)
-            | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0),
+            | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0)
+            | (modelfile.FLAG_COMPACT_TRIANGLES if self.opt.compact_triangles else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),

@@ -26,7 +26,7 @@ from vastray import native
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-3: version 4 without its later flags
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-4: version 5 without its later flags
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -39,6 +39,8 @@ FLAG_PART_IDS: int = _F["flag_part_ids"]  # the file ends in a parts section (ve
 FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
 # Vertices on a grid of the root cell, bit-packed offsets per triangle block (FORMAT.md §11)
 FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
+# Compact triangle blocks: bit-packed leaf records, grouped triangles, a palette (§11a)
+FLAG_COMPACT_TRIANGLES: int = _F["flag_compact_triangles"]
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
 SPLIT_STEPS: int = 1 << SPLIT_BITS
@@ -324,6 +326,7 @@ class ModelFile:
         known = FLAG_COLOURS | FLAG_TRIANGLE_IDS | (FLAG_PART_IDS if h["version"] >= 2 else 0)
         known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
         known |= FLAG_QUANTIZED_VERTICES if h["version"] >= 4 else 0
+        known |= FLAG_COMPACT_TRIANGLES if h["version"] >= 5 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
@@ -443,6 +446,11 @@ class ModelFile:
         """Vertices on the root cell's grid, bit-packed offsets in triangle blocks (version 4)."""
         return bool(self.header["flags"] & FLAG_QUANTIZED_VERTICES)
 
+    @property
+    def compact_triangles(self) -> bool:
+        """Triangle blocks in the compact layout (version 5, FORMAT.md §11a)."""
+        return bool(self.header["flags"] & FLAG_COMPACT_TRIANGLES)
+
     def triangle_layout(self, data: bytes) -> dict[str, int]:
         """The sections of a triangle block's raw bytes (FORMAT.md §11): counts, byte
         offsets and, with quantized vertices, the bits per axis and bytes per vertex.
@@ -532,6 +540,7 @@ class ModelFile:
                 self.has_colours,
                 self.quantized_splits,
                 self.quantized_vertices,
+                self.compact_triangles,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -565,6 +574,7 @@ class ModelFile:
             "colours": self.has_colours,
             "quantized_splits": self.quantized_splits,
             "quantized_vertices": self.quantized_vertices,
+            "compact_triangles": self.compact_triangles,
             "part_count": len(self._parts),
             "parts": [
                 {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}

@@ -247,6 +247,7 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_part_ids"] = format::kFlagPartIds;
     fmt["flag_quantized_splits"] = format::kFlagQuantizedSplits;
     fmt["flag_quantized_vertices"] = format::kFlagQuantizedVertices;
+    fmt["flag_compact_triangles"] = format::kFlagCompactTriangles;
     fmt["vertex_grid_bits"] = format::kVertexGridBits;
     fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;

@@ -42,7 +42,7 @@ class PyModelWriter {
 public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
-                  unsigned threads, bool quantized_splits, py::object vertex_steps)
+                  unsigned threads, bool quantized_splits, py::object vertex_steps, bool compact_triangles)
         : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -53,6 +53,7 @@ public:
         p.kd.bins = bins;
         p.kd.threads = threads;
         p.kd.quantized_splits = quantized_splits;
+        p.compact_triangles = compact_triangles;
         if (!vertex_steps.is_none()) {
             const auto steps = vertex_steps.cast<std::array<float, 3>>();
             p.quantized_vertices = true;
@@ -148,7 +149,7 @@ private:
 std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& level_first,
                               const std::vector<double>& centre, const std::vector<double>& lo,
                               const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
-                              bool quantized_splits, bool quantized_vertices) {
+                              bool quantized_splits, bool quantized_vertices, bool compact_triangles) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -164,6 +165,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.has_colours = has_colours;
     in.quantized_splits = quantized_splits;
     in.quantized_vertices = quantized_vertices;
+    in.compact_triangles = compact_triangles;
     for (std::uint32_t f : level_first) {
         if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
     }
@@ -638,12 +640,13 @@ py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const st
 void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
-        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object>(),
+        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object,
+                      bool>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
-             py::arg("vertex_steps") = py::none())
+             py::arg("vertex_steps") = py::none(), py::arg("compact_triangles") = false)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"))
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
@@ -674,5 +677,6 @@ void bind_model(py::module_& m) {
           py::arg("cell_hi"), "One chunk of an out-of-core split pass: records per cell and cell bounds");
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("level_first"), py::arg("centre"), py::arg("lo"),
           py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
-          py::arg("quantized_vertices") = false, "Decode a whole model (raw blocks by global id) into an in-core Scene");
+          py::arg("quantized_vertices") = false, py::arg("compact_triangles") = false,
+          "Decode a whole model (raw blocks by global id) into an in-core Scene");
 }

@@ -13,6 +13,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
+#include <vector>
 
 #include "vastray/vecmath.h"
 
@@ -25,8 +26,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 4;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-3 are version 4 without its later flags
+constexpr std::uint32_t kVersion = 5;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-4 are version 5 without its later flags
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -36,6 +37,7 @@ constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
 constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, bit-packed per block
+constexpr std::uint32_t kFlagCompactTriangles = 1u << 5;  // compact triangle blocks (version 5, below)
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
@@ -288,6 +290,268 @@ struct TriangleBlockLayout {
         return {grid_vertex(field(0, 0), steps.x), grid_vertex(field(1, bits[0]), steps.y),
                 grid_vertex(field(2, bits[0] + bits[1]), steps.z)};
     }
+};
+
+// ---- compact triangle blocks (version 5, FLAG_COMPACT_TRIANGLES) ----------------------
+// The same content as above (leaf lists, triangles, ids, colours, shared vertices) in
+// bit fields as narrow as each part of a block allows, still readable per triangle: a
+// ray decodes only the triangles it tests, and a hit's id, corners and colour from its
+// index in the block. Triangles are numbered in the order leaves first use them (as in
+// the plain layout), so a leaf's triangles are mostly a run of new ones plus a few that
+// earlier leaves of the block brought in, and triangles of neighbouring leaves, which
+// sit close in the model, share groups whose bases and widths fit them.
+//
+//   header   32 bytes: u32 T (triangles), V (vertices), P (vertex packing, as above, or
+//            0: f32 vertices), K (palette colours; 0 without FLAG_COLOURS), id_min (the
+//            smallest id), id_bits (bit length of max id - id_min), groups (byte offset
+//            of the group table), palette (byte offset of the palette)
+//   records  from byte 32 to `groups`: one leaf record per leaf (per block, for a leaf
+//            that continues), each starting on a byte; the leaf node's first field is
+//            its byte offset in the block
+//   table    u16 per group of kGroup triangles: the group's byte offset in the data
+//   data     one group record per group, each starting on a byte
+//   palette  K x u32 0x00BBGGRR, in order of first use
+//   vertices V x f32[3]; or quantized, i32[3] grid origin, V records of bx+by+bz bits
+//            back to back (not rounded to bytes), then 8 zero bytes of slack
+//
+// Bit fields are little-endian: bit i of a field stream starting at byte s is bit i % 8
+// of byte s + i / 8, and a field of w bits at bit b holds bits b ... b + w - 1.
+//
+// Leaf record: base (16 bits: the index of the first triangle this leaf brings into the
+// block), w (5 bits, <= 16), partial (1 bit; when set, a 16-bit entry count follows,
+// else the record holds all the leaf's entries not read yet), then per entry a bit
+// `new`: set, the triangle is `next` (starting at base) and next += 1; clear, a w-bit
+// distance d follows and the triangle is next - 1 - d. A leaf whose entries run out in
+// a block continues with the record at byte 32 of the next triangle block.
+//
+// Group record, for group j of n = min(kGroup, T - kGroup * j) triangles: corner base
+// (bit_length(V - 1) bits) and width cw (5 bits, <= 16); id base (id_bits bits) and
+// width iw (6 bits, <= 32); with colours, palette base (bit_length(K - 1) bits) and
+// width pw (5 bits, <= 16). Then n x 3 corners of cw bits (vertex = corner base +
+// field, the triangle's corners in order), n ids of iw bits (id = id_min + id base +
+// field), and with colours n palette indices of pw bits (palette base + field).
+namespace compact {
+constexpr std::size_t kHeader = 32;
+constexpr std::uint32_t kGroup = 8;
+constexpr std::uint32_t kBaseBits = 16, kCountBits = 16, kWidthBits = 5, kIdWidthBits = 6;
+constexpr std::uint32_t kMaxTriangles = 1u << kBaseBits;  // base and counts are 16-bit
+constexpr std::uint32_t kMaxVertices = 1u << 16;          // corner widths are at most 16
+}  // namespace compact
+
+inline std::uint32_t bit_length(std::uint64_t x) { return x ? 64u - static_cast<std::uint32_t>(__builtin_clzll(x)) : 0u; }
+
+// `width` (at most 57) bits at bit `bit` of the stream at p; reads the 8 bytes at
+// p + bit / 8, so a stream needs that much readable memory after its last field.
+inline std::uint64_t read_bits(const std::uint8_t* p, std::size_t bit, std::uint32_t width) {
+    std::uint64_t w;
+    std::memcpy(&w, p + (bit >> 3), 8);
+    return (w >> (bit & 7u)) & ((std::uint64_t{1} << width) - 1);
+}
+
+// Appends fields to a stream that starts on a byte of `out` (the writer's side of
+// read_bits); align() ends it on a byte boundary, zero-filling the last byte.
+class BitWriter {
+public:
+    explicit BitWriter(std::vector<std::uint8_t>& out) : out_(out) {}
+    ~BitWriter() { align(); }
+    void put(std::uint64_t value, std::uint32_t width) {  // width <= 64
+        if (width > 32) {
+            put(value & 0xffffffffu, 32);
+            put(value >> 32, width - 32);
+            return;
+        }
+        acc_ |= (value & ((std::uint64_t{1} << width) - 1)) << held_;
+        held_ += width;
+        for (; held_ >= 8; held_ -= 8, acc_ >>= 8) out_.push_back(static_cast<std::uint8_t>(acc_));
+    }
+    void align() {
+        if (held_ > 0) out_.push_back(static_cast<std::uint8_t>(acc_));
+        acc_ = 0;
+        held_ = 0;
+    }
+
+private:
+    std::vector<std::uint8_t>& out_;
+    std::uint64_t acc_ = 0;
+    std::uint32_t held_ = 0;
+};
+
+struct CompactTriangleBlock {
+    const std::uint8_t* data = nullptr;
+    std::uint32_t tris = 0, verts = 0, palette_size = 0, id_min = 0, id_bits = 0;
+    std::size_t groups = 0, group_data = 0, palette = 0, vertices = 0, end = 0;
+    std::uint32_t vertex_bits = 0, palette_bits = 0, header_bits = 0;  // group header fields
+    bool packed = false;
+    std::uint32_t bits[3] = {}, record_bits = 0;  // quantized vertices
+
+    static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
+    static std::size_t vertex_bytes(std::size_t verts, bool packed, std::uint32_t record_bits) {
+        return packed ? 12 + (verts * record_bits + 7) / 8 + 8 : 12 * verts;
+    }
+
+    // The view of the block at tb, of `size` readable bytes (its raw size, or 64 KiB in
+    // the cache); false when its header contradicts itself or does not fit `size`.
+    static bool parse(const std::uint8_t* tb, std::size_t size, bool has_colours, bool quantized,
+                      CompactTriangleBlock& b) {
+        if (size < compact::kHeader) return false;
+        std::uint32_t h[8];
+        std::memcpy(h, tb, sizeof h);
+        b.data = tb;
+        b.tris = h[0];
+        b.verts = h[1];
+        b.palette_size = h[3];
+        b.id_min = h[4];
+        b.id_bits = h[5];
+        b.groups = h[6];
+        b.palette = h[7];
+        if (b.tris == 0 || b.tris > compact::kMaxTriangles || b.verts == 0 || b.verts > compact::kMaxVertices ||
+            b.id_bits > 32 || (has_colours ? b.palette_size == 0 || b.palette_size > b.tris : b.palette_size != 0)) {
+            return false;
+        }
+        b.packed = quantized;
+        if (quantized) {
+            for (int a = 0; a < 3; ++a) b.bits[a] = (h[2] >> (8 * a)) & 0xffu;
+            if ((h[2] >> 24) != 0 || std::max({b.bits[0], b.bits[1], b.bits[2]}) > kMaxVertexBits) return false;
+            b.record_bits = b.bits[0] + b.bits[1] + b.bits[2];
+        } else if (h[2] != 0) {
+            return false;
+        }
+        b.group_data = b.groups + 2 * group_count(b.tris);
+        b.vertices = b.palette + 4 * std::size_t{b.palette_size};
+        b.end = b.vertices + vertex_bytes(b.verts, b.packed, b.record_bits);
+        if (b.groups < compact::kHeader || b.group_data > b.palette || b.end > size) return false;
+        b.vertex_bits = bit_length(b.verts - 1);
+        b.palette_bits = has_colours ? bit_length(b.palette_size - 1) : 0;
+        b.header_bits = b.vertex_bits + compact::kWidthBits + b.id_bits + compact::kIdWidthBits +
+                        (has_colours ? b.palette_bits + compact::kWidthBits : 0);
+        return true;
+    }
+
+    // One group of triangles: where its fields start and how wide they are.
+    struct Group {
+        const std::uint8_t* at = nullptr;
+        std::uint32_t first = 0, n = 0;
+        std::uint32_t corner_base = 0, cw = 0, id_base = 0, iw = 0, palette_base = 0, pw = 0;
+        std::size_t ids = 0, colours = 0;  // bit offsets of the id and palette fields
+    };
+    // Group j; false when its record is damaged (widths too wide, or it runs past the
+    // group data).
+    bool group(std::uint32_t j, Group& g) const {
+        std::uint16_t off;
+        std::memcpy(&off, data + groups + 2 * std::size_t{j}, 2);
+        const std::size_t at = group_data + off;
+        if (at >= palette) return false;
+        g.at = data + at;
+        g.first = j * compact::kGroup;
+        g.n = std::min(compact::kGroup, tris - g.first);
+        std::size_t bit = 0;
+        auto field = [&](std::uint32_t width) {
+            const auto v = static_cast<std::uint32_t>(read_bits(g.at, bit, width));
+            bit += width;
+            return v;
+        };
+        g.corner_base = field(vertex_bits);
+        g.cw = field(compact::kWidthBits);
+        g.id_base = field(id_bits);
+        g.iw = field(compact::kIdWidthBits);
+        if (palette_size != 0) {  // the model has colours
+            g.palette_base = field(palette_bits);
+            g.pw = field(compact::kWidthBits);
+        }
+        if (g.cw > 16 || g.iw > 32 || g.pw > 16) return false;
+        g.ids = header_bits + std::size_t{3} * g.cw * g.n;
+        g.colours = g.ids + std::size_t{g.iw} * g.n;
+        return at + (g.colours + std::size_t{g.pw} * g.n + 7) / 8 <= palette;
+    }
+    // Triangle i of group g: its three vertex indices (not checked against V).
+    void corners(const Group& g, std::uint32_t i, std::uint32_t v[3]) const {
+        const std::uint64_t w = read_bits(g.at, header_bits + std::size_t{3} * g.cw * i, 3 * g.cw);
+        const std::uint64_t mask = (std::uint64_t{1} << g.cw) - 1;
+        v[0] = g.corner_base + static_cast<std::uint32_t>(w & mask);
+        v[1] = g.corner_base + static_cast<std::uint32_t>((w >> g.cw) & mask);
+        v[2] = g.corner_base + static_cast<std::uint32_t>((w >> (2 * g.cw)) & mask);
+    }
+    std::uint32_t id(const Group& g, std::uint32_t i) const {
+        return id_min + g.id_base + static_cast<std::uint32_t>(read_bits(g.at, g.ids + std::size_t{g.iw} * i, g.iw));
+    }
+    // The palette index of triangle i of group g (not checked against K).
+    std::uint32_t palette_index(const Group& g, std::uint32_t i) const {
+        return g.palette_base + static_cast<std::uint32_t>(read_bits(g.at, g.colours + std::size_t{g.pw} * i, g.pw));
+    }
+    std::uint32_t colour(std::uint32_t index) const {
+        std::uint32_t c;
+        std::memcpy(&c, data + palette + 4 * std::size_t{index}, 4);
+        return c;
+    }
+    // Vertex v (< V): f32 as stored, or f32(origin + offset) * step, as in the plain layout.
+    Vec3f vertex(std::uint32_t v, const Vec3f& steps) const {
+        Vec3f p;
+        if (!packed) {
+            std::memcpy(&p, data + vertices + 12 * std::size_t{v}, 12);
+            return p;
+        }
+        std::int32_t o[3];
+        std::memcpy(o, data + vertices, 12);
+        const std::size_t bit = std::size_t{v} * record_bits;
+        const std::uint8_t* at = data + vertices + 12 + (bit >> 3);
+        const std::uint32_t s = static_cast<std::uint32_t>(bit & 7u);
+        std::uint64_t w;
+        std::memcpy(&w, at, 8);
+        w >>= s;
+        if (s + record_bits > 64) {  // a record of more than 57 bits can straddle two words
+            std::uint64_t hi;
+            std::memcpy(&hi, at + 8, 8);
+            w |= hi << (64 - s);
+        }
+        const auto field = [&](int a, std::uint32_t shift) {
+            return o[a] + static_cast<std::int32_t>((w >> shift) & ((std::uint64_t{1} << bits[a]) - 1));
+        };
+        return {grid_vertex(field(0, 0), steps.x), grid_vertex(field(1, bits[0]), steps.y),
+                grid_vertex(field(2, bits[0] + bits[1]), steps.z)};
+    }
+};
+
+// Reads one leaf record of a compact block, entry by entry.
+class CompactLeafRecord {
+public:
+    // The record at byte `at` of block b, for a leaf with `remaining` entries not read
+    // yet; false when it lies outside the records or says more than `remaining`.
+    bool open(const CompactTriangleBlock& b, std::uint32_t at, std::uint32_t remaining) {
+        if (at < compact::kHeader || at >= b.groups) return false;
+        p_ = b.data + at;
+        limit_ = 8 * (b.groups - at);
+        tris_ = b.tris;
+        bit_ = 0;
+        next_ = field(compact::kBaseBits);
+        width_ = field(compact::kWidthBits);
+        count_ = field(1) ? field(compact::kCountBits) : remaining;
+        return width_ <= 16 && count_ >= 1 && count_ <= remaining && bit_ <= limit_;
+    }
+    std::uint32_t count() const { return count_; }
+    // Whether the last read ran past the records (else a failed next() pointed outside the block).
+    bool overrun() const { return bit_ > limit_; }
+    // The next entry's triangle index; false when the record is damaged there (it runs
+    // past the records or points outside the block's triangles).
+    bool next(std::uint32_t& local) {
+        if (field(1)) {
+            local = next_++;
+        } else {
+            const std::uint32_t d = field(width_);
+            if (d >= next_) return false;
+            local = next_ - 1 - d;
+        }
+        return local < tris_ && bit_ <= limit_;
+    }
+
+private:
+    std::uint32_t field(std::uint32_t width) {
+        const auto v = static_cast<std::uint32_t>(read_bits(p_, bit_, width));
+        bit_ += width;
+        return v;
+    }
+    const std::uint8_t* p_ = nullptr;
+    std::size_t bit_ = 0, limit_ = 0;
+    std::uint32_t next_ = 0, width_ = 0, count_ = 0, tris_ = 0;
 };
 
 }  // namespace vastray::format

@@ -50,8 +50,9 @@ struct LodLane {
     std::uint32_t tri_level = 0, block_count = 0;
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
-    bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: u16 grid offsets in triangle blocks
+    bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: bit-packed grid offsets in triangle blocks
     Vec3f vertex_steps{1, 1, 1};      // that grid's steps
+    bool compact_triangles = false;   // FLAG_COMPACT_TRIANGLES: compact triangle blocks (format.h)
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;  // first requests
     std::uint64_t lookups = 0, hits = 0, missing = 0, bad = 0, ws_blocks = 0, ws_bytes = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0, voxel_hits = 0;
@@ -205,7 +206,9 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
 // Walks the triangles of one leaf: its run of list entries in a triangle block and, for
 // leaves too big for one block, on into the following blocks. Entries that point
 // outside their block are skipped; a block that is missing (requested) or has a
-// damaged header ends the walk with `missing()` true.
+// damaged header ends the walk with `missing()` true. A compact block (format.h) is
+// read the same way through its leaf record; a record that is damaged ends the walk
+// like a missing block, since the entries after a bad one cannot be found.
 class LeafTriangles {
 public:
     LeafTriangles(LodLane& lane, const std::uint8_t* leaf_node, float priority)
@@ -222,6 +225,7 @@ public:
     // The next triangle (its index in the current block); false at the end of the leaf
     // or when a block is missing.
     bool next(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& local) {
+        if (lane_.compact_triangles) return next_compact(v0, v1, v2, local);
         while (block_ && left_ > 0) {
             --left_;
             while (block_ && entry_ >= entries_) {  // a big leaf continues in the next block
@@ -247,6 +251,9 @@ public:
     // The input id of triangle `local` of the current block, read only when needed: the
     // ids live in their own section, a cache line away from the vertices.
     std::uint32_t id(std::uint32_t local) const {
+        if (lane_.compact_triangles) {
+            return group_for(local) ? compact_.id(group_, local - group_.first) : kNoHit;
+        }
         return load<std::uint32_t>(block_ + layout_.ids + 4 * std::size_t{local});
     }
 
@@ -254,6 +261,20 @@ private:
     void open(std::uint32_t id) {
         block_ = id < lane_.block_count ? lane_.lookup(id, priority_) : nullptr;
         if (!block_) return;
+        if (lane_.compact_triangles) {
+            // A damaged header or record: treat as missing. An empty leaf has no record.
+            group_index_ = ~0u;
+            record_left_ = 0;
+            if (left_ == 0) return;
+            if (!format::CompactTriangleBlock::parse(block_, format::kBlockSize, lane_.has_colours,
+                                                     lane_.quantized_vertices, compact_) ||
+                !record_.open(compact_, entry_, left_)) {
+                block_ = nullptr;
+                return;
+            }
+            record_left_ = record_.count();
+            return;
+        }
         entries_ = load<std::uint32_t>(block_);
         tris_ = load<std::uint32_t>(block_ + 4);
         verts_ = load<std::uint32_t>(block_ + 8);
@@ -261,11 +282,52 @@ private:
         if (layout_.end > format::kBlockSize) block_ = nullptr;  // damaged header: treat as missing
     }
 
+    bool next_compact(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& local) {
+        while (block_ && left_ > 0) {
+            if (record_left_ == 0) {  // a big leaf continues at the next block's first record
+                entry_ = format::compact::kHeader;
+                open(++block_id_);
+                if (!block_) return false;
+            }
+            --left_;
+            --record_left_;
+            if (!record_.next(local)) {
+                block_ = nullptr;
+                return false;
+            }
+            if (!group_for(local)) continue;
+            std::uint32_t v[3];
+            compact_.corners(group_, local - group_.first, v);
+            if (v[0] >= compact_.verts || v[1] >= compact_.verts || v[2] >= compact_.verts) continue;
+            v0 = compact_.vertex(v[0], lane_.vertex_steps);
+            v1 = compact_.vertex(v[1], lane_.vertex_steps);
+            v2 = compact_.vertex(v[2], lane_.vertex_steps);
+            return true;
+        }
+        return false;
+    }
+    // Decodes the group holding triangle `local` unless it is the one decoded last (a
+    // leaf's triangles mostly come in runs); false for a damaged group.
+    bool group_for(std::uint32_t local) const {
+        const std::uint32_t g = local / format::compact::kGroup;
+        if (g == group_index_) return true;
+        group_index_ = ~0u;
+        if (!compact_.group(g, group_)) return false;
+        group_index_ = g;
+        return true;
+    }
+
     LodLane& lane_;
     float priority_;
     const std::uint8_t* block_ = nullptr;
     std::uint32_t block_id_ = 0, left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
     format::TriangleBlockLayout layout_;
+    // Compact blocks: the block's view, the leaf record being read, the last group.
+    format::CompactTriangleBlock compact_;
+    format::CompactLeafRecord record_;
+    std::uint32_t record_left_ = 0;
+    mutable format::CompactTriangleBlock::Group group_;
+    mutable std::uint32_t group_index_ = ~0u;
 };
 
 }  // namespace lod_detail

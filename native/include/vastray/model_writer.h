@@ -32,9 +32,11 @@ struct ModelWriterParams {
     float one_sample_colour = 0.05f;    // six samples collapse to one when every colour
     float one_sample_normal = 0.10f;    // and normal component is this close to the mean
     // FLAG_QUANTIZED_VERTICES: the records' vertices are on the root cell's grid with
-    // these steps (format.h), and triangle blocks store them as u16 grid offsets.
+    // these steps (format.h), and triangle blocks store them as bit-packed grid offsets.
     bool quantized_vertices = false;
     Vec3f vertex_steps{1, 1, 1};
+    // FLAG_COMPACT_TRIANGLES: triangle blocks in the compact layout (format.h).
+    bool compact_triangles = false;
 };
 
 struct ModelWriterStats {

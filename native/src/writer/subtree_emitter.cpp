@@ -21,7 +21,8 @@ void ProgressCounter::add(std::uint64_t n) {
 
 SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
     : p_(params), counter_(counter), out_(std::move(out)), defer_(defer), nodes(out_, stats),
-      triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, out_, stats) {}
+      triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, params.compact_triangles,
+                out_, stats) {}
 
 void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
     const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <string>
 
 namespace vastray::writer {
 
@@ -12,32 +13,55 @@ using format::kBlockSize;
 std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                                  const TriangleSource& src) {
     constexpr std::uint32_t kWhole = 4096;
+    // An empty leaf (the kd builder makes a few, e.g. where an empty-space cut leaves
+    // nothing) reads nothing: a compact block spends no record on it.
+    if (compact_ && count == 0) return {blocks_, 0};
     if (count <= kWhole) {
-        const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
-        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, static_cast<std::uint32_t>(list0)};
-        // Too full: close the block as it was before this leaf and try a fresh one.
-        truncate(list0, tri0, vert0);
-        flush();
-        if (insert(tris, count, src) && layout().end <= kBlockSize) return {blocks_, 0};
-        truncate(0, 0, 0);
-        id_map_.clear();
-        vertex_map_.clear();
+        std::uint32_t first = 0;
+        if (add_whole(tris, count, src, first)) return {blocks_, first};
     } else {
         flush();
     }
-    // Worst case for one more triangle: list entry, record, id, colour, 3 vertices.
+    // Worst case for one more triangle: list entry, record, id, colour, 3 vertices. A
+    // compact block can grow by more (wider fields for everything before it), which the
+    // check after each insert catches.
     constexpr std::size_t kWorst = 2 + 6 + 4 + 4 + 36 + 8;
     const std::uint32_t start = blocks_;
+    if (compact_) open_record();
     for (std::uint32_t i = 0; i < count; ++i) {
-        if (layout().end + kWorst > kBlockSize) flush();
+        if (size() + kWorst > kBlockSize) {
+            flush();
+            if (compact_) open_record();  // the leaf continues at the block's first record
+        }
         const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
-        if (insert(tris + i, 1, src) && layout().end <= kBlockSize) continue;
-        // Quantized vertices: a vertex far from the others turned the block to f32.
+        if (insert(tris + i, 1, src) && size() <= kBlockSize) continue;
+        // Quantized vertices: a vertex far from the others widened every vertex record.
         truncate(list0, tri0, vert0);
         flush();
+        if (compact_) open_record();
         if (!insert(tris + i, 1, src)) throw std::logic_error("a triangle does not fit in an empty triangle block");
     }
-    return {start, 0};
+    if (compact_) close_record();
+    return {start, compact_ ? static_cast<std::uint32_t>(format::compact::kHeader) : 0u};
+}
+
+bool TriangleBlocks::add_whole(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src,
+                               std::uint32_t& first) {
+    for (int attempt = 0; attempt < 2; ++attempt) {
+        const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
+        first = static_cast<std::uint32_t>(compact_ ? format::compact::kHeader + closed_record_bytes_ : list0);
+        if (compact_) open_record();
+        if (insert(tris, count, src) && size() <= kBlockSize) {
+            if (compact_) close_record();
+            return true;
+        }
+        // Too full: close the block as it was before this leaf and try a fresh one.
+        truncate(list0, tri0, vert0);
+        if (attempt == 0) flush();
+    }
+    truncate(0, 0, 0);
+    clear_maps();
+    return false;
 }
 
 void TriangleBlocks::truncate(std::size_t list_size, std::size_t tris, std::size_t verts) {
@@ -51,6 +75,39 @@ void TriangleBlocks::truncate(std::size_t list_size, std::size_t tris, std::size
         reset_span();
         for (const auto& k : grid_) extend_span(k);
     }
+    if (!compact_) return;
+    // Records, palette and groups follow from what is left (a truncation is always
+    // followed by closing the block, so this runs once per block). A truncation cuts
+    // where a leaf began, or inside the open record of a big leaf.
+    while (!records_.empty() && records_.back().begin >= list_size) {
+        records_.pop_back();
+        record_open_ = false;
+    }
+    if (!records_.empty()) {  // an open record's end follows the list
+        records_.back().end = record_open_ ? list_size : std::min(records_.back().end, list_size);
+    }
+    closed_record_bytes_ = 0;
+    for (std::size_t r = 0; r + (record_open_ ? 1 : 0) < records_.size(); ++r) {
+        closed_record_bytes_ += (replay(records_[r]).bits(records_[r].partial) + 7) / 8;
+    }
+    open_shape_ = record_open_ ? replay(records_.back()) : RecordShape{};
+    if (has_colours_) {  // the palette is in order of first use
+        palette_index_.resize(tris);
+        std::uint32_t used = 0;
+        for (std::uint32_t p : palette_index_) used = std::max(used, p + 1);
+        palette_.resize(used);
+    }
+    group_bits_.clear();
+    open_group_ = {};
+    block_ids_ = {};
+    for (std::size_t t = 0; t < tris; ++t) add_to_group(t);
+    cached_header_bits_ = ~0u;
+}
+
+void TriangleBlocks::clear_maps() {
+    id_map_.clear();
+    vertex_map_.clear();
+    if (compact_) palette_map_.clear();
 }
 
 void TriangleBlocks::reset_span() {
@@ -65,9 +122,7 @@ void TriangleBlocks::extend_span(const std::array<std::int32_t, 3>& k) {
     }
 }
 
-void TriangleBlocks::flush() {
-    if (list_.empty()) return;
-    const format::TriangleBlockLayout l = layout();
+std::vector<std::uint8_t> TriangleBlocks::plain_bytes(const format::TriangleBlockLayout& l) const {
     std::vector<std::uint8_t> bytes(l.end, 0);
     const std::uint32_t header[4] = {static_cast<std::uint32_t>(list_.size()), static_cast<std::uint32_t>(ids_.size()),
                                      static_cast<std::uint32_t>(verts_.size()), packing()};
@@ -89,11 +144,45 @@ void TriangleBlocks::flush() {
             std::memcpy(at, &w, l.record);
             at += l.record;
         }
-        stats_.vertex_bytes += l.end - l.vertices;
     } else {
         std::memcpy(bytes.data() + l.vertices, verts_.data(), 12 * verts_.size());
-        stats_.vertex_bytes += 12 * verts_.size();
     }
+    return bytes;
+}
+
+void TriangleBlocks::flush() {
+    if (list_.empty()) {
+        // Nothing stored: an opened record with no entries goes too.
+        records_.clear();
+        record_open_ = false;
+        return;
+    }
+    std::vector<std::uint8_t> bytes;
+    if (compact_) {
+        if (record_open_) {  // a big leaf goes on in the next block
+            records_.back().partial = true;
+            close_record();
+        }
+        bytes = compact_bytes();
+        const format::CompactTriangleBlock view = [&] {
+            format::CompactTriangleBlock b;
+            if (!format::CompactTriangleBlock::parse(bytes.data(), bytes.size(), has_colours_, quantized_, b)) {
+                std::uint32_t h[8];
+                std::memcpy(h, bytes.data(), 32);
+                std::string msg = "a compact triangle block does not parse:";
+                for (std::uint32_t x : h) msg += " " + std::to_string(x);
+                msg += " size " + std::to_string(bytes.size());
+                throw std::logic_error(msg);
+            }
+            return b;
+        }();
+        stats_.vertex_bytes += view.end - view.vertices;
+    } else {
+        const format::TriangleBlockLayout l = layout();
+        bytes = plain_bytes(l);
+        stats_.vertex_bytes += l.end - l.vertices;
+    }
+    if (bytes.size() > kBlockSize) throw std::logic_error("a triangle block outgrew 64 KiB");
     stats_.stored_triangles += ids_.size();
     stats_.stored_vertices += verts_.size();
     stats_.triangle_blocks++;
@@ -107,8 +196,8 @@ void TriangleBlocks::flush() {
     verts_.clear();
     grid_.clear();
     reset_span();
-    id_map_.clear();
-    vertex_map_.clear();
+    clear_maps();
+    reset_compact();
 }
 
 std::array<std::int32_t, 3> TriangleBlocks::grid_index(const Vec3f& p) const {
@@ -126,13 +215,23 @@ std::array<std::int32_t, 3> TriangleBlocks::grid_index(const Vec3f& p) const {
 
 bool TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src) {
     for (std::uint32_t i = 0; i < count; ++i) {
-        // Past these counts no block can hold what is inserted (a vertex takes 12 bytes,
-        // a triangle at least 12): stop before the dedup tables fill.
-        if (verts_.size() > max_vertices_ || ids_.size() > kMaxTriangles) return false;
+        // Past these counts no block can hold what is inserted: stop before the dedup
+        // tables fill.
+        if (verts_.size() > max_vertices_ || ids_.size() > max_triangles_) return false;
         const std::uint32_t t = tris[i];
         bool fresh = false;
         const std::uint32_t id = src.id(t);
         const std::uint32_t local = id_map_.find_or_insert(id, static_cast<std::uint32_t>(ids_.size()), fresh);
+        if (compact_) {
+            // The entry as its leaf record will hold it: a new triangle, or the distance
+            // back from the newest one.
+            ++open_shape_.entries;
+            if (!fresh) {
+                ++open_shape_.old;
+                open_shape_.max_distance =
+                    std::max(open_shape_.max_distance, static_cast<std::uint32_t>(ids_.size()) - 1 - local);
+            }
+        }
         if (fresh) {
             ids_.push_back(id);
             if (has_colours_) colours_.push_back(src.colour(t));
@@ -160,10 +259,205 @@ bool TriangleBlocks::insert(const std::uint32_t* tris, std::uint32_t count, cons
                 }
                 tri_verts_.push_back(static_cast<std::uint16_t>(v));
             }
+            if (compact_) {
+                if (has_colours_) {
+                    bool new_colour = false;
+                    const std::uint32_t c = src.colour(t);
+                    const std::uint32_t p =
+                        palette_map_.find_or_insert(c, static_cast<std::uint32_t>(palette_.size()), new_colour);
+                    if (new_colour) palette_.push_back(c);
+                    palette_index_.push_back(p);
+                }
+                add_to_group(ids_.size() - 1);
+            }
         }
         list_.push_back(static_cast<std::uint16_t>(local));
     }
     return true;
+}
+
+// ---- compact blocks -------------------------------------------------------------------
+
+void TriangleBlocks::open_record() {
+    records_.push_back({list_.size(), list_.size(), static_cast<std::uint32_t>(ids_.size()), false});
+    record_open_ = true;
+    open_shape_ = {};
+}
+
+void TriangleBlocks::close_record() {
+    records_.back().end = list_.size();
+    record_open_ = false;
+    closed_record_bytes_ += (open_shape_.bits(records_.back().partial) + 7) / 8;
+    open_shape_ = {};
+}
+
+std::size_t TriangleBlocks::RecordShape::bits(bool partial) const {
+    using namespace format::compact;
+    return kBaseBits + kWidthBits + 1 + (partial ? kCountBits : 0) + entries + std::size_t{old} * format::bit_length(max_distance);
+}
+
+TriangleBlocks::RecordShape TriangleBlocks::replay(const Record& r) const {
+    RecordShape s;
+    std::uint32_t next = r.base;
+    for (std::size_t e = r.begin; e < r.end; ++e) {
+        ++s.entries;
+        const std::uint32_t local = list_[e];
+        if (local == next) {
+            ++next;
+        } else {
+            ++s.old;
+            s.max_distance = std::max(s.max_distance, next - 1 - local);
+        }
+    }
+    return s;
+}
+
+std::size_t TriangleBlocks::GroupShape::bits() const {
+    return std::size_t{n} * (3 * corners.width() + ids.width() + palette.width());
+}
+
+void TriangleBlocks::add_to_group(std::size_t t) {
+    for (int k = 0; k < 3; ++k) open_group_.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
+    open_group_.ids.add(ids_[t]);
+    block_ids_.add(ids_[t]);
+    if (has_colours_) open_group_.palette.add(palette_index_[t]);
+    if (++open_group_.n == format::compact::kGroup) {
+        group_bits_.push_back(open_group_.bits());
+        open_group_ = {};
+    }
+}
+
+std::uint32_t TriangleBlocks::group_header_bits() const {
+    using namespace format;
+    const auto count_bits = [](std::size_t n) { return bit_length(n > 0 ? n - 1 : 0); };
+    return count_bits(verts_.size()) + compact::kWidthBits + block_ids_.width() + compact::kIdWidthBits +
+           (has_colours_ ? count_bits(palette_.size()) + compact::kWidthBits : 0);
+}
+
+std::size_t TriangleBlocks::compact_size() const {
+    using format::CompactTriangleBlock;
+    const std::uint32_t header = group_header_bits();
+    if (header != cached_header_bits_ || cached_groups_ > group_bits_.size()) {
+        cached_header_bits_ = header;
+        cached_groups_ = 0;
+        cached_group_bytes_ = 0;
+    }
+    for (; cached_groups_ < group_bits_.size(); ++cached_groups_) {
+        cached_group_bytes_ += (header + group_bits_[cached_groups_] + 7) / 8;
+    }
+    const std::size_t data = cached_group_bytes_ + (open_group_.n > 0 ? (header + open_group_.bits() + 7) / 8 : 0);
+    // An open record may yet continue in the next block: count its entry count too.
+    const std::size_t records = closed_record_bytes_ + (record_open_ ? (open_shape_.bits(true) + 7) / 8 : 0);
+    const std::uint32_t record_bits = quantized_ ? [&] {
+        const std::uint32_t p = packing();
+        return (p & 0xffu) + ((p >> 8) & 0xffu) + (p >> 16);
+    }() : 0u;
+    return format::compact::kHeader + records + 2 * CompactTriangleBlock::group_count(ids_.size()) + data +
+           4 * palette_.size() + CompactTriangleBlock::vertex_bytes(verts_.size(), quantized_, record_bits);
+}
+
+std::vector<std::uint8_t> TriangleBlocks::compact_bytes() const {
+    using namespace format;
+    std::vector<std::uint8_t> out(compact::kHeader, 0);
+    out.reserve(kBlockSize);
+    for (const Record& r : records_) {
+        const RecordShape s = replay(r);
+        const std::uint32_t width = bit_length(s.max_distance);
+        BitWriter bits(out);
+        bits.put(r.base, compact::kBaseBits);
+        bits.put(width, compact::kWidthBits);
+        bits.put(r.partial ? 1 : 0, 1);
+        if (r.partial) bits.put(s.entries, compact::kCountBits);
+        std::uint32_t next = r.base;
+        for (std::size_t e = r.begin; e < r.end; ++e) {
+            const std::uint32_t local = list_[e];
+            if (local == next) {
+                bits.put(1, 1);
+                ++next;
+            } else {
+                bits.put(0, 1);
+                bits.put(next - 1 - local, width);
+            }
+        }
+    }
+    const std::size_t groups_at = out.size();
+    const std::size_t groups = CompactTriangleBlock::group_count(ids_.size());
+    out.resize(out.size() + 2 * groups, 0);
+    const std::size_t data_at = out.size();
+    const std::uint32_t vertex_bits = bit_length(verts_.size() - 1);
+    const std::uint32_t id_bits = block_ids_.width();
+    const std::uint32_t palette_bits = has_colours_ ? bit_length(palette_.size() - 1) : 0;
+    for (std::size_t j = 0; j < groups; ++j) {
+        const std::size_t off = out.size() - data_at;
+        if (off > 0xffff) throw std::logic_error("compact triangle group offset overflow");
+        const auto off16 = static_cast<std::uint16_t>(off);
+        std::memcpy(out.data() + groups_at + 2 * j, &off16, 2);
+        const std::size_t first = compact::kGroup * j, last = std::min(first + compact::kGroup, ids_.size());
+        GroupShape g;
+        for (std::size_t t = first; t < last; ++t) {
+            for (int k = 0; k < 3; ++k) g.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
+            g.ids.add(ids_[t]);
+            if (has_colours_) g.palette.add(palette_index_[t]);
+        }
+        BitWriter bits(out);
+        bits.put(g.corners.lo, vertex_bits);
+        bits.put(g.corners.width(), compact::kWidthBits);
+        bits.put(g.ids.lo - block_ids_.lo, id_bits);
+        bits.put(g.ids.width(), compact::kIdWidthBits);
+        if (has_colours_) {
+            bits.put(g.palette.lo, palette_bits);
+            bits.put(g.palette.width(), compact::kWidthBits);
+        }
+        for (std::size_t t = first; t < last; ++t) {
+            for (int k = 0; k < 3; ++k) bits.put(tri_verts_[3 * t + static_cast<std::size_t>(k)] - g.corners.lo, g.corners.width());
+        }
+        for (std::size_t t = first; t < last; ++t) bits.put(ids_[t] - g.ids.lo, g.ids.width());
+        if (has_colours_) {
+            for (std::size_t t = first; t < last; ++t) bits.put(palette_index_[t] - g.palette.lo, g.palette.width());
+        }
+    }
+    const std::size_t palette_at = out.size();
+    for (std::uint32_t c : palette_) {
+        out.resize(out.size() + 4);
+        std::memcpy(out.data() + out.size() - 4, &c, 4);
+    }
+    const std::uint32_t pack = packing();
+    if (quantized_) {
+        out.resize(out.size() + 12);
+        std::memcpy(out.data() + out.size() - 12, k_lo_.data(), 12);
+        {
+            BitWriter bits(out);
+            for (const auto& k : grid_) {
+                for (int a = 0; a < 3; ++a) {
+                    bits.put(static_cast<std::uint32_t>(k[a] - k_lo_[a]), (pack >> (8 * a)) & 0xffu);
+                }
+            }
+        }
+        out.resize(out.size() + 8, 0);  // slack: readers load 8 bytes at a record
+    } else {
+        out.resize(out.size() + 12 * verts_.size());
+        std::memcpy(out.data() + out.size() - 12 * verts_.size(), verts_.data(), 12 * verts_.size());
+    }
+    const std::uint32_t header[8] = {static_cast<std::uint32_t>(ids_.size()), static_cast<std::uint32_t>(verts_.size()),
+                                     pack, static_cast<std::uint32_t>(palette_.size()), block_ids_.lo, id_bits,
+                                     static_cast<std::uint32_t>(groups_at), static_cast<std::uint32_t>(palette_at)};
+    std::memcpy(out.data(), header, sizeof header);
+    if (out.size() != compact_size()) throw std::logic_error("compact triangle block size estimate is off");
+    return out;
+}
+
+void TriangleBlocks::reset_compact() {
+    records_.clear();
+    record_open_ = false;
+    closed_record_bytes_ = 0;
+    open_shape_ = {};
+    palette_.clear();
+    palette_index_.clear();
+    group_bits_.clear();
+    open_group_ = {};
+    block_ids_ = {};
+    cached_header_bits_ = ~0u;
+    cached_groups_ = cached_group_bytes_ = 0;
 }
 
 }  // namespace vastray::writer

@@ -98,10 +98,14 @@ private:
 class TriangleBlocks {
 public:
     // `vertex_steps`: the grid of FLAG_QUANTIZED_VERTICES (null: f32 vertices as given).
-    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, BlockStream& out, ModelWriterStats& stats)
-        : has_colours_(has_colours), quantized_(vertex_steps != nullptr),
-          steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)), max_vertices_(quantized_ ? 3 * kMaxTriangles : kMaxVertices),
-          out_(out), stats_(stats), vertex_map_(quantized_ ? 15 : 13) {
+    // `compact`: FLAG_COMPACT_TRIANGLES blocks (format.h) instead of the plain layout.
+    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, bool compact, BlockStream& out,
+                   ModelWriterStats& stats)
+        : has_colours_(has_colours), quantized_(vertex_steps != nullptr), compact_(compact),
+          steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)),
+          max_vertices_(compact ? kCompactMaxVertices : quantized_ ? 3 * kMaxTriangles : kMaxVertices),
+          max_triangles_(compact ? kCompactMaxTriangles : kMaxTriangles), out_(out), stats_(stats),
+          id_map_(compact ? 15 : 13), vertex_map_(compact ? 16 : quantized_ ? 15 : 13), palette_map_(compact ? 15 : 1) {
         reset_span();
     }
 
@@ -110,10 +114,11 @@ public:
     // A triangle block emitted elsewhere took the next id (parallel merge).
     void skip_block() { ++blocks_; }
 
-    // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
-    // A leaf's list normally lies in one block. A leaf too big for one (a fan of
+    // Adds one leaf's triangles (soup indices); returns (block id, first): the leaf's
+    // first list entry, or in a compact block the byte offset of its leaf record. A
+    // leaf's list normally lies in one block. A leaf too big for one (a fan of
     // thousands of triangles around a vertex, which no split can separate) continues
-    // at entry 0 of the following triangle blocks.
+    // at entry 0 (the first leaf record) of the following triangle blocks.
     std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                      const TriangleSource& src);
 
@@ -126,34 +131,77 @@ private:
     std::uint32_t packing() const {
         if (!quantized_ || grid_.empty()) return 0;
         std::uint32_t word = 0;
-        for (int a = 0; a < 3; ++a) {
-            std::uint32_t span = static_cast<std::uint32_t>(k_hi_[a] - k_lo_[a]), bits = 0;
-            while (span >> bits) ++bits;
-            word |= bits << (8 * a);
-        }
+        for (int a = 0; a < 3; ++a) word |= format::bit_length(static_cast<std::uint32_t>(k_hi_[a] - k_lo_[a])) << (8 * a);
         return word;
     }
     format::TriangleBlockLayout layout() const {
         return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_, quantized_,
                                                packing());
     }
+    // The raw size of the block as it stands, in its layout.
+    std::size_t size() const { return compact_ ? compact_size() : layout().end; }
     void reset_span();
     std::array<std::int32_t, 3> grid_index(const Vec3f& p) const;
     void extend_span(const std::array<std::int32_t, 3>& k);
     void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
+    void clear_maps();
     // Inserts triangles into the current block; false when it stopped because the block
     // certainly cannot hold them.
     bool insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+    // A leaf tried whole in the current block, then in a fresh one; false when it fits
+    // in neither (the block is left empty).
+    bool add_whole(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src, std::uint32_t& first);
+    std::vector<std::uint8_t> plain_bytes(const format::TriangleBlockLayout& l) const;
+
+    // ---- compact blocks (FLAG_COMPACT_TRIANGLES) ----
+    // A leaf record: its run of list entries and the first triangle it may bring in.
+    struct Record {
+        std::size_t begin, end;
+        std::uint32_t base;
+        bool partial;  // the leaf continues in the next block
+    };
+    // What a record's size depends on, replayed from its entries.
+    struct RecordShape {
+        std::uint32_t entries = 0, old = 0, max_distance = 0;
+        std::size_t bits(bool partial) const;
+    };
+    // A group's field ranges (corners, ids, palette indices).
+    struct Range {
+        std::uint32_t lo = ~0u, hi = 0;
+        void add(std::uint32_t v) {
+            lo = std::min(lo, v);
+            hi = std::max(hi, v);
+        }
+        std::uint32_t width() const { return lo > hi ? 0 : format::bit_length(hi - lo); }
+    };
+    struct GroupShape {
+        Range corners, ids, palette;
+        std::uint32_t n = 0;
+        std::size_t bits() const;  // its fields after the header
+    };
+    void open_record();
+    void close_record();
+    RecordShape replay(const Record& r) const;
+    void add_to_group(std::size_t t);
+    std::uint32_t group_header_bits() const;
+    std::size_t compact_size() const;
+    std::vector<std::uint8_t> compact_bytes() const;
+    void reset_compact();
 
     // A vertex takes 12 bytes, a triangle at least 12 (record, id, list entry); a packed
     // vertex can take less than a byte, but a triangle brings at most three.
     static constexpr std::size_t kMaxVertices = (format::kBlockSize - 16) / 12;
     static constexpr std::size_t kMaxTriangles = (format::kBlockSize - 16) / 12;
+    // A compact triangle can take a few bits; these bound the dedup tables (format.h
+    // allows 2^16 of each).
+    static constexpr std::size_t kCompactMaxTriangles = 1u << 14;
+    static constexpr std::size_t kCompactMaxVertices = 1u << 15;
 
     bool has_colours_;
     bool quantized_;
+    bool compact_;
     Vec3f steps_;
-    std::size_t max_vertices_;
+    std::size_t max_vertices_, max_triangles_;
     BlockStream& out_;
     ModelWriterStats& stats_;
     std::uint32_t blocks_ = 0;
@@ -162,9 +210,24 @@ private:
     std::vector<Vec3f> verts_;
     std::vector<std::array<std::int32_t, 3>> grid_;  // quantized: each vertex's grid index
     std::array<std::int32_t, 3> k_lo_{}, k_hi_{};    // and their bounds in this block
-    // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
-    SmallMap<std::uint32_t, IdHash> id_map_{13};
-    SmallMap<VertexKey, VertexHash> vertex_map_;  // 2^13 slots, 2^15 for packed vertices
+    // Compact: leaf records, the palette and each triangle's index in it, the groups
+    // closed so far (their field bits) and the open one, the block's id range.
+    std::vector<Record> records_;
+    bool record_open_ = false;  // the last record is still taking entries
+    std::size_t closed_record_bytes_ = 0;
+    RecordShape open_shape_;
+    std::vector<std::uint32_t> palette_, palette_index_;
+    std::vector<std::size_t> group_bits_;
+    GroupShape open_group_;
+    Range block_ids_;
+    // The closed groups' bytes for one header width (it changes only when V, K or the
+    // id range cross a power of two).
+    mutable std::uint32_t cached_header_bits_ = ~0u;
+    mutable std::size_t cached_groups_ = 0, cached_group_bytes_ = 0;
+    // Sized for the most entries a block takes (plus one triangle's overshoot) at most 3/4 full.
+    SmallMap<std::uint32_t, IdHash> id_map_;
+    SmallMap<VertexKey, VertexHash> vertex_map_;
+    SmallMap<std::uint32_t, IdHash> palette_map_;  // compact: colour -> palette index
 };
 
 }  // namespace vastray::writer
