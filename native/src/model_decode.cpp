@@ -185,7 +185,7 @@ private:
                                             : "list entry points past the triangle section");
                 }
                 CompactTriangleBlock::Group g;
-                if (!tb.group(local / compact::kGroup, g)) bad(b, "triangle group is damaged (widths or extent)");
+                if (!tb.group(local / compact::kGroup, g) || !tb.fits(g)) bad(b, "triangle group is damaged (widths or extent)");
                 const std::uint32_t k = local - g.first;
                 const std::uint32_t id = tb.id(g, k);
                 if (id >= seen_.size()) bad(b, "triangle id " + std::to_string(id) + " is out of range");

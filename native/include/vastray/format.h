@@ -304,12 +304,13 @@ struct TriangleBlockLayout {
 //   header   32 bytes: u32 T (triangles), V (vertices), P (vertex packing, as above, or
 //            0: f32 vertices), K (palette colours; 0 without FLAG_COLOURS), id_min (the
 //            smallest id), id_bits (bit length of max id - id_min), groups (byte offset
-//            of the group table), palette (byte offset of the palette)
+//            of the group headers), palette (byte offset of the palette)
 //   records  from byte 32 to `groups`: one leaf record per leaf (per block, for a leaf
 //            that continues), each starting on a byte; the leaf node's first field is
 //            its byte offset in the block
-//   table    u16 per group of kGroup triangles: the group's byte offset in the data
-//   data     one group record per group, each starting on a byte
+//   headers  one fixed-width header per group of kGroup triangles, back to back, then
+//            zero bits to the next byte
+//   data     one data record per group, each starting on a byte
 //   palette  K x u32 0x00BBGGRR, in order of first use
 //   vertices V x f32[3]; or quantized, i32[3] grid origin, V records of bx+by+bz bits
 //            back to back (not rounded to bytes), then 8 zero bytes of slack
@@ -324,12 +325,17 @@ struct TriangleBlockLayout {
 // distance d follows and the triangle is next - 1 - d. A leaf whose entries run out in
 // a block continues with the record at byte 32 of the next triangle block.
 //
-// Group record, for group j of n = min(kGroup, T - kGroup * j) triangles: corner base
-// (bit_length(V - 1) bits) and width cw (5 bits, <= 16); id base (id_bits bits) and
-// width iw (6 bits, <= 32); with colours, palette base (bit_length(K - 1) bits) and
-// width pw (5 bits, <= 16). Then n x 3 corners of cw bits (vertex = corner base +
-// field, the triangle's corners in order), n ids of iw bits (id = id_min + id base +
-// field), and with colours n palette indices of pw bits (palette base + field).
+// Group j holds triangles kGroup * j ... + n - 1, n = min(kGroup, T - kGroup * j). Its
+// header, at bit j * E of the headers (E = 16 + bit_length(V - 1) + 5 + id_bits + 6,
+// with colours + bit_length(K - 1) + 5), holds: the byte offset of its data record from
+// the start of the data (16 bits); corner base (bit_length(V - 1) bits) and width cw (5
+// bits, <= 16); id base (id_bits bits) and width iw (6 bits, <= 32); with colours,
+// palette base (bit_length(K - 1) bits) and width pw (5 bits, <= 16). Its data record
+// holds n x 3 corners of cw bits (vertex = corner base + field, the triangle's corners
+// in order), n ids of iw bits (id = id_min + id base + field), and with colours n
+// palette indices of pw bits (palette base + field). The data starts at the byte after
+// the headers. A header's position follows from j alone, so a reader goes from a
+// triangle's index to its corners in two loads.
 namespace compact {
 constexpr std::size_t kHeader = 32;
 constexpr std::uint32_t kGroup = 8;
@@ -340,9 +346,13 @@ constexpr std::uint32_t kMaxVertices = 1u << 16;          // corner widths are a
 
 inline std::uint32_t bit_length(std::uint64_t x) { return x ? 64u - static_cast<std::uint32_t>(__builtin_clzll(x)) : 0u; }
 
+// The readers below run once per triangle a ray tests: always inlined, so each kernel
+// ISA (isa.h) gets its own copy instead of a call into one shared build.
+#define VASTRAY_HOT [[gnu::always_inline]] inline
+
 // `width` (at most 57) bits at bit `bit` of the stream at p; reads the 8 bytes at
 // p + bit / 8, so a stream needs that much readable memory after its last field.
-inline std::uint64_t read_bits(const std::uint8_t* p, std::size_t bit, std::uint32_t width) {
+VASTRAY_HOT std::uint64_t read_bits(const std::uint8_t* p, std::size_t bit, std::uint32_t width) {
     std::uint64_t w;
     std::memcpy(&w, p + (bit >> 3), 8);
     return (w >> (bit & 7u)) & ((std::uint64_t{1} << width) - 1);
@@ -380,19 +390,25 @@ struct CompactTriangleBlock {
     const std::uint8_t* data = nullptr;
     std::uint32_t tris = 0, verts = 0, palette_size = 0, id_min = 0, id_bits = 0;
     std::size_t groups = 0, group_data = 0, palette = 0, vertices = 0, end = 0;
-    std::uint32_t vertex_bits = 0, palette_bits = 0, header_bits = 0;  // group header fields
+    std::uint32_t vertex_bits = 0, palette_bits = 0, header_bits = 0;  // group header fields, E in all
     bool packed = false;
-    std::uint32_t bits[3] = {}, record_bits = 0;  // quantized vertices
+    // Quantized vertices: bits per axis, their sum, and the block's grid origin.
+    std::uint32_t bits[3] = {}, record_bits = 0;
+    std::int32_t origin[3] = {};
 
     static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
+    static std::uint32_t header_width(std::uint32_t verts, std::uint32_t id_bits, bool has_colours, std::uint32_t colours) {
+        return 16 + bit_length(verts - 1) + compact::kWidthBits + id_bits + compact::kIdWidthBits +
+               (has_colours ? bit_length(colours - 1) + compact::kWidthBits : 0);
+    }
     static std::size_t vertex_bytes(std::size_t verts, bool packed, std::uint32_t record_bits) {
         return packed ? 12 + (verts * record_bits + 7) / 8 + 8 : 12 * verts;
     }
 
     // The view of the block at tb, of `size` readable bytes (its raw size, or 64 KiB in
     // the cache); false when its header contradicts itself or does not fit `size`.
-    static bool parse(const std::uint8_t* tb, std::size_t size, bool has_colours, bool quantized,
-                      CompactTriangleBlock& b) {
+    VASTRAY_HOT static bool parse(const std::uint8_t* tb, std::size_t size, bool has_colours, bool quantized,
+                                  CompactTriangleBlock& b) {
         if (size < compact::kHeader) return false;
         std::uint32_t h[8];
         std::memcpy(h, tb, sizeof h);
@@ -416,40 +432,41 @@ struct CompactTriangleBlock {
         } else if (h[2] != 0) {
             return false;
         }
-        b.group_data = b.groups + 2 * group_count(b.tris);
+        b.vertex_bits = bit_length(b.verts - 1);
+        b.palette_bits = has_colours ? bit_length(b.palette_size - 1) : 0;
+        b.header_bits = header_width(b.verts, b.id_bits, has_colours, b.palette_size);
+        b.group_data = b.groups + (group_count(b.tris) * b.header_bits + 7) / 8;
         b.vertices = b.palette + 4 * std::size_t{b.palette_size};
         b.end = b.vertices + vertex_bytes(b.verts, b.packed, b.record_bits);
         if (b.groups < compact::kHeader || b.group_data > b.palette || b.end > size) return false;
-        b.vertex_bits = bit_length(b.verts - 1);
-        b.palette_bits = has_colours ? bit_length(b.palette_size - 1) : 0;
-        b.header_bits = b.vertex_bits + compact::kWidthBits + b.id_bits + compact::kIdWidthBits +
-                        (has_colours ? b.palette_bits + compact::kWidthBits : 0);
+        if (quantized) std::memcpy(b.origin, tb + b.vertices, 12);
         return true;
     }
 
-    // One group of triangles: where its fields start and how wide they are.
+    // One group of triangles: where its data starts and how wide its fields are.
     struct Group {
         const std::uint8_t* at = nullptr;
         std::uint32_t first = 0, n = 0;
         std::uint32_t corner_base = 0, cw = 0, id_base = 0, iw = 0, palette_base = 0, pw = 0;
         std::size_t ids = 0, colours = 0;  // bit offsets of the id and palette fields
     };
-    // Group j; false when its record is damaged (widths too wide, or it runs past the
-    // group data).
-    bool group(std::uint32_t j, Group& g) const {
-        std::uint16_t off;
-        std::memcpy(&off, data + groups + 2 * std::size_t{j}, 2);
-        const std::size_t at = group_data + off;
+    // Group j (< the group count); false when its widths are out of range. Its fields
+    // then lie within 100 bytes of a data offset below 64 KiB, so reading them stays
+    // within the block and the 64 KiB after it (the cache's spare slot); fits() says
+    // whether they also end inside the data.
+    VASTRAY_HOT bool group(std::uint32_t j, Group& g) const {
+        std::size_t bit = std::size_t{j} * header_bits;
+        const std::uint8_t* h = data + groups;
+        auto field = [&](std::uint32_t width) {
+            const auto v = static_cast<std::uint32_t>(read_bits(h, bit, width));
+            bit += width;
+            return v;
+        };
+        const std::size_t at = group_data + field(16);
         if (at >= palette) return false;
         g.at = data + at;
         g.first = j * compact::kGroup;
         g.n = std::min(compact::kGroup, tris - g.first);
-        std::size_t bit = 0;
-        auto field = [&](std::uint32_t width) {
-            const auto v = static_cast<std::uint32_t>(read_bits(g.at, bit, width));
-            bit += width;
-            return v;
-        };
         g.corner_base = field(vertex_bits);
         g.cw = field(compact::kWidthBits);
         g.id_base = field(id_bits);
@@ -458,20 +475,39 @@ struct CompactTriangleBlock {
             g.palette_base = field(palette_bits);
             g.pw = field(compact::kWidthBits);
         }
-        if (g.cw > 16 || g.iw > 32 || g.pw > 16) return false;
-        g.ids = header_bits + std::size_t{3} * g.cw * g.n;
+        g.ids = std::size_t{3} * g.cw * g.n;
         g.colours = g.ids + std::size_t{g.iw} * g.n;
-        return at + (g.colours + std::size_t{g.pw} * g.n + 7) / 8 <= palette;
+        return g.cw <= 16 && g.iw <= 32 && g.pw <= 16;
+    }
+    bool fits(const Group& g) const {
+        return static_cast<std::size_t>(g.at - data) + (g.colours + std::size_t{g.pw} * g.n + 7) / 8 <= palette;
+    }
+    // Triangle `local`'s three vertex indices (not checked against V), from the first
+    // fields of its group's header alone (the path of every triangle a ray tests); false
+    // when that group is damaged as group() would say.
+    VASTRAY_HOT bool corners(std::uint32_t local, std::uint32_t v[3]) const {
+        const std::uint32_t j = local / compact::kGroup;
+        const std::uint64_t h = read_bits(data + groups, std::size_t{j} * header_bits, 16 + vertex_bits + compact::kWidthBits);
+        const std::size_t at = group_data + (h & 0xffffu);
+        const auto base = static_cast<std::uint32_t>(h >> 16) & ((1u << vertex_bits) - 1);
+        const auto cw = static_cast<std::uint32_t>(h >> (16 + vertex_bits)) & 31u;
+        if (cw > 16 || at >= palette) return false;
+        const std::uint64_t w = read_bits(data + at, std::size_t{3} * cw * (local - j * compact::kGroup), 3 * cw);
+        const std::uint64_t mask = (std::uint64_t{1} << cw) - 1;
+        v[0] = base + static_cast<std::uint32_t>(w & mask);
+        v[1] = base + static_cast<std::uint32_t>((w >> cw) & mask);
+        v[2] = base + static_cast<std::uint32_t>((w >> (2 * cw)) & mask);
+        return true;
     }
     // Triangle i of group g: its three vertex indices (not checked against V).
-    void corners(const Group& g, std::uint32_t i, std::uint32_t v[3]) const {
-        const std::uint64_t w = read_bits(g.at, header_bits + std::size_t{3} * g.cw * i, 3 * g.cw);
+    VASTRAY_HOT void corners(const Group& g, std::uint32_t i, std::uint32_t v[3]) const {
+        const std::uint64_t w = read_bits(g.at, std::size_t{3} * g.cw * i, 3 * g.cw);
         const std::uint64_t mask = (std::uint64_t{1} << g.cw) - 1;
         v[0] = g.corner_base + static_cast<std::uint32_t>(w & mask);
         v[1] = g.corner_base + static_cast<std::uint32_t>((w >> g.cw) & mask);
         v[2] = g.corner_base + static_cast<std::uint32_t>((w >> (2 * g.cw)) & mask);
     }
-    std::uint32_t id(const Group& g, std::uint32_t i) const {
+    VASTRAY_HOT std::uint32_t id(const Group& g, std::uint32_t i) const {
         return id_min + g.id_base + static_cast<std::uint32_t>(read_bits(g.at, g.ids + std::size_t{g.iw} * i, g.iw));
     }
     // The palette index of triangle i of group g (not checked against K).
@@ -484,14 +520,12 @@ struct CompactTriangleBlock {
         return c;
     }
     // Vertex v (< V): f32 as stored, or f32(origin + offset) * step, as in the plain layout.
-    Vec3f vertex(std::uint32_t v, const Vec3f& steps) const {
+    VASTRAY_HOT Vec3f vertex(std::uint32_t v, const Vec3f& steps) const {
         Vec3f p;
         if (!packed) {
             std::memcpy(&p, data + vertices + 12 * std::size_t{v}, 12);
             return p;
         }
-        std::int32_t o[3];
-        std::memcpy(o, data + vertices, 12);
         const std::size_t bit = std::size_t{v} * record_bits;
         const std::uint8_t* at = data + vertices + 12 + (bit >> 3);
         const std::uint32_t s = static_cast<std::uint32_t>(bit & 7u);
@@ -504,7 +538,7 @@ struct CompactTriangleBlock {
             w |= hi << (64 - s);
         }
         const auto field = [&](int a, std::uint32_t shift) {
-            return o[a] + static_cast<std::int32_t>((w >> shift) & ((std::uint64_t{1} << bits[a]) - 1));
+            return origin[a] + static_cast<std::int32_t>((w >> shift) & ((std::uint64_t{1} << bits[a]) - 1));
         };
         return {grid_vertex(field(0, 0), steps.x), grid_vertex(field(1, bits[0]), steps.y),
                 grid_vertex(field(2, bits[0] + bits[1]), steps.z)};
@@ -516,15 +550,18 @@ class CompactLeafRecord {
 public:
     // The record at byte `at` of block b, for a leaf with `remaining` entries not read
     // yet; false when it lies outside the records or says more than `remaining`.
-    bool open(const CompactTriangleBlock& b, std::uint32_t at, std::uint32_t remaining) {
+    VASTRAY_HOT bool open(const CompactTriangleBlock& b, std::uint32_t at, std::uint32_t remaining) {
         if (at < compact::kHeader || at >= b.groups) return false;
         p_ = b.data + at;
         limit_ = 8 * (b.groups - at);
         tris_ = b.tris;
-        bit_ = 0;
-        next_ = field(compact::kBaseBits);
-        width_ = field(compact::kWidthBits);
-        count_ = field(1) ? field(compact::kCountBits) : remaining;
+        const std::uint64_t w = read_bits(p_, 0, compact::kBaseBits + compact::kWidthBits + 1 + compact::kCountBits);
+        next_ = static_cast<std::uint32_t>(w & 0xffffu);
+        width_ = static_cast<std::uint32_t>(w >> compact::kBaseBits) & 31u;
+        const bool partial = (w >> (compact::kBaseBits + compact::kWidthBits)) & 1u;
+        bit_ = compact::kBaseBits + compact::kWidthBits + 1 + (partial ? compact::kCountBits : 0);
+        count_ = partial ? static_cast<std::uint32_t>(w >> (compact::kBaseBits + compact::kWidthBits + 1)) & 0xffffu
+                         : remaining;
         return width_ <= 16 && count_ >= 1 && count_ <= remaining && bit_ <= limit_;
     }
     std::uint32_t count() const { return count_; }
@@ -532,26 +569,23 @@ public:
     bool overrun() const { return bit_ > limit_; }
     // The next entry's triangle index; false when the record is damaged there (it runs
     // past the records or points outside the block's triangles).
-    bool next(std::uint32_t& local) {
-        if (field(1)) {
-            local = next_++;
-        } else {
-            const std::uint32_t d = field(width_);
-            if (d >= next_) return false;
-            local = next_ - 1 - d;
-        }
-        return local < tris_ && bit_ <= limit_;
+    VASTRAY_HOT bool next(std::uint32_t& local) {
+        // Without branches on the flag: new and old entries mix unpredictably.
+        const std::uint64_t w = read_bits(p_, bit_, 1 + width_);  // the flag and a distance
+        const bool fresh = (w & 1u) != 0;
+        const auto d = static_cast<std::uint32_t>(w >> 1);
+        const std::uint32_t old = next_ - 1 - d;  // wraps past 0 when d >= next: caught below
+        local = fresh ? next_ : old;
+        next_ += fresh ? 1u : 0u;
+        bit_ += fresh ? 1u : 1u + width_;
+        return (fresh || d < next_) && local < tris_ && bit_ <= limit_;
     }
 
 private:
-    std::uint32_t field(std::uint32_t width) {
-        const auto v = static_cast<std::uint32_t>(read_bits(p_, bit_, width));
-        bit_ += width;
-        return v;
-    }
     const std::uint8_t* p_ = nullptr;
     std::size_t bit_ = 0, limit_ = 0;
     std::uint32_t next_ = 0, width_ = 0, count_ = 0, tris_ = 0;
 };
 
+#undef VASTRAY_HOT
 }  // namespace vastray::format

@@ -295,10 +295,9 @@ private:
                 block_ = nullptr;
                 return false;
             }
-            if (!group_for(local)) continue;
             std::uint32_t v[3];
-            compact_.corners(group_, local - group_.first, v);
-            if (v[0] >= compact_.verts || v[1] >= compact_.verts || v[2] >= compact_.verts) continue;
+            if (!compact_.corners(local, v)) continue;
+            if ((v[0] >= compact_.verts) | (v[1] >= compact_.verts) | (v[2] >= compact_.verts)) continue;
             v0 = compact_.vertex(v[0], lane_.vertex_steps);
             v1 = compact_.vertex(v[1], lane_.vertex_steps);
             v2 = compact_.vertex(v[2], lane_.vertex_steps);

@@ -97,11 +97,10 @@ void TriangleBlocks::truncate(std::size_t list_size, std::size_t tris, std::size
         for (std::uint32_t p : palette_index_) used = std::max(used, p + 1);
         palette_.resize(used);
     }
-    group_bits_.clear();
+    closed_group_bytes_ = 0;
     open_group_ = {};
     block_ids_ = {};
     for (std::size_t t = 0; t < tris; ++t) add_to_group(t);
-    cached_header_bits_ = ~0u;
 }
 
 void TriangleBlocks::clear_maps() {
@@ -322,38 +321,25 @@ void TriangleBlocks::add_to_group(std::size_t t) {
     block_ids_.add(ids_[t]);
     if (has_colours_) open_group_.palette.add(palette_index_[t]);
     if (++open_group_.n == format::compact::kGroup) {
-        group_bits_.push_back(open_group_.bits());
+        closed_group_bytes_ += (open_group_.bits() + 7) / 8;
         open_group_ = {};
     }
 }
 
-std::uint32_t TriangleBlocks::group_header_bits() const {
-    using namespace format;
-    const auto count_bits = [](std::size_t n) { return bit_length(n > 0 ? n - 1 : 0); };
-    return count_bits(verts_.size()) + compact::kWidthBits + block_ids_.width() + compact::kIdWidthBits +
-           (has_colours_ ? count_bits(palette_.size()) + compact::kWidthBits : 0);
-}
-
 std::size_t TriangleBlocks::compact_size() const {
     using format::CompactTriangleBlock;
-    const std::uint32_t header = group_header_bits();
-    if (header != cached_header_bits_ || cached_groups_ > group_bits_.size()) {
-        cached_header_bits_ = header;
-        cached_groups_ = 0;
-        cached_group_bytes_ = 0;
-    }
-    for (; cached_groups_ < group_bits_.size(); ++cached_groups_) {
-        cached_group_bytes_ += (header + group_bits_[cached_groups_] + 7) / 8;
-    }
-    const std::size_t data = cached_group_bytes_ + (open_group_.n > 0 ? (header + open_group_.bits() + 7) / 8 : 0);
+    const std::size_t groups = CompactTriangleBlock::group_count(ids_.size());
+    const std::uint32_t header = CompactTriangleBlock::header_width(
+        static_cast<std::uint32_t>(verts_.size()), block_ids_.width(), has_colours_, static_cast<std::uint32_t>(palette_.size()));
+    const std::size_t data = closed_group_bytes_ + (open_group_.bits() + 7) / 8;
     // An open record may yet continue in the next block: count its entry count too.
     const std::size_t records = closed_record_bytes_ + (record_open_ ? (open_shape_.bits(true) + 7) / 8 : 0);
     const std::uint32_t record_bits = quantized_ ? [&] {
         const std::uint32_t p = packing();
         return (p & 0xffu) + ((p >> 8) & 0xffu) + (p >> 16);
     }() : 0u;
-    return format::compact::kHeader + records + 2 * CompactTriangleBlock::group_count(ids_.size()) + data +
-           4 * palette_.size() + CompactTriangleBlock::vertex_bytes(verts_.size(), quantized_, record_bits);
+    return format::compact::kHeader + records + (groups * header + 7) / 8 + data + 4 * palette_.size() +
+           CompactTriangleBlock::vertex_bytes(verts_.size(), quantized_, record_bits);
 }
 
 std::vector<std::uint8_t> TriangleBlocks::compact_bytes() const {
@@ -380,42 +366,46 @@ std::vector<std::uint8_t> TriangleBlocks::compact_bytes() const {
             }
         }
     }
+    // Group headers first (fixed width, so a reader finds one from the group's index),
+    // then each group's data record; the headers need the records' offsets, so the
+    // records go to a buffer of their own first.
     const std::size_t groups_at = out.size();
     const std::size_t groups = CompactTriangleBlock::group_count(ids_.size());
-    out.resize(out.size() + 2 * groups, 0);
-    const std::size_t data_at = out.size();
     const std::uint32_t vertex_bits = bit_length(verts_.size() - 1);
     const std::uint32_t id_bits = block_ids_.width();
     const std::uint32_t palette_bits = has_colours_ ? bit_length(palette_.size() - 1) : 0;
-    for (std::size_t j = 0; j < groups; ++j) {
-        const std::size_t off = out.size() - data_at;
-        if (off > 0xffff) throw std::logic_error("compact triangle group offset overflow");
-        const auto off16 = static_cast<std::uint16_t>(off);
-        std::memcpy(out.data() + groups_at + 2 * j, &off16, 2);
-        const std::size_t first = compact::kGroup * j, last = std::min(first + compact::kGroup, ids_.size());
-        GroupShape g;
-        for (std::size_t t = first; t < last; ++t) {
-            for (int k = 0; k < 3; ++k) g.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
-            g.ids.add(ids_[t]);
-            if (has_colours_) g.palette.add(palette_index_[t]);
-        }
-        BitWriter bits(out);
-        bits.put(g.corners.lo, vertex_bits);
-        bits.put(g.corners.width(), compact::kWidthBits);
-        bits.put(g.ids.lo - block_ids_.lo, id_bits);
-        bits.put(g.ids.width(), compact::kIdWidthBits);
-        if (has_colours_) {
-            bits.put(g.palette.lo, palette_bits);
-            bits.put(g.palette.width(), compact::kWidthBits);
-        }
-        for (std::size_t t = first; t < last; ++t) {
-            for (int k = 0; k < 3; ++k) bits.put(tri_verts_[3 * t + static_cast<std::size_t>(k)] - g.corners.lo, g.corners.width());
-        }
-        for (std::size_t t = first; t < last; ++t) bits.put(ids_[t] - g.ids.lo, g.ids.width());
-        if (has_colours_) {
-            for (std::size_t t = first; t < last; ++t) bits.put(palette_index_[t] - g.palette.lo, g.palette.width());
+    std::vector<std::uint8_t> data;
+    {
+        BitWriter headers(out);
+        for (std::size_t j = 0; j < groups; ++j) {
+            const std::size_t first = compact::kGroup * j, last = std::min(first + compact::kGroup, ids_.size());
+            GroupShape g;
+            for (std::size_t t = first; t < last; ++t) {
+                for (int k = 0; k < 3; ++k) g.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
+                g.ids.add(ids_[t]);
+                if (has_colours_) g.palette.add(palette_index_[t]);
+            }
+            if (data.size() > 0xffff) throw std::logic_error("compact triangle group offset overflow");
+            headers.put(data.size(), 16);
+            headers.put(g.corners.lo, vertex_bits);
+            headers.put(g.corners.width(), compact::kWidthBits);
+            headers.put(g.ids.lo - block_ids_.lo, id_bits);
+            headers.put(g.ids.width(), compact::kIdWidthBits);
+            if (has_colours_) {
+                headers.put(g.palette.lo, palette_bits);
+                headers.put(g.palette.width(), compact::kWidthBits);
+            }
+            BitWriter bits(data);
+            for (std::size_t t = first; t < last; ++t) {
+                for (int k = 0; k < 3; ++k) bits.put(tri_verts_[3 * t + static_cast<std::size_t>(k)] - g.corners.lo, g.corners.width());
+            }
+            for (std::size_t t = first; t < last; ++t) bits.put(ids_[t] - g.ids.lo, g.ids.width());
+            if (has_colours_) {
+                for (std::size_t t = first; t < last; ++t) bits.put(palette_index_[t] - g.palette.lo, g.palette.width());
+            }
         }
     }
+    out.insert(out.end(), data.begin(), data.end());
     const std::size_t palette_at = out.size();
     for (std::uint32_t c : palette_) {
         out.resize(out.size() + 4);
@@ -453,11 +443,9 @@ void TriangleBlocks::reset_compact() {
     open_shape_ = {};
     palette_.clear();
     palette_index_.clear();
-    group_bits_.clear();
+    closed_group_bytes_ = 0;
     open_group_ = {};
     block_ids_ = {};
-    cached_header_bits_ = ~0u;
-    cached_groups_ = cached_group_bytes_ = 0;
 }
 
 }  // namespace vastray::writer

@@ -183,7 +183,6 @@ private:
     void close_record();
     RecordShape replay(const Record& r) const;
     void add_to_group(std::size_t t);
-    std::uint32_t group_header_bits() const;
     std::size_t compact_size() const;
     std::vector<std::uint8_t> compact_bytes() const;
     void reset_compact();
@@ -217,13 +216,9 @@ private:
     std::size_t closed_record_bytes_ = 0;
     RecordShape open_shape_;
     std::vector<std::uint32_t> palette_, palette_index_;
-    std::vector<std::size_t> group_bits_;
+    std::size_t closed_group_bytes_ = 0;  // the data records of the full groups
     GroupShape open_group_;
     Range block_ids_;
-    // The closed groups' bytes for one header width (it changes only when V, K or the
-    // id range cross a power of two).
-    mutable std::uint32_t cached_header_bits_ = ~0u;
-    mutable std::size_t cached_groups_ = 0, cached_group_bytes_ = 0;
     // Sized for the most entries a block takes (plus one triangle's overshoot) at most 3/4 full.
     SmallMap<std::uint32_t, IdHash> id_map_;
     SmallMap<VertexKey, VertexHash> vertex_map_;
