@@ -41,6 +41,8 @@ FLAG_QUANTIZED_SPLITS: int = _F["flag_quantized_splits"]
 FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
 # Compact triangle blocks: bit-packed leaf records, grouped triangles, a palette (§11a)
 FLAG_COMPACT_TRIANGLES: int = _F["flag_compact_triangles"]
+COMPACT_HEADER: int = _F["compact_header"]  # bytes of a compact block's header
+COMPACT_GROUP: int = _F["compact_group"]  # triangles per group
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
 SPLIT_STEPS: int = 1 << SPLIT_BITS
@@ -452,9 +454,11 @@ class ModelFile:
         return bool(self.header["flags"] & FLAG_COMPACT_TRIANGLES)
 
     def triangle_layout(self, data: bytes) -> dict[str, int]:
-        """The sections of a triangle block's raw bytes (FORMAT.md §11): counts, byte
-        offsets and, with quantized vertices, the bits per axis and bytes per vertex.
-        Raises ModelError for a damaged packing word."""
+        """The sections of a triangle block's raw bytes (FORMAT.md §11, §11a): counts, byte
+        offsets and, with quantized vertices, the bits per axis and per vertex record.
+        Raises ModelError for a damaged packing word or compact header."""
+        if self.compact_triangles:
+            return self._compact_layout(data)
         entries, tris, verts, packing = struct.unpack_from("<4I", data)
         out = {"entries": entries, "triangles_count": tris, "vertices_count": verts}
         out["triangles"] = 16 + _pad4(2 * entries)
@@ -463,12 +467,42 @@ class ModelFile:
         out["vertices"] = out["colours"] + (4 * tris if self.has_colours else 0)
         out["end"] = out["vertices"] + 12 * verts
         if self.quantized_vertices:
-            bits = [(packing >> (8 * a)) & 0xFF for a in range(3)]
-            if packing >> 24 or max(bits) > VERTEX_GRID_BITS + 1:
-                raise self._fail(f"triangle block with a damaged vertex packing word {packing:#x}")
+            bits = self._vertex_bits(packing)
             record = (sum(bits) + 7) // 8
             out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record=record)
             out["end"] = out["vertices"] + 12 + _pad4(record * verts + 8 - record)
+        return out
+
+    def _vertex_bits(self, packing: int) -> list[int]:
+        bits = [(packing >> (8 * a)) & 0xFF for a in range(3)]
+        if packing >> 24 or max(bits) > VERTEX_GRID_BITS + 1:
+            raise self._fail(f"triangle block with a damaged vertex packing word {packing:#x}")
+        return bits
+
+    def _compact_layout(self, data: bytes) -> dict[str, int]:
+        """A compact block (FORMAT.md §11a): header, leaf records, group headers, group
+        data, palette and vertices, with the group header width."""
+        if len(data) < COMPACT_HEADER:
+            raise self._fail("compact triangle block shorter than its header")
+        tris, verts, packing, colours, id_min, id_bits, groups, palette = struct.unpack_from("<8I", data)
+        if not (1 <= tris and 1 <= verts and id_bits <= 32 and COMPACT_HEADER <= groups <= palette):
+            raise self._fail(f"compact triangle block with a damaged header ({tris}, {verts}, {id_bits})")
+        header_bits = 16 + (verts - 1).bit_length() + 5 + id_bits + 6
+        if self.has_colours:
+            header_bits += max(colours - 1, 0).bit_length() + 5
+        group_count = -(-tris // COMPACT_GROUP)
+        out = {"triangles_count": tris, "vertices_count": verts, "palette_count": colours, "id_min": id_min,
+               "id_bits": id_bits, "records": COMPACT_HEADER, "groups": groups, "group_count": group_count,
+               "header_bits": header_bits, "data": groups + (group_count * header_bits + 7) // 8,
+               "palette": palette, "vertices": palette + 4 * colours}  # fmt: skip
+        if self.quantized_vertices:
+            bits = self._vertex_bits(packing)
+            out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record_bits=sum(bits))
+            out["end"] = out["vertices"] + 12 + (sum(bits) * verts + 7) // 8 + 8
+        else:
+            out["end"] = out["vertices"] + 12 * verts
+        if out["data"] > palette:
+            raise self._fail("compact triangle block whose group headers overrun its data")
         return out
 
     @property

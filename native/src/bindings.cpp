@@ -248,6 +248,8 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_quantized_splits"] = format::kFlagQuantizedSplits;
     fmt["flag_quantized_vertices"] = format::kFlagQuantizedVertices;
     fmt["flag_compact_triangles"] = format::kFlagCompactTriangles;
+    fmt["compact_header"] = format::compact::kHeader;
+    fmt["compact_group"] = format::compact::kGroup;
     fmt["vertex_grid_bits"] = format::kVertexGridBits;
     fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;
