@@ -242,8 +242,8 @@ class CompactBlock:
         else:
             origin = struct.unpack_from("<3i", raw, at_vertices)
             vertices = np.empty((verts, 3), np.float32)
-            r = BitReader(raw, 8 * (at_vertices + 12))
             for v in range(verts):
+                r = BitReader(raw, 8 * (at_vertices + 12) + v * sum(axis_bits))
                 for a in range(3):
                     vertices[v, a] = np.float32(origin[a] + r(axis_bits[a])) * np.float32(steps[a])
         return cls(raw, groups, triangles, ids.astype(np.uint32), colours, vertices)

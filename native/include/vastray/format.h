@@ -392,9 +392,12 @@ struct CompactTriangleBlock {
     std::size_t groups = 0, group_data = 0, palette = 0, vertices = 0, end = 0;
     std::uint32_t vertex_bits = 0, palette_bits = 0, header_bits = 0;  // group header fields, E in all
     bool packed = false;
-    // Quantized vertices: bits per axis, their sum, and the block's grid origin.
+    // Quantized vertices: bits per axis, their sum, the block's grid origin, and where
+    // each axis's field sits in a record (shift and mask, for the traversal's decoding).
     std::uint32_t bits[3] = {}, record_bits = 0;
     std::int32_t origin[3] = {};
+    std::uint32_t shifts[3] = {};
+    std::uint64_t masks[3] = {};
 
     static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
     static std::uint32_t header_width(std::uint32_t verts, std::uint32_t id_bits, bool has_colours, std::uint32_t colours) {
@@ -439,7 +442,13 @@ struct CompactTriangleBlock {
         b.vertices = b.palette + 4 * std::size_t{b.palette_size};
         b.end = b.vertices + vertex_bytes(b.verts, b.packed, b.record_bits);
         if (b.groups < compact::kHeader || b.group_data > b.palette || b.end > size) return false;
-        if (quantized) std::memcpy(b.origin, tb + b.vertices, 12);
+        if (quantized) {
+            std::memcpy(b.origin, tb + b.vertices, 12);
+            for (int a = 0; a < 3; ++a) {
+                b.shifts[a] = a == 0 ? 0 : b.shifts[a - 1] + b.bits[a - 1];
+                b.masks[a] = (std::uint64_t{1} << b.bits[a]) - 1;
+            }
+        }
         return true;
     }
 
@@ -532,16 +541,16 @@ struct CompactTriangleBlock {
         std::uint64_t w;
         std::memcpy(&w, at, 8);
         w >>= s;
-        if (s + record_bits > 64) {  // a record of more than 57 bits can straddle two words
+        if (record_bits > 57) {
+            // Such a record can straddle two 8-byte words. Whether it does varies from
+            // vertex to vertex, so the second word is always read (the branch on the
+            // block's record width is predictable): s = 0 shifts it out entirely.
             std::uint64_t hi;
             std::memcpy(&hi, at + 8, 8);
-            w |= hi << (64 - s);
+            w |= (hi << 1) << (63 - s);
         }
-        const auto field = [&](int a, std::uint32_t shift) {
-            return origin[a] + static_cast<std::int32_t>((w >> shift) & ((std::uint64_t{1} << bits[a]) - 1));
-        };
-        return {grid_vertex(field(0, 0), steps.x), grid_vertex(field(1, bits[0]), steps.y),
-                grid_vertex(field(2, bits[0] + bits[1]), steps.z)};
+        const auto field = [&](int a) { return origin[a] + static_cast<std::int32_t>((w >> shifts[a]) & masks[a]); };
+        return {grid_vertex(field(0), steps.x), grid_vertex(field(1), steps.y), grid_vertex(field(2), steps.z)};
     }
 };
 
