@@ -144,12 +144,14 @@ def node_bytes(model: ModelFile) -> int:
 
 COMPARED = {
     "splits": {"quantized_splits": True},
-    "vertices": {"quantized_vertices": True},
+    "vertices": {"quantized_vertices": True, "quantized_splits": False},
     "both": {"quantized_splits": True, "quantized_vertices": True},
     "compact": {"compact_triangles": True},
 }
-# What the reference side is built with besides --base: the opposite of the reduced side.
+# What the reference side is built with besides --base: full precision (quantized splits
+# are the builder's default), or plain triangle blocks.
 REFERENCE = {"compact": {"compact_triangles": False}}
+FULL = {"quantized_splits": False}
 
 
 def labels(compare: str) -> tuple[str, str]:
@@ -159,7 +161,7 @@ def labels(compare: str) -> tuple[str, str]:
 
 def side_options(args: argparse.Namespace, reduced: bool) -> dict[str, bool]:
     base = {name: True for name in args.base.split(",") if name}
-    own = COMPARED[args.compare] if reduced else REFERENCE.get(args.compare, {})
+    own = COMPARED[args.compare] if reduced else REFERENCE.get(args.compare, FULL)
     return {**base, **own}
 
 
