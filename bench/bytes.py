@@ -65,12 +65,16 @@ def group_fields(data: bytes, layout: dict[str, Any], has_colours: bool) -> dict
             start = at >> 3
             return (int.from_bytes(words[start : start + 9].tobytes(), "little") >> (at & 7)) & ((1 << w) - 1)
 
+        data = 8 * (layout["data"] + field(pos, 16))
         pos += 16 + vertex_bits
-        out["corners"] += 3 * n * field(pos, 5)
+        cw = field(pos, 5)
+        out["corners"] += 3 * n * cw
         pos += 5 + layout["id_bits"]
-        out["ids"] += n * field(pos, 6)
+        iw, split = field(pos, 6), field(pos + 6, 1)
+        # split: a second base (6-bit width, then the distance) and a bit per id
+        out["ids"] += 6 + field(data + 3 * n * cw, 6) + n * (iw + 1) if split else n * iw
         if has_colours:
-            pos += 6 + (layout["palette_count"] - 1).bit_length()
+            pos += 7 + (layout["palette_count"] - 1).bit_length()
             out["colours"] += n * field(pos, 5)
     return out
 

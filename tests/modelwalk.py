@@ -194,7 +194,7 @@ class CompactBlock:
             raise WalkError(f"compact header counts are damaged: {tris}, {verts}, {n_colours}, {id_bits}")
         vertex_bits = (verts - 1).bit_length()
         palette_bits = (n_colours - 1).bit_length() if has_colours else 0
-        width = 16 + vertex_bits + 5 + id_bits + 6 + (palette_bits + 5 if has_colours else 0)
+        width = 16 + vertex_bits + 5 + id_bits + 6 + 1 + (palette_bits + 5 if has_colours else 0)
         n_groups = (tris + GROUP - 1) // GROUP
         data = groups + (n_groups * width + 7) // 8
         at_vertices = palette + 4 * n_colours
@@ -215,17 +215,27 @@ class CompactBlock:
         for j in range(n_groups):
             h = BitReader(raw, 8 * groups + j * width)
             offset, corner_base, cw, id_base, iw = h(16), h(vertex_bits), h(5), h(id_bits), h(6)
+            split = h(1)
             palette_base, pw = (h(palette_bits), h(5)) if has_colours else (0, 0)
             if cw > 16 or iw > 32 or pw > 16:
                 raise WalkError(f"group {j} has field widths {cw}, {iw}, {pw}")
             first, n = GROUP * j, min(GROUP, tris - GROUP * j)
-            if data + offset + (n * (3 * cw + iw + pw) + 7) // 8 > palette:
-                raise WalkError(f"group {j} runs past the group data")
             d = BitReader(raw, 8 * (data + offset))
+            d.pos += 3 * cw * n
+            # Split: a second id base (its distance from the first), and a bit per id to pick.
+            distance_bits = d(6) if split else 0
+            distance = d(distance_bits) if split else 0
+            if distance_bits > 32:
+                raise WalkError(f"group {j} has a second id base of {distance_bits} bits")
+            if d.pos + n * (iw + split + pw) > 8 * palette:
+                raise WalkError(f"group {j} runs past the group data")
+            d.pos = 8 * (data + offset)
             for t in range(first, first + n):
                 triangles[t] = [corner_base + d(cw) for _ in range(3)]
+            d.pos += 6 + distance_bits if split else 0
             for t in range(first, first + n):
-                ids[t] = id_min + id_base + d(iw)
+                field = d(iw + split)
+                ids[t] = id_min + id_base + (distance if field & split else 0) + (field >> split)
             for t in range(first, first + n):
                 indices[t] = palette_base + d(pw)
         if (triangles >= verts).any():

@@ -134,6 +134,8 @@ def test_walker_and_native_decode_the_same(models: dict[Key, Path], name: str) -
     native decoder agrees with it."""
     if (name, "full", True) not in models:
         pytest.skip("stanford-bunny.obj not in ../shared/models")
+    split, total = split_groups(models[name, "both", True])
+    assert 0 < split < total  # both ways of storing a group's ids are read
     for kind in KINDS:
         plain, compact = leaves(models[name, kind, False]), leaves(models[name, kind, True])
         assert len(plain) == len(compact)
@@ -147,6 +149,21 @@ def test_walker_and_native_decode_the_same(models: dict[Key, Path], name: str) -
             else:
                 np.testing.assert_array_equal(a.colours, b.colours)
             np.testing.assert_array_equal(corners[b.ids.astype(np.int64)], b.vertices)
+
+
+def split_groups(path: Path) -> tuple[int, int]:
+    """(groups whose ids use two bases, all groups) over the compact triangle blocks."""
+    split = total = 0
+    with ModelFile(path) as model:
+        first, count = model.levels[-1]
+        for b in range(first, first + count):
+            raw = model.read_block(b)
+            layout = model.triangle_layout(raw)
+            before = 16 + (layout["vertices_count"] - 1).bit_length() + 5 + layout["id_bits"] + 6
+            for j in range(layout["group_count"]):
+                split += BitReader(raw, 8 * layout["groups"] + j * layout["header_bits"] + before)(1)
+            total += layout["group_count"]
+    return split, total
 
 
 def record_starts(path: Path) -> list[tuple[int, int, int]]:
@@ -300,7 +317,7 @@ class Fields:
         self.offset = self.group  # its data offset, 16 bits
         self.corner_base = self.group + 16
         self.corner_width = self.corner_base + self.vertex_bits
-        self.palette_base = self.corner_width + 5 + id_bits + 6
+        self.palette_base = self.corner_width + 5 + id_bits + 7  # past the id width and split bit
         self.record = 8 * COMPACT_HEADER  # the first leaf record: base (16), width (5), partial (1)
 
 

@@ -487,7 +487,7 @@ class ModelFile:
         tris, verts, packing, colours, id_min, id_bits, groups, palette = struct.unpack_from("<8I", data)
         if not (1 <= tris and 1 <= verts and id_bits <= 32 and COMPACT_HEADER <= groups <= palette):
             raise self._fail(f"compact triangle block with a damaged header ({tris}, {verts}, {id_bits})")
-        header_bits = 16 + (verts - 1).bit_length() + 5 + id_bits + 6
+        header_bits = 16 + (verts - 1).bit_length() + 5 + id_bits + 7
         if self.has_colours:
             header_bits += max(colours - 1, 0).bit_length() + 5
         group_count = -(-tris // COMPACT_GROUP)

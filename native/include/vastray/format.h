@@ -326,16 +326,19 @@ struct TriangleBlockLayout {
 // a block continues with the record at byte 32 of the next triangle block.
 //
 // Group j holds triangles kGroup * j ... + n - 1, n = min(kGroup, T - kGroup * j). Its
-// header, at bit j * E of the headers (E = 16 + bit_length(V - 1) + 5 + id_bits + 6,
+// header, at bit j * E of the headers (E = 16 + bit_length(V - 1) + 5 + id_bits + 7,
 // with colours + bit_length(K - 1) + 5), holds: the byte offset of its data record from
 // the start of the data (16 bits); corner base (bit_length(V - 1) bits) and width cw (5
-// bits, <= 16); id base (id_bits bits) and width iw (6 bits, <= 32); with colours,
-// palette base (bit_length(K - 1) bits) and width pw (5 bits, <= 16). Its data record
-// holds n x 3 corners of cw bits (vertex = corner base + field, the triangle's corners
-// in order), n ids of iw bits (id = id_min + id base + field), and with colours n
-// palette indices of pw bits (palette base + field). The data starts at the byte after
-// the headers. A header's position follows from j alone, so a reader goes from a
-// triangle's index to its corners in two loads.
+// bits, <= 16); id base (id_bits bits), width iw (6 bits, <= 32) and a `split` bit; with
+// colours, palette base (bit_length(K - 1) bits) and width pw (5 bits, <= 16). Its data
+// record holds n x 3 corners of cw bits (vertex = corner base + field, the triangle's
+// corners in order); then the ids: n fields of iw bits (id = id_min + id base + field),
+// or, split, a width dw (6 bits, <= 32), a distance of dw bits to a second base, and n
+// fields of 1 + iw bits whose low bit picks the base (id = id_min + id base + (bit ?
+// distance : 0) + field >> 1), for a group whose triangles come from two runs of ids
+// far apart; and with colours n palette indices of pw bits (palette base + field). The
+// data starts at the byte after the headers. A header's position follows from j alone,
+// so a reader goes from a triangle's index to its corners in two loads.
 namespace compact {
 constexpr std::size_t kHeader = 32;
 constexpr std::uint32_t kGroup = 8;
@@ -401,7 +404,7 @@ struct CompactTriangleBlock {
 
     static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
     static std::uint32_t header_width(std::uint32_t verts, std::uint32_t id_bits, bool has_colours, std::uint32_t colours) {
-        return 16 + bit_length(verts - 1) + compact::kWidthBits + id_bits + compact::kIdWidthBits +
+        return 16 + bit_length(verts - 1) + compact::kWidthBits + id_bits + compact::kIdWidthBits + 1 +
                (has_colours ? bit_length(colours - 1) + compact::kWidthBits : 0);
     }
     static std::size_t vertex_bytes(std::size_t verts, bool packed, std::uint32_t record_bits) {
@@ -457,10 +460,12 @@ struct CompactTriangleBlock {
         const std::uint8_t* at = nullptr;
         std::uint32_t first = 0, n = 0;
         std::uint32_t corner_base = 0, cw = 0, id_base = 0, iw = 0, palette_base = 0, pw = 0;
-        std::size_t ids = 0, colours = 0;  // bit offsets of the id and palette fields
+        bool split = false;             // two id bases
+        std::uint32_t id_distance = 0;  // the second one's distance from the first
+        std::size_t ids = 0, colours = 0;  // bit offsets of the id fields and the palette fields
     };
     // Group j (< the group count); false when its widths are out of range. Its fields
-    // then lie within 100 bytes of a data offset below 64 KiB, so reading them stays
+    // then lie within 110 bytes of a data offset below 64 KiB, so reading them stays
     // within the block and the 64 KiB after it (the cache's spare slot); fits() says
     // whether they also end inside the data.
     VASTRAY_HOT bool group(std::uint32_t j, Group& g) const {
@@ -480,13 +485,23 @@ struct CompactTriangleBlock {
         g.cw = field(compact::kWidthBits);
         g.id_base = field(id_bits);
         g.iw = field(compact::kIdWidthBits);
+        g.split = field(1) != 0;
         if (palette_size != 0) {  // the model has colours
             g.palette_base = field(palette_bits);
             g.pw = field(compact::kWidthBits);
         }
+        if (g.cw > 16 || g.iw > 32 || g.pw > 16) return false;
         g.ids = std::size_t{3} * g.cw * g.n;
-        g.colours = g.ids + std::size_t{g.iw} * g.n;
-        return g.cw <= 16 && g.iw <= 32 && g.pw <= 16;
+        std::uint32_t id_field = g.iw;
+        if (g.split) {
+            const auto dw = static_cast<std::uint32_t>(read_bits(g.at, g.ids, compact::kIdWidthBits));
+            if (dw > 32) return false;
+            g.id_distance = static_cast<std::uint32_t>(read_bits(g.at, g.ids + compact::kIdWidthBits, dw));
+            g.ids += compact::kIdWidthBits + dw;
+            id_field += 1;
+        }
+        g.colours = g.ids + std::size_t{id_field} * g.n;
+        return true;
     }
     bool fits(const Group& g) const {
         return static_cast<std::size_t>(g.at - data) + (g.colours + std::size_t{g.pw} * g.n + 7) / 8 <= palette;
@@ -517,7 +532,9 @@ struct CompactTriangleBlock {
         v[2] = g.corner_base + static_cast<std::uint32_t>((w >> (2 * g.cw)) & mask);
     }
     VASTRAY_HOT std::uint32_t id(const Group& g, std::uint32_t i) const {
-        return id_min + g.id_base + static_cast<std::uint32_t>(read_bits(g.at, g.ids + std::size_t{g.iw} * i, g.iw));
+        if (!g.split) return id_min + g.id_base + static_cast<std::uint32_t>(read_bits(g.at, g.ids + std::size_t{g.iw} * i, g.iw));
+        const std::uint64_t f = read_bits(g.at, g.ids + std::size_t{g.iw + 1} * i, g.iw + 1);
+        return id_min + g.id_base + ((f & 1u) ? g.id_distance : 0u) + static_cast<std::uint32_t>(f >> 1);
     }
     // The palette index of triangle i of group g (not checked against K).
     std::uint32_t palette_index(const Group& g, std::uint32_t i) const {

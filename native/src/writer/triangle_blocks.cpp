@@ -98,7 +98,6 @@ void TriangleBlocks::truncate(std::size_t list_size, std::size_t tris, std::size
         palette_.resize(used);
     }
     closed_group_bytes_ = 0;
-    open_group_ = {};
     block_ids_ = {};
     for (std::size_t t = 0; t < tris; ++t) add_to_group(t);
 }
@@ -311,18 +310,57 @@ TriangleBlocks::RecordShape TriangleBlocks::replay(const Record& r) const {
     return s;
 }
 
+std::size_t TriangleBlocks::IdCoding::bits(std::size_t n) const {
+    return split ? format::compact::kIdWidthBits + distance_bits + n * (1 + width) : n * width;
+}
+
+TriangleBlocks::IdCoding TriangleBlocks::id_coding(const std::uint32_t* ids, std::size_t n) {
+    using format::bit_length;
+    std::array<std::uint32_t, format::compact::kGroup> s{};
+    std::copy(ids, ids + n, s.begin());
+    std::sort(s.begin(), s.begin() + static_cast<std::ptrdiff_t>(n));
+    IdCoding c;
+    c.base = s[0];
+    c.width = bit_length(s[n - 1] - s[0]);
+    // Two bases pay for a group whose triangles come from two runs of ids far apart
+    // (neighbouring leaves of different parts or scan passes): split where that costs
+    // the fewest bits, if fewer than one base.
+    std::size_t best = c.bits(n);
+    for (std::size_t cut = 1; cut < n; ++cut) {
+        IdCoding two;
+        two.base = s[0];
+        two.split = true;
+        two.second = s[cut];
+        two.width = std::max(bit_length(s[cut - 1] - s[0]), bit_length(s[n - 1] - s[cut]));
+        two.distance_bits = bit_length(s[cut] - s[0]);
+        if (two.bits(n) < best) {
+            best = two.bits(n);
+            c = two;
+        }
+    }
+    return c;
+}
+
+TriangleBlocks::GroupShape TriangleBlocks::group_shape(std::size_t first, std::size_t n) const {
+    GroupShape g;
+    g.n = n;
+    for (std::size_t t = first; t < first + n; ++t) {
+        for (int k = 0; k < 3; ++k) g.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
+        if (has_colours_) g.palette.add(palette_index_[t]);
+    }
+    if (n > 0) g.ids = id_coding(ids_.data() + first, n);
+    return g;
+}
+
 std::size_t TriangleBlocks::GroupShape::bits() const {
-    return std::size_t{n} * (3 * corners.width() + ids.width() + palette.width());
+    return n * (3 * corners.width() + palette.width()) + (n > 0 ? ids.bits(n) : 0);
 }
 
 void TriangleBlocks::add_to_group(std::size_t t) {
-    for (int k = 0; k < 3; ++k) open_group_.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
-    open_group_.ids.add(ids_[t]);
     block_ids_.add(ids_[t]);
-    if (has_colours_) open_group_.palette.add(palette_index_[t]);
-    if (++open_group_.n == format::compact::kGroup) {
-        closed_group_bytes_ += (open_group_.bits() + 7) / 8;
-        open_group_ = {};
+    if ((t + 1) % format::compact::kGroup == 0) {  // a group is full: its record is final
+        const std::size_t first = t + 1 - format::compact::kGroup;
+        closed_group_bytes_ += (group_shape(first, format::compact::kGroup).bits() + 7) / 8;
     }
 }
 
@@ -331,7 +369,8 @@ std::size_t TriangleBlocks::compact_size() const {
     const std::size_t groups = CompactTriangleBlock::group_count(ids_.size());
     const std::uint32_t header = CompactTriangleBlock::header_width(
         static_cast<std::uint32_t>(verts_.size()), block_ids_.width(), has_colours_, static_cast<std::uint32_t>(palette_.size()));
-    const std::size_t data = closed_group_bytes_ + (open_group_.bits() + 7) / 8;
+    const std::size_t open = ids_.size() % format::compact::kGroup;
+    const std::size_t data = closed_group_bytes_ + (group_shape(ids_.size() - open, open).bits() + 7) / 8;
     // An open record may yet continue in the next block: count its entry count too.
     const std::size_t records = closed_record_bytes_ + (record_open_ ? (open_shape_.bits(true) + 7) / 8 : 0);
     const std::uint32_t record_bits = quantized_ ? [&] {
@@ -379,18 +418,14 @@ std::vector<std::uint8_t> TriangleBlocks::compact_bytes() const {
         BitWriter headers(out);
         for (std::size_t j = 0; j < groups; ++j) {
             const std::size_t first = compact::kGroup * j, last = std::min(first + compact::kGroup, ids_.size());
-            GroupShape g;
-            for (std::size_t t = first; t < last; ++t) {
-                for (int k = 0; k < 3; ++k) g.corners.add(tri_verts_[3 * t + static_cast<std::size_t>(k)]);
-                g.ids.add(ids_[t]);
-                if (has_colours_) g.palette.add(palette_index_[t]);
-            }
+            const GroupShape g = group_shape(first, last - first);
             if (data.size() > 0xffff) throw std::logic_error("compact triangle group offset overflow");
             headers.put(data.size(), 16);
             headers.put(g.corners.lo, vertex_bits);
             headers.put(g.corners.width(), compact::kWidthBits);
-            headers.put(g.ids.lo - block_ids_.lo, id_bits);
-            headers.put(g.ids.width(), compact::kIdWidthBits);
+            headers.put(g.ids.base - block_ids_.lo, id_bits);
+            headers.put(g.ids.width, compact::kIdWidthBits);
+            headers.put(g.ids.split ? 1 : 0, 1);
             if (has_colours_) {
                 headers.put(g.palette.lo, palette_bits);
                 headers.put(g.palette.width(), compact::kWidthBits);
@@ -399,7 +434,17 @@ std::vector<std::uint8_t> TriangleBlocks::compact_bytes() const {
             for (std::size_t t = first; t < last; ++t) {
                 for (int k = 0; k < 3; ++k) bits.put(tri_verts_[3 * t + static_cast<std::size_t>(k)] - g.corners.lo, g.corners.width());
             }
-            for (std::size_t t = first; t < last; ++t) bits.put(ids_[t] - g.ids.lo, g.ids.width());
+            if (g.ids.split) {
+                bits.put(g.ids.distance_bits, compact::kIdWidthBits);
+                bits.put(g.ids.second - g.ids.base, g.ids.distance_bits);
+                for (std::size_t t = first; t < last; ++t) {
+                    const bool second = ids_[t] >= g.ids.second;
+                    const std::uint64_t offset = ids_[t] - (second ? g.ids.second : g.ids.base);
+                    bits.put(offset << 1 | (second ? 1u : 0u), 1 + g.ids.width);
+                }
+            } else {
+                for (std::size_t t = first; t < last; ++t) bits.put(ids_[t] - g.ids.base, g.ids.width);
+            }
             if (has_colours_) {
                 for (std::size_t t = first; t < last; ++t) bits.put(palette_index_[t] - g.palette.lo, g.palette.width());
             }
@@ -444,7 +489,6 @@ void TriangleBlocks::reset_compact() {
     palette_.clear();
     palette_index_.clear();
     closed_group_bytes_ = 0;
-    open_group_ = {};
     block_ids_ = {};
 }
 

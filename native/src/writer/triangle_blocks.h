@@ -165,7 +165,8 @@ private:
         std::uint32_t entries = 0, old = 0, max_distance = 0;
         std::size_t bits(bool partial) const;
     };
-    // A group's field ranges (corners, ids, palette indices).
+    // A group's fields: the range of its corners and palette indices, and how its ids
+    // are stored (one base, or two for ids from two runs far apart; FORMAT.md §11a).
     struct Range {
         std::uint32_t lo = ~0u, hi = 0;
         void add(std::uint32_t v) {
@@ -174,11 +175,20 @@ private:
         }
         std::uint32_t width() const { return lo > hi ? 0 : format::bit_length(hi - lo); }
     };
-    struct GroupShape {
-        Range corners, ids, palette;
-        std::uint32_t n = 0;
-        std::size_t bits() const;  // its fields after the header
+    struct IdCoding {
+        std::uint32_t base = 0, width = 0;  // the smallest id; bits of an offset
+        bool split = false;
+        std::uint32_t second = 0, distance_bits = 0;  // split: ids >= second use the second base
+        std::size_t bits(std::size_t n) const;        // of the ids in the data record
     };
+    struct GroupShape {
+        Range corners, palette;
+        IdCoding ids;
+        std::size_t n = 0;
+        std::size_t bits() const;  // of its data record
+    };
+    static IdCoding id_coding(const std::uint32_t* ids, std::size_t n);
+    GroupShape group_shape(std::size_t first, std::size_t n) const;
     void open_record();
     void close_record();
     RecordShape replay(const Record& r) const;
@@ -217,7 +227,6 @@ private:
     RecordShape open_shape_;
     std::vector<std::uint32_t> palette_, palette_index_;
     std::size_t closed_group_bytes_ = 0;  // the data records of the full groups
-    GroupShape open_group_;
     Range block_ids_;
     // Sized for the most entries a block takes (plus one triangle's overshoot) at most 3/4 full.
     SmallMap<std::uint32_t, IdHash> id_map_;
