@@ -317,8 +317,11 @@ std::size_t TriangleBlocks::IdCoding::bits(std::size_t n) const {
 TriangleBlocks::IdCoding TriangleBlocks::id_coding(const std::uint32_t* ids, std::size_t n) {
     using format::bit_length;
     std::array<std::uint32_t, format::compact::kGroup> s{};
-    std::copy(ids, ids + n, s.begin());
-    std::sort(s.begin(), s.begin() + static_cast<std::ptrdiff_t>(n));
+    for (std::size_t i = 0; i < n; ++i) {  // insertion sort: a group holds at most kGroup
+        std::size_t k = i;
+        for (; k > 0 && s[k - 1] > ids[i]; --k) s[k] = s[k - 1];
+        s[k] = ids[i];
+    }
     IdCoding c;
     c.base = s[0];
     c.width = bit_length(s[n - 1] - s[0]);
