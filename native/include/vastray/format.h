@@ -343,7 +343,7 @@ namespace compact {
 constexpr std::size_t kHeader = 32;
 constexpr std::uint32_t kGroup = 8;
 constexpr std::uint32_t kBaseBits = 16, kCountBits = 16, kWidthBits = 5, kIdWidthBits = 6;
-constexpr std::uint32_t kMaxTriangles = 1u << kBaseBits;  // base and counts are 16-bit
+constexpr std::uint32_t kMaxTriangles = (1u << kBaseBits) - 1;  // a record's base (up to T) is 16-bit
 constexpr std::uint32_t kMaxVertices = 1u << 16;          // corner widths are at most 16
 }  // namespace compact
 
