@@ -77,8 +77,8 @@ bool compact_triangle_of(const LodHit& hit, const ModelIndex& index, format::Com
 
 void triangle_of(const LodHit& hit, const ModelIndex& index, Vec3f* v) {
     if (index.compact_triangles()) {
-        format::CompactTriangleBlock b;
-        format::CompactTriangleBlock::Group g;
+        format::CompactTriangleBlock b{};
+        format::CompactTriangleBlock::Group g{};
         std::uint32_t c[3] = {0, 0, 0};
         const bool ok = compact_triangle_of(hit, index, b, g);
         if (ok) b.corners(g, hit.local - g.first, c);
@@ -216,8 +216,8 @@ private:
     // A hit triangle's colour, 0x00BBGGRR.
     std::uint32_t colour_of(const Hit& hit) const {
         if (index_.compact_triangles()) {
-            format::CompactTriangleBlock b;
-            format::CompactTriangleBlock::Group g;
+            format::CompactTriangleBlock b{};
+            format::CompactTriangleBlock::Group g{};
             if (!compact_triangle_of(hit, index_, b, g)) return 0;
             return b.colour(std::min(b.palette_index(g, hit.local - g.first), b.palette_size - 1));
         }

@@ -159,7 +159,7 @@ private:
     }
 
     CompactTriangleBlock compact_block(std::size_t b) const {
-        CompactTriangleBlock v;
+        CompactTriangleBlock v{};
         if (in_.sizes[b] < compact::kHeader) bad(b, "triangle block shorter than its header");
         if (!CompactTriangleBlock::parse(in_.blocks[b], in_.sizes[b], in_.has_colours, in_.quantized_vertices, v)) {
             bad(b, "compact triangle block header is damaged (counts, widths or section offsets)");
@@ -176,7 +176,7 @@ private:
         std::uint32_t at = leaf_first(w), remaining = leaf_count(w);
         nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), remaining));
         while (remaining > 0) {
-            CompactLeafRecord record;
+            CompactLeafRecord record{};
             if (!record.open(tb, at, remaining)) bad(b, "leaf record lies outside the records or has a bad count");
             for (std::uint32_t i = 0; i < record.count(); ++i) {
                 std::uint32_t local;
@@ -184,7 +184,7 @@ private:
                     bad(b, record.overrun() ? "leaf record runs past the records section"
                                             : "list entry points past the triangle section");
                 }
-                CompactTriangleBlock::Group g;
+                CompactTriangleBlock::Group g{};
                 if (!tb.group(local / compact::kGroup, g) || !tb.fits(g)) bad(b, "triangle group is damaged (widths or extent)");
                 const std::uint32_t k = local - g.first;
                 const std::uint32_t id = tb.id(g, k);

@@ -389,18 +389,21 @@ private:
     std::uint32_t held_ = 0;
 };
 
+// A view of a compact block, set by parse(). Its members (like Group's and
+// CompactLeafRecord's) have no initialisers on purpose: the traversal makes one per leaf
+// it opens, and zeroing them would cost plain-layout leaves too.
 struct CompactTriangleBlock {
-    const std::uint8_t* data = nullptr;
-    std::uint32_t tris = 0, verts = 0, palette_size = 0, id_min = 0, id_bits = 0;
-    std::size_t groups = 0, group_data = 0, palette = 0, vertices = 0, end = 0;
-    std::uint32_t vertex_bits = 0, palette_bits = 0, header_bits = 0;  // group header fields, E in all
-    bool packed = false;
+    const std::uint8_t* data;
+    std::uint32_t tris, verts, palette_size, id_min, id_bits;
+    std::size_t groups, group_data, palette, vertices, end;
+    std::uint32_t vertex_bits, palette_bits, header_bits;  // group header fields, E in all
+    bool packed;
     // Quantized vertices: bits per axis, their sum, the block's grid origin, and where
     // each axis's field sits in a record (shift and mask, for the traversal's decoding).
-    std::uint32_t bits[3] = {}, record_bits = 0;
-    std::int32_t origin[3] = {};
-    std::uint32_t shifts[3] = {};
-    std::uint64_t masks[3] = {};
+    std::uint32_t bits[3], record_bits;
+    std::int32_t origin[3];
+    std::uint32_t shifts[3];
+    std::uint64_t masks[3];
 
     static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
     static std::uint32_t header_width(std::uint32_t verts, std::uint32_t id_bits, bool has_colours, std::uint32_t colours) {
@@ -431,6 +434,7 @@ struct CompactTriangleBlock {
             return false;
         }
         b.packed = quantized;
+        b.record_bits = 0;
         if (quantized) {
             for (int a = 0; a < 3; ++a) b.bits[a] = (h[2] >> (8 * a)) & 0xffu;
             if ((h[2] >> 24) != 0 || std::max({b.bits[0], b.bits[1], b.bits[2]}) > kMaxVertexBits) return false;
@@ -457,12 +461,12 @@ struct CompactTriangleBlock {
 
     // One group of triangles: where its data starts and how wide its fields are.
     struct Group {
-        const std::uint8_t* at = nullptr;
-        std::uint32_t first = 0, n = 0;
-        std::uint32_t corner_base = 0, cw = 0, id_base = 0, iw = 0, palette_base = 0, pw = 0;
-        bool split = false;             // two id bases
-        std::uint32_t id_distance = 0;  // the second one's distance from the first
-        std::size_t ids = 0, colours = 0;  // bit offsets of the id fields and the palette fields
+        const std::uint8_t* at;
+        std::uint32_t first, n;
+        std::uint32_t corner_base, cw, id_base, iw, palette_base, pw;
+        bool split;                  // two id bases
+        std::uint32_t id_distance;   // the second one's distance from the first
+        std::size_t ids, colours;    // bit offsets of the id fields and the palette fields
     };
     // Group j (< the group count); false when its widths are out of range. Its fields
     // then lie within 110 bytes of a data offset below 64 KiB, so reading them stays
@@ -486,6 +490,7 @@ struct CompactTriangleBlock {
         g.id_base = field(id_bits);
         g.iw = field(compact::kIdWidthBits);
         g.split = field(1) != 0;
+        g.palette_base = g.pw = g.id_distance = 0;
         if (palette_size != 0) {  // the model has colours
             g.palette_base = field(palette_bits);
             g.pw = field(compact::kWidthBits);
@@ -608,9 +613,9 @@ public:
     }
 
 private:
-    const std::uint8_t* p_ = nullptr;
-    std::size_t bit_ = 0, limit_ = 0;
-    std::uint32_t next_ = 0, width_ = 0, count_ = 0, tris_ = 0;
+    const std::uint8_t* p_;
+    std::size_t bit_, limit_;
+    std::uint32_t next_, width_, count_, tris_;
 };
 
 #undef VASTRAY_HOT

@@ -321,7 +321,8 @@ private:
     const std::uint8_t* block_ = nullptr;
     std::uint32_t block_id_ = 0, left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
     format::TriangleBlockLayout layout_;
-    // Compact blocks: the block's view, the leaf record being read, the last group.
+    // Compact blocks: the block's view, the leaf record being read, the last group
+    // (uninitialised until open() parses a compact block).
     format::CompactTriangleBlock compact_;
     format::CompactLeafRecord record_;
     std::uint32_t record_left_ = 0;

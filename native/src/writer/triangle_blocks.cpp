@@ -4,7 +4,6 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
-#include <string>
 
 namespace vastray::writer {
 
@@ -35,7 +34,8 @@ std::pair<std::uint32_t, std::uint32_t> TriangleBlocks::add_leaf(const std::uint
         }
         const std::size_t list0 = list_.size(), tri0 = ids_.size(), vert0 = verts_.size();
         if (insert(tris + i, 1, src) && size() <= kBlockSize) continue;
-        // Quantized vertices: a vertex far from the others widened every vertex record.
+        // The triangle pushed the block past 64 KiB after all: quantized vertices, a vertex
+        // far from the others widened every vertex record; compact, any field widened.
         truncate(list0, tri0, vert0);
         flush();
         if (compact_) open_record();
@@ -162,18 +162,10 @@ void TriangleBlocks::flush() {
             close_record();
         }
         bytes = compact_bytes();
-        const format::CompactTriangleBlock view = [&] {
-            format::CompactTriangleBlock b;
-            if (!format::CompactTriangleBlock::parse(bytes.data(), bytes.size(), has_colours_, quantized_, b)) {
-                std::uint32_t h[8];
-                std::memcpy(h, bytes.data(), 32);
-                std::string msg = "a compact triangle block does not parse:";
-                for (std::uint32_t x : h) msg += " " + std::to_string(x);
-                msg += " size " + std::to_string(bytes.size());
-                throw std::logic_error(msg);
-            }
-            return b;
-        }();
+        format::CompactTriangleBlock view{};
+        if (!format::CompactTriangleBlock::parse(bytes.data(), bytes.size(), has_colours_, quantized_, view)) {
+            throw std::logic_error("a compact triangle block does not parse");
+        }
         stats_.vertex_bytes += view.end - view.vertices;
     } else {
         const format::TriangleBlockLayout l = layout();
