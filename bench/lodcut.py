@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from modelwalk import INNER, LEFT_EMPTY, LOD, RIGHT_EMPTY, Walker
+from modelwalk import INNER, LEFT_EMPTY, LOD, RIGHT_EMPTY, SPLIT_STEPS, Walker, dequantize
 
 from vastray.camera import frame_bounds
 from vastray.modelfile import ModelFile
@@ -86,7 +86,10 @@ def main() -> int:
             lod_blocks.add(block)
             w, w1 = struct.unpack_from("<II", data, off)
             if not w & INNER:
-                count, tri_block = (w >> 16) & 0x7FFF, walker.resolve(tri_level, w1)[1]
+                count = (w >> 16) & 0x7FFF
+                if count == 0:  # reads no block (its reference is not read)
+                    continue
+                tri_block = walker.resolve(tri_level, w1)[1]
                 ext = np.sort(hi.astype(np.float64) - lo.astype(np.float64))
                 t = box_distance(eye, lo, hi)
                 leaf_r = 0.5 * float(np.linalg.norm(ext))
@@ -108,10 +111,18 @@ def main() -> int:
                 leaf_levels[level] += 1
                 continue
             axis = w & 3
-            split = struct.unpack("<f", struct.pack("<I", w1))[0]
+            small = f.quantized_splits and not w & LOD  # a 4-byte basic node (FORMAT.md §8)
+            if small:
+                split = dequantize(lo[axis], hi[axis], (w >> 10) & (SPLIT_STEPS - 1))
+            else:
+                split = struct.unpack("<f", struct.pack("<I", w1))[0]
             has_l, has_r = not w & LEFT_EMPTY, not w & RIGHT_EMPTY
             if w & LOD:
-                radius = struct.unpack_from("<f", data, off + 8)[0]
+                if f.quantized_splits:  # a 12-byte LOD node: the radius is half the cell's diagonal
+                    ext = (hi - lo).astype(np.float32)
+                    radius = float(np.float32(0.5) * np.sqrt(np.float32(ext @ ext)))
+                else:
+                    radius = struct.unpack_from("<f", data, off + 8)[0]
                 t = box_distance(eye, lo, hi)
                 if radius <= t * cone:
                     cut["voxel"] += 1
@@ -119,15 +130,17 @@ def main() -> int:
                     continue
                 if level + 1 >= tri_level:
                     raise SystemExit("LOD node in the last node level")
+                child_at = off + (8 if f.quantized_splits else 12)
                 child_level = level + 1
-                child_block = walker.resolve(child_level, struct.unpack_from("<I", data, off + 12)[0])[1]
+                child_block = walker.resolve(child_level, struct.unpack_from("<I", data, child_at)[0])[1]
                 l_off = 8 * ((w >> 17) & 8191)
                 r_off = l_off + 8 * ((w >> 11) & 63) if has_l else l_off
                 child_depth, last_r, below = 0, radius, 0
             else:
                 child_level, child_block, child_depth = level, block, depth + 1
-                l_off = off + 8
-                r_off = off + 8 * ((w >> 4) & 63) if has_l else off + 8
+                size = 4 if small else 8
+                l_off = off + size
+                r_off = off + size * ((w >> 4) & 63) if has_l else off + size
             for side, present, coff in ((1, has_r, r_off), (0, has_l, l_off)):
                 if present:
                     clo, chi = lo.copy(), hi.copy()

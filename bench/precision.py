@@ -1,4 +1,4 @@
-"""Reduced precision (paper 004): full-precision split planes against quantized ones.
+"""Reduced precision (paper 004) and compact triangle blocks, each against the plain build.
 
 Not a test. For each model this builds the same input twice, back to back, with
 `BuildOptions(quantized_splits=False)` and `=True` (format version 3: 4-byte basic nodes
@@ -20,7 +20,12 @@ compares them:
 
 `--compare` says what the reduced side is built with: `splits` (the default), `vertices`
 (FLAG_QUANTIZED_VERTICES: vertices snapped to a 2^21-step grid of the root cell and
-bit-packed per triangle block, FORMAT.md §11; lossy) or `both`.
+bit-packed per triangle block, FORMAT.md §11; lossy) or `both`; or `compact`, the
+compact triangle blocks (FLAG_COMPACT_TRIANGLES, §11a, lossless) against the plain ones.
+`--base` names options both sides are built with, e.g. `--compare compact --base
+quantized_splits,quantized_vertices`.
+
+    python bench/precision.py --compare compact --name precision-compact
 
 `--baseline-package DIR` also times the full-precision model through an older vastray
 package (a folder holding `vastray/` with its native module, e.g. one extracted with
@@ -139,9 +144,25 @@ def node_bytes(model: ModelFile) -> int:
 
 COMPARED = {
     "splits": {"quantized_splits": True},
-    "vertices": {"quantized_vertices": True},
+    "vertices": {"quantized_vertices": True, "quantized_splits": False},
     "both": {"quantized_splits": True, "quantized_vertices": True},
+    "compact": {"compact_triangles": True},
 }
+# What the reference side is built with besides --base: full precision (quantized splits
+# are the builder's default), or plain triangle blocks.
+REFERENCE = {"compact": {"compact_triangles": False}}
+FULL = {"quantized_splits": False}
+
+
+def labels(compare: str) -> tuple[str, str]:
+    """The two sides' names in the tables: (reference, reduced)."""
+    return ("plain", "compact") if compare == "compact" else ("full", "quantized")
+
+
+def side_options(args: argparse.Namespace, reduced: bool) -> dict[str, bool]:
+    base = {name: True for name in args.base.split(",") if name}
+    own = COMPARED[args.compare] if reduced else REFERENCE.get(args.compare, FULL)
+    return {**base, **own}
 
 
 def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
@@ -151,8 +172,7 @@ def measure(name: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for quantized in (False, True):
         path = work / f"{name}-{int(quantized)}.vast"
         t0 = time.perf_counter()
-        options = COMPARED[args.compare] if quantized else {}
-        report = build_model(src, path, BuildOptions(overwrite=True, **options))
+        report = build_model(src, path, BuildOptions(overwrite=True, **side_options(args, quantized)))
         key = "q" if quantized else "f"
         row[f"{key}_build_s"] = time.perf_counter() - t0
         with ModelFile(path) as m:
@@ -213,6 +233,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default="stanford-bunny,nefertiti,plant-1e6,mandelbulb-1e6")
     ap.add_argument("--compare", choices=sorted(COMPARED), default="splits", help="what the reduced side has")
+    ap.add_argument("--base", default="", help="BuildOptions both sides have, comma separated")
     ap.add_argument("--frames", type=int, default=5, help="timed frames per view and model")
     ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--height", type=int, default=384)
@@ -258,9 +279,10 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
             f"{r['q_node_bytes']:,}", pct(r["q_node_bytes"], r["f_node_bytes"]),
             f"{r['f_build_s']:.2f}", f"{r['q_build_s']:.2f}",
         ])  # fmt: skip
+    ref, red = labels(args.compare)
     size = markdown_table(
-        ["model", "triangles", "full B/tri", "quantized B/tri", "file", "basic nodes", "node bytes full",
-         "node bytes quantized", "node bytes", "build s full", "build s quantized"],
+        ["model", "triangles", f"{ref} B/tri", f"{red} B/tri", "file", "basic nodes", f"node bytes {ref}",
+         f"node bytes {red}", "node bytes", f"build s {ref}", f"build s {red}"],
         size_rows,
     )  # fmt: skip
     render_rows = []
@@ -275,8 +297,8 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
             f"{r['colour_differs']:,}",
         ])  # fmt: skip
     render = markdown_table(
-        ["model", "node visits/ray full", "quantized", "change", "triangle tests/ray full", "quantized",
-         "change", "frame ms full", "quantized", "**frame ratio**", "pixels", "hit differs",
+        ["model", f"node visits/ray {ref}", red, "change", f"triangle tests/ray {ref}", red,
+         "change", f"frame ms {ref}", red, "**frame ratio**", "pixels", "hit differs",
          "hit / miss differs", "max depth error (vertex grid steps)", "colour differs"],
         render_rows,
     )  # fmt: skip
@@ -296,19 +318,32 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
             + base
             + "\n"
         )
+    both = ", ".join(f"`{k}`" for k in side_options(args, False) if side_options(args, False)[k]) or "none"
+    if args.compare == "compact":
+        title = "# Compact triangle blocks against plain ones"
+        built = (
+            "with plain triangle blocks (docs/FORMAT.md §11) and with compact ones (§11a: leaf records, "
+            "groups of 8 triangles with bit-packed corners, ids and palette indices, bit-packed vertices), "
+            f"both with these options: {both}"
+        )
+    else:
+        title = f"# Reduced precision: quantized {args.compare} against full precision"
+        built = (
+            f"at full precision and with {', '.join(f'`{k}`' for k in COMPARED[args.compare])} (quantized "
+            "splits: basic nodes of 4 bytes instead of 8, the split a 20-bit step of the node's cell, "
+            "docs/FORMAT.md §8; quantized vertices: every vertex snapped to a 2^21-step grid of the root "
+            "cell before the tree is built, bit-packed per triangle block, §11); options on both sides: "
+            f"{both}"
+        )
     lines = [
-        f"# Reduced precision: quantized {args.compare} against full precision",
+        title,
         "",
-        "Each model is built twice from the same input, back to back (default options, 2 GiB budget), at "
-        f"full precision and with {', '.join(f'`{k}`' for k in COMPARED[args.compare])} (quantized splits: "
-        "basic nodes of 4 bytes instead of 8, the split a 20-bit step of the node's cell, docs/FORMAT.md "
-        "§8; quantized vertices: every vertex snapped to a 2^21-step grid of the root cell before the "
-        "tree is built, bit-packed per triangle block, §11). Both are "
-        "rendered out of core at full detail (pixels of error 0, every block cached), "
+        "Each model is built twice from the same input, back to back (default options, 2 GiB budget), "
+        f"{built}. Both are rendered out of core at full detail (pixels of error 0, every block cached), "
         f"{args.width} x {args.height}, "
         f"headlight, {len(DIRECTIONS)} views framing the model; frame times are the median of {args.frames} "
         "frames per view, the two models alternating frame by frame; the *frame ratio* is the median of "
-        "quantized / full over those pairs (below 1: quantized faster). Node visits and triangle tests are "
+        f"{red} / {ref} over those pairs (below 1: {red} faster). Node visits and triangle tests are "
         "the renderer's counters over the timed frames, per ray (a packet of coherent primary rays counts "
         "one visit per node step it takes together, so visits per ray stay below the tree's depth).",
         "",
@@ -333,7 +368,8 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
         "*hit differs*: pixels whose nearest triangle (input id) differs; *max depth error*: the largest "
         "difference of the hit distance over pixels both hit; *colour differs*: pixels whose 8-bit colour "
         "differs; *hit / miss differs*: pixels that one model hits and the other misses (a silhouette "
-        "moved by the vertex snapping). Quantized splits alone are exact (the tree is built on the "
+        "moved by the vertex snapping). The compact layout is lossless: the same tree, triangles and "
+        "vertices, so every pixel should agree. Quantized splits alone are exact (the tree is built on the "
         "planes and the triangles are stored unchanged): the same triangle at the same distance, but for "
         "ties at a shared edge. Quantized vertices move each vertex by at most one grid step per axis, "
         "so a depth differs by at most about sqrt(3) steps along the surface normal, more at a "

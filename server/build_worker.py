@@ -94,6 +94,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             scratch_dir=options.get("scratch_dir"),
             quantized_splits=bool(options.get("quantized_splits", False)),
             quantized_vertices=bool(options.get("quantized_vertices", False)),
+            compact_triangles=bool(options.get("compact_triangles", False)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

@@ -8,7 +8,8 @@ root (level 0, block 0, offset 0), node cells from the root cell and the split p
 (a quantized model's 4-byte basic nodes: the split as a step of the cell, and its
 12-byte LOD nodes: the radius from the cell, FORMAT.md §8),
 leaves with their triangles (input ids, float32 vertices, colours; a model with quantized
-vertices: grid origin plus bit-packed offsets, FORMAT.md §11) and LOD nodes with
+vertices: grid origin plus bit-packed offsets, FORMAT.md §11; compact triangle blocks:
+leaf records, group headers and bit-packed group data, §11a) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
 order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
 from the file's bytes alone, checking that it follows the last block to the file's end.
@@ -38,6 +39,9 @@ QUANTIZED_VERTICES = 1 << 4  # header flag (version 4): vertices on the root cel
 TIERED = 1 << 6  # header flag (version 5): each level in streams by coarseness tier
 TIER_COUNT_AT = 224  # the header's u32 tier count (tiers per level)
 TIER_SHIFT = 26  # a block reference: tier in bits 26-31, stream-relative id below
+COMPACT_TRIANGLES = 1 << 5  # header flag (version 5): compact triangle blocks
+COMPACT_HEADER = 32  # bytes of a compact block's header
+GROUP = 8  # triangles per group of a compact block
 
 
 def grid_step(lo: float, hi: float) -> float:
@@ -175,6 +179,134 @@ def read_streams(path: str | os.PathLike[str]) -> tuple[int, list[list[tuple[int
         table = f.read(24 * level_count * tiers)
     records = [struct.unpack_from("<II", table, 24 * i) for i in range(level_count * tiers)]
     return tiers, [records[level * tiers : (level + 1) * tiers] for level in range(level_count)]
+def bits(raw: bytes, pos: int, width: int) -> int:
+    """`width` bits at bit `pos` of raw (bit i is bit i % 8 of byte i // 8); past the end
+    reads zeros (the callers check extents first)."""
+    start = pos >> 3
+    return (int.from_bytes(raw[start : start + 9], "little") >> (pos & 7)) & ((1 << width) - 1)
+
+
+class BitReader:
+    """Consecutive fields from bit `pos` of raw."""
+
+    def __init__(self, raw: bytes, pos: int) -> None:
+        self.raw, self.pos = raw, pos
+
+    def __call__(self, width: int) -> int:
+        value = bits(self.raw, self.pos, width)
+        self.pos += width
+        return value
+
+
+@dataclass
+class CompactBlock:
+    """A compact triangle block (FORMAT.md §11a), every group decoded up front."""
+
+    raw: bytes
+    records_end: int  # byte offset of the group headers: leaf records lie before it
+    triangles: np.ndarray  # (tris, 3) int64: vertex indices
+    ids: np.ndarray  # (tris,) uint32
+    colours: np.ndarray | None  # (tris,) uint32 0x00BBGGRR
+    vertices: np.ndarray  # (verts, 3) float32
+
+    @classmethod
+    def parse(cls, raw: bytes, has_colours: bool, steps: tuple[float, float, float] | None) -> CompactBlock:
+        if len(raw) < COMPACT_HEADER:
+            raise WalkError("compact triangle block shorter than its header")
+        tris, verts, packing, n_colours, id_min, id_bits, groups, palette = struct.unpack_from("<8I", raw)
+        if tris == 0 or verts == 0 or id_bits > 32 or (n_colours == 0) == has_colours or n_colours > tris:
+            raise WalkError(f"compact header counts are damaged: {tris}, {verts}, {n_colours}, {id_bits}")
+        vertex_bits = (verts - 1).bit_length()
+        palette_bits = (n_colours - 1).bit_length() if has_colours else 0
+        width = 16 + vertex_bits + 5 + id_bits + 6 + 1 + (palette_bits + 5 if has_colours else 0)
+        n_groups = (tris + GROUP - 1) // GROUP
+        data = groups + (n_groups * width + 7) // 8
+        at_vertices = palette + 4 * n_colours
+        if steps is None:
+            if packing != 0:
+                raise WalkError("a compact block of float32 vertices with a packing word")
+            size = 12 * verts
+        else:
+            axis_bits = [packing & 0xFF, (packing >> 8) & 0xFF, (packing >> 16) & 0xFF]
+            if packing >> 24 or max(axis_bits) > 21:
+                raise WalkError(f"vertex packing word {packing:#x} is damaged")
+            size = 12 + (sum(axis_bits) * verts + 7) // 8 + 8
+        if not COMPACT_HEADER <= groups <= data <= palette or at_vertices + size != len(raw):
+            raise WalkError(f"compact triangle block of {len(raw)} bytes does not match its section offsets")
+        triangles = np.empty((tris, 3), np.int64)
+        ids = np.empty(tris, np.int64)
+        indices = np.zeros(tris, np.int64)
+        for j in range(n_groups):
+            h = BitReader(raw, 8 * groups + j * width)
+            offset, corner_base, cw, id_base, iw = h(16), h(vertex_bits), h(5), h(id_bits), h(6)
+            split = h(1)
+            palette_base, pw = (h(palette_bits), h(5)) if has_colours else (0, 0)
+            if cw > 16 or iw > 32 or pw > 16:
+                raise WalkError(f"group {j} has field widths {cw}, {iw}, {pw}")
+            first, n = GROUP * j, min(GROUP, tris - GROUP * j)
+            d = BitReader(raw, 8 * (data + offset))
+            d.pos += 3 * cw * n
+            # Split: a second id base (its distance from the first), and a bit per id to pick.
+            distance_bits = d(6) if split else 0
+            distance = d(distance_bits) if split else 0
+            if distance_bits > 32:
+                raise WalkError(f"group {j} has a second id base of {distance_bits} bits")
+            if d.pos + n * (iw + split + pw) > 8 * palette:
+                raise WalkError(f"group {j} runs past the group data")
+            d.pos = 8 * (data + offset)
+            for t in range(first, first + n):
+                triangles[t] = [corner_base + d(cw) for _ in range(3)]
+            d.pos += 6 + distance_bits if split else 0
+            for t in range(first, first + n):
+                field = d(iw + split)
+                ids[t] = id_min + id_base + (distance if field & split else 0) + (field >> split)
+            for t in range(first, first + n):
+                indices[t] = palette_base + d(pw)
+        if (triangles >= verts).any():
+            raise WalkError("a triangle points past the vertex section")
+        if (ids >= 1 << 32).any():
+            raise WalkError("a triangle id does not fit 32 bits")
+        colours = None
+        if has_colours:
+            if (indices >= n_colours).any():
+                raise WalkError("a triangle's colour points past the palette")
+            colours = np.frombuffer(raw, "<u4", n_colours, palette)[indices]
+        if steps is None:
+            vertices = np.frombuffer(raw, "<f4", 3 * verts, at_vertices).reshape(verts, 3)
+        else:
+            origin = struct.unpack_from("<3i", raw, at_vertices)
+            vertices = np.empty((verts, 3), np.float32)
+            for v in range(verts):
+                r = BitReader(raw, 8 * (at_vertices + 12) + v * sum(axis_bits))
+                for a in range(3):
+                    vertices[v, a] = np.float32(origin[a] + r(axis_bits[a])) * np.float32(steps[a])
+        return cls(raw, groups, triangles, ids.astype(np.uint32), colours, vertices)
+
+    def record(self, at: int, remaining: int) -> np.ndarray:
+        """The triangle indices of the leaf record at byte `at`, for a leaf with
+        `remaining` entries not read yet."""
+        if not COMPACT_HEADER <= at < self.records_end:
+            raise WalkError(f"leaf record at byte {at} lies outside the records")
+        r = BitReader(self.raw, 8 * at)
+        nxt, width, partial = r(16), r(5), r(1)
+        count = r(16) if partial else remaining
+        if width > 16 or not 1 <= count <= remaining:
+            raise WalkError(f"leaf record at byte {at} has width {width} and count {count} of {remaining}")
+        local = np.empty(count, np.int64)
+        for i in range(count):
+            if r(1):
+                local[i] = nxt
+                nxt += 1
+            else:
+                d = r(width)
+                if d >= nxt:
+                    raise WalkError(f"leaf record at byte {at} reaches back before the first triangle")
+                local[i] = nxt - 1 - d
+        if r.pos > 8 * self.records_end:
+            raise WalkError(f"leaf record at byte {at} runs past the records")
+        if (local >= len(self.ids)).any():
+            raise WalkError(f"leaf record at byte {at} points past the triangles")
+        return local
 
 
 class Walker:
@@ -184,7 +316,8 @@ class Walker:
         self.tiered = bool(model.header["flags"] & TIERED)
         self.tri_level = len(self.streams) - 1
         self.raw: dict[int, bytes] = {}  # the blocks read so far, by block id
-        self.tri_blocks: dict[int, TriangleBlock] = {}  # parsed so far, by global block id
+        self.tri_blocks: dict[int, TriangleBlock | CompactBlock] = {}  # parsed so far, by global block id
+        self.compact = bool(model.header["version"] >= 5 and model.header["flags"] & COMPACT_TRIANGLES)
 
     def resolve(self, level: int, reference: int) -> tuple[int, int, int]:
         """(tier, global block id, end of its stream) of a block reference in `level`."""
@@ -208,38 +341,53 @@ class Walker:
             raise WalkError(f"node word at {off} runs past the block end ({len(data)} bytes)")
         return struct.unpack_from("<I", data, off)[0]
 
-    def triangles(self, block: int) -> TriangleBlock:
+    def triangles(self, block: int) -> TriangleBlock | CompactBlock:
         if block not in self.tri_blocks:
             raw = self.read(block)
             h = self.model.header
             steps = None
             if h["flags"] & QUANTIZED_VERTICES:
                 steps = tuple(grid_step(a, b) for a, b in zip(h["cell_lo"], h["cell_hi"], strict=True))
-            self.tri_blocks[block] = TriangleBlock.parse(raw, self.model.has_colours, steps)
+            parse = CompactBlock.parse if self.compact else TriangleBlock.parse
+            self.tri_blocks[block] = parse(raw, self.model.has_colours, steps)
         return self.tri_blocks[block]
 
     def leaf(self, node: Node, first: int, count: int, reference: int) -> Node:
         """A leaf's list entries run from `first` to the end of its triangle block's list
         and, for a leaf too big for one block, on from entry 0 of the following blocks of
-        its stream."""
+        its stream. In compact blocks `first` is the byte offset of the leaf's record, and
+        a leaf goes on with the first record of the following blocks. A leaf of no
+        triangles reads no block (its reference is not checked)."""
         ids: list[np.ndarray] = []
         vertices: list[np.ndarray] = []
         colours: list[np.ndarray] = []
+        if count == 0:
+            node.tri_tier = reference >> TIER_SHIFT if self.tiered else 0
+            node.ids, node.vertices = np.zeros(0, np.uint32), np.zeros((0, 3, 3), np.float32)
+            node.colours = self._no_colours()
+            return node
         node.tri_tier, block, end = self.resolve(self.tri_level, reference)
         while count > 0:
             if block >= end:
                 raise WalkError("leaf list runs past the last triangle block of its stream")
             tb = self.triangles(block)
             node.tri_blocks.append(block)
-            if first > len(tb.list):
-                raise WalkError("leaf list starts past the list section")
-            local = tb.list[first : first + count].astype(np.int64)
+            if isinstance(tb, CompactBlock):
+                # `first` is the record's byte offset; a leaf continues at the next
+                # block's first record.
+                local = tb.record(first, count)
+                first = COMPACT_HEADER
+            else:
+                if first > len(tb.list):
+                    raise WalkError("leaf list starts past the list section")
+                local = tb.list[first : first + count].astype(np.int64)
+                first = 0
             ids.append(tb.ids[local])
             vertices.append(tb.vertices[tb.triangles[local].astype(np.int64)])
             if tb.colours is not None:
                 colours.append(tb.colours[local])
             count -= len(local)
-            block, first = block + 1, 0
+            block += 1
         node.ids = np.concatenate(ids) if ids else np.zeros(0, np.uint32)
         node.vertices = np.concatenate(vertices) if vertices else np.zeros((0, 3, 3), np.float32)
         node.colours = np.concatenate(colours) if colours else self._no_colours()

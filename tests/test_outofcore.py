@@ -160,7 +160,7 @@ def bunny_mesh(models_folder: Path, load_model: Callable[[Path], ModelMesh]) -> 
 def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
     """Builds each model once per module, on first use:
     plant       60k coloured triangles, 11 levels
-    big-plant   200k coloured triangles, 262 blocks (144 untiered)
+    big-plant   200k coloured triangles, 256 blocks (137 untiered)
     big-plant-untiered  the same, one stream per level (a view at PoE 0 reads most blocks)
     bunny       the Stanford bunny, no colours (from a float64 PLY)
     out-of-core a 60k plant built with the smallest memory budget (split on disk)
@@ -256,14 +256,14 @@ def check_frame_bookkeeping(before: dict[int, int], after: dict[int, int], stats
 
 
 def test_budget_and_invariants_over_a_moving_camera(built: Callable[[str], Built]) -> None:
-    """A 12-slot cache and a 262-block model: orbiting, zooming views at PoE 8, 2 and 0,
+    """A 12-slot cache and a 256-block model: orbiting, zooming views at PoE 8, 2 and 0,
     two frames each with the fetchers drained in between. Some views need more than the
     cache holds (every slot then belongs to the frame), others let old blocks go."""
     plant = built("big-plant")
     cache = native.BlockCache(12 * SLOT + 1000, fetchers=2)
     assert cache.slot_count == 12
     model = cache.open(str(plant.path))
-    assert model.block_count == 262 and model.block_count > 10 * cache.slot_count
+    assert model.block_count == 256 and model.block_count > 10 * cache.slot_count
     lo, hi = np.array(plant.bounds[0]), np.array(plant.bounds[1])
     centre, size = (lo + hi) / 2, hi - lo
     evicted = full = complete = 0

@@ -38,7 +38,8 @@ SOURCES = {
     "out-of-core": ("scene:plant:60000:2", SMALL_MEMORY),
     "fandisk": (str(MODELS / "fandisk.obj"), 2 << 30),
 }
-KINDS = {"full": {}, "vertices": {"quantized_vertices": True},
+KINDS = {"full": {"quantized_splits": False},
+         "vertices": {"quantized_vertices": True, "quantized_splits": False},
          "both": {"quantized_vertices": True, "quantized_splits": True}}  # fmt: skip
 
 
@@ -208,7 +209,7 @@ def test_old_files_still_read(tmp_path: Path, models: dict[tuple[str, str], Path
     versions 1-3, renders as before; a quantized model cannot pass for version 3 (the
     flag came with version 4); the flag's absence keeps word 3 ignored."""
     full = tmp_path / "spheres.vast"
-    build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0))
+    build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0, quantized_splits=False))
     camera = views(full)[0]
     with ModelFile(full) as model:
         assert not model.quantized_vertices

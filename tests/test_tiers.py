@@ -279,8 +279,9 @@ def refused(path: Path, message: str) -> None:
 def test_untiered_files_of_every_older_version_still_read(tmp_path: Path) -> None:
     soup = tmp_path / "soup.f32"
     write_soup(soup, np.random.default_rng(7))  # no parts, no colours: what version 1 can hold
+    # (and untiered, without quantized splits: no flag of a later version)
     current = tmp_path / "v5.vast"
-    build_model(soup, current, BuildOptions(tier_width=0))
+    build_model(soup, current, BuildOptions(tier_width=0, quantized_splits=False))
     camera = frame_bounds(*ModelFile(current).bounds, width=64, height=48)
 
     def full_detail(path: Path) -> np.ndarray:
@@ -338,12 +339,14 @@ def test_a_damaged_block_reference_is_named(pair: Callable[[str], Pair]) -> None
             (tier << 26 | count, rf"child block {count} of tier {tier} is outside level 1"),
         ):
             root = bytearray(raw[0])
-            struct.pack_into("<I", root, lod.offset + 12, reference)
+            # The child block word: word 3 of a LOD node, word 2 with quantized splits (FORMAT.md §8).
+            struct.pack_into("<I", root, lod.offset + (8 if model.quantized_splits else 12), reference)
             blocks = [bytes(root), *raw[1:]]
             with pytest.raises(RuntimeError, match=rf"model block 0: {message}"):
                 native.decode_model(
                     blocks, [s.first for s in model.streams], list(h["centre"]), list(h["cell_lo"]),
-                    list(h["cell_hi"]), h["input_triangles"], model.has_colours, False, False, tiers, True,
+                    list(h["cell_hi"]), h["input_triangles"], model.has_colours, model.quantized_splits,
+                    model.quantized_vertices, tiers, True,
                 )  # fmt: skip
             walker = Walker(model)
             walker.raw[0] = bytes(root)

@@ -100,8 +100,9 @@ class BuildOptions:
     empty_space_ratio: float = 0.15
     voxel_rays: int = 3
     # Split planes on a 2^20-step grid of their cell (format version 3): 4-byte basic
-    # nodes; the tree is built on those planes, so images are the same (docs/FORMAT.md).
-    quantized_splits: bool = False
+    # nodes; the tree is built on those planes, so images are the same and frames no
+    # slower (docs/FORMAT.md, "Measured choices"): on by default.
+    quantized_splits: bool = True
     # Vertices snapped to a 2^21-step grid of the root cell before the tree is built,
     # stored as bit-packed offsets from a per-block origin (FLAG_QUANTIZED_VERTICES):
     # lossy, by at most one grid step, and watertight (a shared vertex snaps the same
@@ -114,6 +115,12 @@ class BuildOptions:
     # level (the layout of version 4).
     tier_width: float = 1.0
     tier_coarse_octaves: int = 4
+    # Triangle blocks in the compact layout (format version 5, FLAG_COMPACT_TRIANGLES):
+    # leaf lists, corners, ids and colours in bit fields as narrow as each block allows,
+    # still decoded per triangle (docs/FORMAT.md §11a). Lossless and 28-32 % smaller,
+    # but full-detail frames decode more per triangle (4-12 % slower, "Measured
+    # choices"), so an option.
+    compact_triangles: bool = False
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -806,6 +813,7 @@ class _Builder:
             tier_width=self.opt.tier_width,
             tier_coarse_octaves=self.opt.tier_coarse_octaves,
             root_cell=(lo.tolist(), hi.tolist()),
+            compact_triangles=self.opt.compact_triangles,
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
@@ -823,7 +831,8 @@ class _Builder:
             "flags": modelfile.FLAG_TRIANGLE_IDS
             | (modelfile.FLAG_COLOURS if self.src.has_colours else 0)
             | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0)
-            | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0),
+            | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0)
+            | (modelfile.FLAG_COMPACT_TRIANGLES if self.opt.compact_triangles else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),

@@ -44,6 +44,10 @@ FLAG_QUANTIZED_VERTICES: int = _F["flag_quantized_vertices"]
 FLAG_TIERED: int = _F["flag_tiered"]
 TIER_SHIFT: int = _F["tier_shift"]  # a node's block reference: tier << TIER_SHIFT | relative id
 MAX_TIERS: int = _F["max_tiers"]
+# Compact triangle blocks: bit-packed leaf records, grouped triangles, a palette (§11a)
+FLAG_COMPACT_TRIANGLES: int = _F["flag_compact_triangles"]
+COMPACT_HEADER: int = _F["compact_header"]  # bytes of a compact block's header
+COMPACT_GROUP: int = _F["compact_group"]  # triangles per group
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
 SPLIT_BITS: int = _F["split_bits"]
 SPLIT_STEPS: int = 1 << SPLIT_BITS
@@ -364,6 +368,7 @@ class ModelFile:
         known |= FLAG_QUANTIZED_SPLITS if h["version"] >= 3 else 0
         known |= FLAG_QUANTIZED_VERTICES if h["version"] >= 4 else 0
         known |= FLAG_TIERED if h["version"] >= 5 else 0
+        known |= FLAG_COMPACT_TRIANGLES if h["version"] >= 5 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
@@ -522,10 +527,17 @@ class ModelFile:
             return 0, word
         return word >> TIER_SHIFT, word & ((1 << TIER_SHIFT) - 1)
 
+    @property
+    def compact_triangles(self) -> bool:
+        """Triangle blocks in the compact layout (version 5, FORMAT.md §11a)."""
+        return bool(self.header["flags"] & FLAG_COMPACT_TRIANGLES)
+
     def triangle_layout(self, data: bytes) -> dict[str, int]:
-        """The sections of a triangle block's raw bytes (FORMAT.md §11): counts, byte
-        offsets and, with quantized vertices, the bits per axis and bytes per vertex.
-        Raises ModelError for a damaged packing word."""
+        """The sections of a triangle block's raw bytes (FORMAT.md §11, §11a): counts, byte
+        offsets and, with quantized vertices, the bits per axis and per vertex record.
+        Raises ModelError for a damaged packing word or compact header."""
+        if self.compact_triangles:
+            return self._compact_layout(data)
         entries, tris, verts, packing = struct.unpack_from("<4I", data)
         out = {"entries": entries, "triangles_count": tris, "vertices_count": verts}
         out["triangles"] = 16 + _pad4(2 * entries)
@@ -534,12 +546,42 @@ class ModelFile:
         out["vertices"] = out["colours"] + (4 * tris if self.has_colours else 0)
         out["end"] = out["vertices"] + 12 * verts
         if self.quantized_vertices:
-            bits = [(packing >> (8 * a)) & 0xFF for a in range(3)]
-            if packing >> 24 or max(bits) > VERTEX_GRID_BITS + 1:
-                raise self._fail(f"triangle block with a damaged vertex packing word {packing:#x}")
+            bits = self._vertex_bits(packing)
             record = (sum(bits) + 7) // 8
             out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record=record)
             out["end"] = out["vertices"] + 12 + _pad4(record * verts + 8 - record)
+        return out
+
+    def _vertex_bits(self, packing: int) -> list[int]:
+        bits = [(packing >> (8 * a)) & 0xFF for a in range(3)]
+        if packing >> 24 or max(bits) > VERTEX_GRID_BITS + 1:
+            raise self._fail(f"triangle block with a damaged vertex packing word {packing:#x}")
+        return bits
+
+    def _compact_layout(self, data: bytes) -> dict[str, int]:
+        """A compact block (FORMAT.md §11a): header, leaf records, group headers, group
+        data, palette and vertices, with the group header width."""
+        if len(data) < COMPACT_HEADER:
+            raise self._fail("compact triangle block shorter than its header")
+        tris, verts, packing, colours, id_min, id_bits, groups, palette = struct.unpack_from("<8I", data)
+        if not (1 <= tris and 1 <= verts and id_bits <= 32 and COMPACT_HEADER <= groups <= palette):
+            raise self._fail(f"compact triangle block with a damaged header ({tris}, {verts}, {id_bits})")
+        header_bits = 16 + (verts - 1).bit_length() + 5 + id_bits + 7
+        if self.has_colours:
+            header_bits += max(colours - 1, 0).bit_length() + 5
+        group_count = -(-tris // COMPACT_GROUP)
+        out = {"triangles_count": tris, "vertices_count": verts, "palette_count": colours, "id_min": id_min,
+               "id_bits": id_bits, "records": COMPACT_HEADER, "groups": groups, "group_count": group_count,
+               "header_bits": header_bits, "data": groups + (group_count * header_bits + 7) // 8,
+               "palette": palette, "vertices": palette + 4 * colours}  # fmt: skip
+        if self.quantized_vertices:
+            bits = self._vertex_bits(packing)
+            out.update(bits_x=bits[0], bits_y=bits[1], bits_z=bits[2], record_bits=sum(bits))
+            out["end"] = out["vertices"] + 12 + (sum(bits) * verts + 7) // 8 + 8
+        else:
+            out["end"] = out["vertices"] + 12 * verts
+        if out["data"] > palette:
+            raise self._fail("compact triangle block whose group headers overrun its data")
         return out
 
     @property
@@ -613,6 +655,7 @@ class ModelFile:
                 self.quantized_vertices,
                 self.tier_count,
                 self.tiered,
+                self.compact_triangles,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -659,6 +702,7 @@ class ModelFile:
             "quantized_splits": self.quantized_splits,
             "quantized_vertices": self.quantized_vertices,
             "tiers": self.tier_count if self.tiered else 0,
+            "compact_triangles": self.compact_triangles,
             "part_count": len(self._parts),
             "parts": [
                 {"id": p.id, "name": p.name, "lo": list(p.lo), "hi": list(p.hi), "triangles": p.triangles}

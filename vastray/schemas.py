@@ -267,12 +267,17 @@ class BuildOptionsIn(Strict):
     memory: str | int | None = Field(None, description="memory budget, e.g. '2G' (default: the server's)")
     threads: int | None = Field(None, ge=0, le=1024, description="build threads (0: all cores)")
     quantized_splits: bool = Field(
-        False, description="split planes on a 20-bit grid of their cell: 5 % smaller, the same images"
+        True, description="split planes on a 20-bit grid of their cell: 5 % smaller, the same images"
     )
     quantized_vertices: bool = Field(
         False,
         description="vertices on a 2^21-step grid of the model's box, bit-packed per block: smaller, "
         "lossy by at most one grid step, watertight",
+    )
+    compact_triangles: bool = Field(
+        False,
+        description="triangle blocks with bit-packed leaf lists, corners, ids and colours: about 30 % "
+        "smaller, lossless, full-detail frames 4-12 % slower",
     )
 
 

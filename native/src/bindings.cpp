@@ -251,6 +251,9 @@ PYBIND11_MODULE(native, m) {
     fmt["tier_count_at"] = format::kTierCountAt;
     fmt["tier_shift"] = format::kTierShift;
     fmt["max_tiers"] = format::kMaxTiers;
+    fmt["flag_compact_triangles"] = format::kFlagCompactTriangles;
+    fmt["compact_header"] = format::compact::kHeader;
+    fmt["compact_group"] = format::compact::kGroup;
     fmt["vertex_grid_bits"] = format::kVertexGridBits;
     fmt["split_bits"] = format::kSplitBits;
     fmt["level_record"] = format::kLevelRecord;

@@ -43,7 +43,7 @@ public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
-                  int tier_coarse_octaves, py::object root_cell)
+                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles)
         : files_(scratch_dir) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -54,6 +54,7 @@ public:
         p.kd.bins = bins;
         p.kd.threads = threads;
         p.kd.quantized_splits = quantized_splits;
+        p.compact_triangles = compact_triangles;
         if (!vertex_steps.is_none()) {
             const auto steps = vertex_steps.cast<std::array<float, 3>>();
             p.quantized_vertices = true;
@@ -174,7 +175,8 @@ private:
 std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uint32_t>& stream_first,
                               const std::vector<double>& centre, const std::vector<double>& lo,
                               const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
-                              bool quantized_splits, bool quantized_vertices, std::uint32_t tier_count, bool tiered) {
+                              bool quantized_splits, bool quantized_vertices, std::uint32_t tier_count, bool tiered,
+                              bool compact_triangles) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -192,6 +194,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.has_colours = has_colours;
     in.quantized_splits = quantized_splits;
     in.quantized_vertices = quantized_vertices;
+    in.compact_triangles = compact_triangles;
     for (std::uint32_t f : stream_first) {
         if (f > in.blocks.size()) throw std::invalid_argument("level starts past the last block");
     }
@@ -667,13 +670,13 @@ void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
         .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object, double,
-                      int, py::object>(),
+                      int, py::object, bool>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
-             py::arg("root_cell") = py::none())
+             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
@@ -705,6 +708,7 @@ void bind_model(py::module_& m) {
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("stream_first"), py::arg("centre"), py::arg("lo"),
           py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
           py::arg("quantized_vertices") = false, py::arg("tier_count") = 1u, py::arg("tiered") = false,
+          py::arg("compact_triangles") = false,
           "Decode a whole model (raw blocks by global id; the first block of each stream, level-major) into an "
           "in-core Scene");
 }

@@ -37,6 +37,7 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.quantized_splits = index.quantized_splits();
         lane.quantized_vertices = index.quantized_vertices();
         lane.vertex_steps = index.vertex_steps();
+        lane.compact_triangles = index.compact_triangles();
     }
     return lanes;
 }
@@ -68,7 +69,25 @@ format::TriangleBlockLayout triangle_layout(const std::uint8_t* tb, bool has_col
                                            load<std::uint32_t>(tb + 8), has_colours);
 }
 
+// A hit's triangle in a compact block (format.h): the traversal decoded the same
+// fields when it tested it, so they are valid; indices are clamped all the same.
+bool compact_triangle_of(const LodHit& hit, const ModelIndex& index, format::CompactTriangleBlock& b,
+                         format::CompactTriangleBlock::Group& g) {
+    return format::CompactTriangleBlock::parse(hit.tri_block, format::kBlockSize, index.has_colours(),
+                                               index.quantized_vertices(), b) &&
+           b.group(hit.local / format::compact::kGroup, g);
+}
+
 void triangle_of(const LodHit& hit, const ModelIndex& index, Vec3f* v) {
+    if (index.compact_triangles()) {
+        format::CompactTriangleBlock b{};
+        format::CompactTriangleBlock::Group g{};
+        std::uint32_t c[3] = {0, 0, 0};
+        const bool ok = compact_triangle_of(hit, index, b, g);
+        if (ok) b.corners(g, hit.local - g.first, c);
+        for (int k = 0; k < 3; ++k) v[k] = ok ? b.vertex(std::min(c[k], b.verts - 1), index.vertex_steps()) : Vec3f(0, 0, 0);
+        return;
+    }
     const auto l = format::TriangleBlockLayout::read(hit.tri_block, index.has_colours(), index.quantized_vertices());
     const std::uint8_t* corner = hit.tri_block + l.triangles + 6 * std::size_t{hit.local};
     for (int k = 0; k < 3; ++k) v[k] = l.vertex(hit.tri_block, load<std::uint16_t>(corner + 2 * k), index.vertex_steps());
@@ -134,8 +153,7 @@ public:
         n = normalize(cross(v[1] - v[0], v[2] - v[0]));
         colour = shading::default_colour();
         if (index_.has_colours()) {
-            const auto l = triangle_layout(hit.tri_block, true);
-            const std::uint32_t c = load<std::uint32_t>(hit.tri_block + l.colours + 4 * std::size_t{hit.local});
+            const std::uint32_t c = colour_of(hit);
             colour = Vec3f(static_cast<float>(c & 0xffu), static_cast<float>((c >> 8) & 0xffu),
                            static_cast<float>((c >> 16) & 0xffu)) *
                      (1.0f / 255.0f);
@@ -201,6 +219,18 @@ public:
     Vec3d centre() const { return centre_; }
 
 private:
+    // A hit triangle's colour, 0x00BBGGRR.
+    std::uint32_t colour_of(const Hit& hit) const {
+        if (index_.compact_triangles()) {
+            format::CompactTriangleBlock b{};
+            format::CompactTriangleBlock::Group g{};
+            if (!compact_triangle_of(hit, index_, b, g)) return 0;
+            return b.colour(std::min(b.palette_index(g, hit.local - g.first), b.palette_size - 1));
+        }
+        const auto l = triangle_layout(hit.tri_block, true);
+        return load<std::uint32_t>(hit.tri_block + l.colours + 4 * std::size_t{hit.local});
+    }
+
     const ModelIndex& index_;
     shading::CameraRays camera_;
     Vec3d centre_;

@@ -130,6 +130,14 @@ private:
     // A leaf's entries run from `first` to the end of its block's list and, for leaves
     // too big for one block, on from entry 0 of the following triangle blocks.
     void leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
+        if (leaf_count(w) == 0) {  // no triangles: its block reference is not read
+            nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), 0));
+            return;
+        }
+        if (in_.compact_triangles) {
+            compact_leaf(from, w, tri_block);
+            return;
+        }
         const auto [first_block, stream_end] = block_of(tri_level_, tri_block, from);
         TriangleBlockView tb = triangle_block(first_block);
         std::uint32_t entry = leaf_first(w);
@@ -163,6 +171,62 @@ private:
                 std::uint32_t c;
                 std::memcpy(&c, data + l.colours + 4 * std::size_t{local}, 4);
                 for (int k = 0; k < 3; ++k) colours_[3 * std::size_t{id} + static_cast<std::size_t>(k)] = static_cast<std::uint8_t>(c >> (8 * k));
+            }
+        }
+    }
+
+    CompactTriangleBlock compact_block(std::size_t b) const {
+        CompactTriangleBlock v{};
+        if (in_.sizes[b] < compact::kHeader) bad(b, "triangle block shorter than its header");
+        if (!CompactTriangleBlock::parse(in_.blocks[b], in_.sizes[b], in_.has_colours, in_.quantized_vertices, v)) {
+            bad(b, "compact triangle block header is damaged (counts, widths or section offsets)");
+        }
+        if (v.end != in_.sizes[b]) bad(b, "triangle block size does not match its section counts");
+        return v;
+    }
+
+    // A compact block (format.h): the leaf's record at byte `first` and, for a leaf that
+    // continues, the first record of each following triangle block.
+    void compact_leaf(std::size_t from, std::uint32_t w, std::uint32_t tri_block) {
+        auto [b, stream_end] = block_of(tri_level_, tri_block, from);
+        CompactTriangleBlock tb = compact_block(b);
+        std::uint32_t at = leaf_first(w), remaining = leaf_count(w);
+        nodes_.push_back(KdNode::leaf(static_cast<std::uint32_t>(tri_ids_.size()), remaining));
+        while (remaining > 0) {
+            CompactLeafRecord record{};
+            if (!record.open(tb, at, remaining)) bad(b, "leaf record lies outside the records or has a bad count");
+            for (std::uint32_t i = 0; i < record.count(); ++i) {
+                std::uint32_t local;
+                if (!record.next(local)) {
+                    bad(b, record.overrun() ? "leaf record runs past the records section"
+                                            : "list entry points past the triangle section");
+                }
+                CompactTriangleBlock::Group g{};
+                if (!tb.group(local / compact::kGroup, g) || !tb.fits(g)) bad(b, "triangle group is damaged (widths or extent)");
+                const std::uint32_t k = local - g.first;
+                const std::uint32_t id = tb.id(g, k);
+                if (id >= seen_.size()) bad(b, "triangle id " + std::to_string(id) + " is out of range");
+                tri_ids_.push_back(id);
+                if (seen_[id]) continue;
+                seen_[id] = 1;
+                std::uint32_t v[3];
+                tb.corners(g, k, v);
+                for (int c = 0; c < 3; ++c) {
+                    if (v[c] >= tb.verts) bad(b, "triangle points past the vertex section");
+                    vertices_[3 * std::size_t{id} + static_cast<std::size_t>(c)] = tb.vertex(v[c], steps_);
+                }
+                if (in_.has_colours) {
+                    const std::uint32_t p = tb.palette_index(g, k);
+                    if (p >= tb.palette_size) bad(b, "triangle colour points past the palette");
+                    const std::uint32_t rgb = tb.colour(p);
+                    for (int c = 0; c < 3; ++c) colours_[3 * std::size_t{id} + static_cast<std::size_t>(c)] = static_cast<std::uint8_t>(rgb >> (8 * c));
+                }
+            }
+            remaining -= record.count();
+            if (remaining > 0) {
+                if (b + 1 >= stream_end) bad(b, "leaf list runs past the last triangle block");
+                tb = compact_block(++b);
+                at = compact::kHeader;
             }
         }
     }

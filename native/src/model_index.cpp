@@ -78,7 +78,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         const auto flags = load<std::uint32_t>(h + 16);
         const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u) |
                                     (version >= 3 ? kFlagQuantizedSplits : 0u) | (version >= 4 ? kFlagQuantizedVertices : 0u) |
-                                    (version >= 5 ? kFlagTiered : 0u);
+                                    (version >= 5 ? kFlagCompactTriangles | kFlagTiered : 0u);
         if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
         }
@@ -116,6 +116,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
             root_cell_.hi[a] = load<float>(h + 68 + 4 * a);
         }
         quantized_vertices_ = (flags & kFlagQuantizedVertices) != 0;
+        compact_triangles_ = (flags & kFlagCompactTriangles) != 0;
         vertex_steps_ = vertex_grid_steps(root_cell_.lo, root_cell_.hi);
         triangle_count_ = load<std::uint64_t>(h + 80);
         input_triangles_ = load<std::uint64_t>(h + 88);

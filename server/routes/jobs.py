@@ -71,10 +71,13 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
         )
     threads = s.build_threads if options is None or options.threads is None else options.threads
     opts: dict[str, int | bool] = {"memory": memory, "threads": threads}
-    if options is not None and options.quantized_splits:
-        opts["quantized_splits"] = True  # recorded only when asked for, as the model's options
+    # Layout options are recorded only when on, as the model's options (absent: off).
+    if options is None or options.quantized_splits:
+        opts["quantized_splits"] = True
     if options is not None and options.quantized_vertices:
         opts["quantized_vertices"] = True
+    if options is not None and options.compact_triangles:
+        opts["compact_triangles"] = True
     return opts
 
 

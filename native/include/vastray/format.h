@@ -15,6 +15,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
+#include <vector>
 
 #include "vastray/vecmath.h"
 
@@ -38,7 +39,7 @@ constexpr std::uint32_t kFlagTriangleIds = 1u << 1;
 constexpr std::uint32_t kFlagPartIds = 1u << 2;  // the file ends in a parts section (version 2)
 constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, quantized splits (version 3)
 constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, bit-packed per block
-// Bit 5 is taken by another version-5 option (a triangle block encoding).
+constexpr std::uint32_t kFlagCompactTriangles = 1u << 5;  // compact triangle blocks (version 5, below)
 constexpr std::uint32_t kFlagTiered = 1u << 6;  // levels split into streams by coarseness tier (version 5)
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
@@ -318,4 +319,331 @@ struct TriangleBlockLayout {
     }
 };
 
+// ---- compact triangle blocks (version 5, FLAG_COMPACT_TRIANGLES) ----------------------
+// The same content as above (leaf lists, triangles, ids, colours, shared vertices) in
+// bit fields as narrow as each part of a block allows, still readable per triangle: a
+// ray decodes only the triangles it tests, and a hit's id, corners and colour from its
+// index in the block. Triangles are numbered in the order leaves first use them (as in
+// the plain layout), so a leaf's triangles are mostly a run of new ones plus a few that
+// earlier leaves of the block brought in, and triangles of neighbouring leaves, which
+// sit close in the model, share groups whose bases and widths fit them.
+//
+//   header   32 bytes: u32 T (triangles), V (vertices), P (vertex packing, as above, or
+//            0: f32 vertices), K (palette colours; 0 without FLAG_COLOURS), id_min (the
+//            smallest id), id_bits (bit length of max id - id_min), groups (byte offset
+//            of the group headers), palette (byte offset of the palette)
+//   records  from byte 32 to `groups`: one leaf record per leaf (per block, for a leaf
+//            that continues), each starting on a byte; the leaf node's first field is
+//            its byte offset in the block
+//   headers  one fixed-width header per group of kGroup triangles, back to back, then
+//            zero bits to the next byte
+//   data     one data record per group, each starting on a byte
+//   palette  K x u32 0x00BBGGRR, in order of first use
+//   vertices V x f32[3]; or quantized, i32[3] grid origin, V records of bx+by+bz bits
+//            back to back (not rounded to bytes), then 8 zero bytes of slack
+//
+// Bit fields are little-endian: bit i of a field stream starting at byte s is bit i % 8
+// of byte s + i / 8, and a field of w bits at bit b holds bits b ... b + w - 1.
+//
+// Leaf record: base (16 bits: the index of the first triangle this leaf brings into the
+// block), w (5 bits, <= 16), partial (1 bit; when set, a 16-bit entry count follows,
+// else the record holds all the leaf's entries not read yet), then per entry a bit
+// `new`: set, the triangle is `next` (starting at base) and next += 1; clear, a w-bit
+// distance d follows and the triangle is next - 1 - d. A leaf whose entries run out in
+// a block continues with the record at byte 32 of the next triangle block.
+//
+// Group j holds triangles kGroup * j ... + n - 1, n = min(kGroup, T - kGroup * j). Its
+// header, at bit j * E of the headers (E = 16 + bit_length(V - 1) + 5 + id_bits + 7,
+// with colours + bit_length(K - 1) + 5), holds: the byte offset of its data record from
+// the start of the data (16 bits); corner base (bit_length(V - 1) bits) and width cw (5
+// bits, <= 16); id base (id_bits bits), width iw (6 bits, <= 32) and a `split` bit; with
+// colours, palette base (bit_length(K - 1) bits) and width pw (5 bits, <= 16). Its data
+// record holds n x 3 corners of cw bits (vertex = corner base + field, the triangle's
+// corners in order); then the ids: n fields of iw bits (id = id_min + id base + field),
+// or, split, a width dw (6 bits, <= 32), a distance of dw bits to a second base, and n
+// fields of 1 + iw bits whose low bit picks the base (id = id_min + id base + (bit ?
+// distance : 0) + field >> 1), for a group whose triangles come from two runs of ids
+// far apart; and with colours n palette indices of pw bits (palette base + field). The
+// data starts at the byte after the headers. A header's position follows from j alone,
+// so a reader goes from a triangle's index to its corners in two loads.
+namespace compact {
+constexpr std::size_t kHeader = 32;
+constexpr std::uint32_t kGroup = 8;
+constexpr std::uint32_t kBaseBits = 16, kCountBits = 16, kWidthBits = 5, kIdWidthBits = 6;
+constexpr std::uint32_t kMaxTriangles = (1u << kBaseBits) - 1;  // a record's base (up to T) is 16-bit
+constexpr std::uint32_t kMaxVertices = 1u << 16;          // corner widths are at most 16
+}  // namespace compact
+
+inline std::uint32_t bit_length(std::uint64_t x) { return x ? 64u - static_cast<std::uint32_t>(__builtin_clzll(x)) : 0u; }
+
+// The readers below run once per triangle a ray tests: always inlined, so each kernel
+// ISA (isa.h) gets its own copy instead of a call into one shared build.
+#define VASTRAY_HOT [[gnu::always_inline]] inline
+
+// `width` (at most 57) bits at bit `bit` of the stream at p; reads the 8 bytes at
+// p + bit / 8, so a stream needs that much readable memory after its last field.
+VASTRAY_HOT std::uint64_t read_bits(const std::uint8_t* p, std::size_t bit, std::uint32_t width) {
+    std::uint64_t w;
+    std::memcpy(&w, p + (bit >> 3), 8);
+    return (w >> (bit & 7u)) & ((std::uint64_t{1} << width) - 1);
+}
+
+// Appends fields to a stream that starts on a byte of `out` (the writer's side of
+// read_bits); align() ends it on a byte boundary, zero-filling the last byte.
+class BitWriter {
+public:
+    explicit BitWriter(std::vector<std::uint8_t>& out) : out_(out) {}
+    ~BitWriter() { align(); }
+    void put(std::uint64_t value, std::uint32_t width) {  // width <= 64
+        if (width > 32) {
+            put(value & 0xffffffffu, 32);
+            put(value >> 32, width - 32);
+            return;
+        }
+        acc_ |= (value & ((std::uint64_t{1} << width) - 1)) << held_;
+        held_ += width;
+        for (; held_ >= 8; held_ -= 8, acc_ >>= 8) out_.push_back(static_cast<std::uint8_t>(acc_));
+    }
+    void align() {
+        if (held_ > 0) out_.push_back(static_cast<std::uint8_t>(acc_));
+        acc_ = 0;
+        held_ = 0;
+    }
+
+private:
+    std::vector<std::uint8_t>& out_;
+    std::uint64_t acc_ = 0;
+    std::uint32_t held_ = 0;
+};
+
+// A view of a compact block, set by parse(). Its members (like Group's and
+// CompactLeafRecord's) have no initialisers on purpose: the traversal makes one per leaf
+// it opens, and zeroing them would cost plain-layout leaves too.
+struct CompactTriangleBlock {
+    const std::uint8_t* data;
+    std::uint32_t tris, verts, palette_size, id_min, id_bits;
+    std::size_t groups, group_data, palette, vertices, end;
+    std::uint32_t vertex_bits, palette_bits, header_bits;  // group header fields, E in all
+    bool packed;
+    // Quantized vertices: bits per axis, their sum, the block's grid origin, and where
+    // each axis's field sits in a record (shift and mask, for the traversal's decoding).
+    std::uint32_t bits[3], record_bits;
+    std::int32_t origin[3];
+    std::uint32_t shifts[3];
+    std::uint64_t masks[3];
+
+    static std::size_t group_count(std::size_t tris) { return (tris + compact::kGroup - 1) / compact::kGroup; }
+    static std::uint32_t header_width(std::uint32_t verts, std::uint32_t id_bits, bool has_colours, std::uint32_t colours) {
+        return 16 + bit_length(verts - 1) + compact::kWidthBits + id_bits + compact::kIdWidthBits + 1 +
+               (has_colours ? bit_length(colours - 1) + compact::kWidthBits : 0);
+    }
+    static std::size_t vertex_bytes(std::size_t verts, bool packed, std::uint32_t record_bits) {
+        return packed ? 12 + (verts * record_bits + 7) / 8 + 8 : 12 * verts;
+    }
+
+    // The view of the block at tb, of `size` readable bytes (its raw size, or 64 KiB in
+    // the cache); false when its header contradicts itself or does not fit `size`.
+    VASTRAY_HOT static bool parse(const std::uint8_t* tb, std::size_t size, bool has_colours, bool quantized,
+                                  CompactTriangleBlock& b) {
+        if (size < compact::kHeader) return false;
+        std::uint32_t h[8];
+        std::memcpy(h, tb, sizeof h);
+        b.data = tb;
+        b.tris = h[0];
+        b.verts = h[1];
+        b.palette_size = h[3];
+        b.id_min = h[4];
+        b.id_bits = h[5];
+        b.groups = h[6];
+        b.palette = h[7];
+        if (b.tris == 0 || b.tris > compact::kMaxTriangles || b.verts == 0 || b.verts > compact::kMaxVertices ||
+            b.id_bits > 32 || (has_colours ? b.palette_size == 0 || b.palette_size > b.tris : b.palette_size != 0)) {
+            return false;
+        }
+        b.packed = quantized;
+        b.record_bits = 0;
+        if (quantized) {
+            for (int a = 0; a < 3; ++a) b.bits[a] = (h[2] >> (8 * a)) & 0xffu;
+            if ((h[2] >> 24) != 0 || std::max({b.bits[0], b.bits[1], b.bits[2]}) > kMaxVertexBits) return false;
+            b.record_bits = b.bits[0] + b.bits[1] + b.bits[2];
+        } else if (h[2] != 0) {
+            return false;
+        }
+        b.vertex_bits = bit_length(b.verts - 1);
+        b.palette_bits = has_colours ? bit_length(b.palette_size - 1) : 0;
+        b.header_bits = header_width(b.verts, b.id_bits, has_colours, b.palette_size);
+        b.group_data = b.groups + (group_count(b.tris) * b.header_bits + 7) / 8;
+        b.vertices = b.palette + 4 * std::size_t{b.palette_size};
+        b.end = b.vertices + vertex_bytes(b.verts, b.packed, b.record_bits);
+        if (b.groups < compact::kHeader || b.group_data > b.palette || b.end > size) return false;
+        if (quantized) {
+            std::memcpy(b.origin, tb + b.vertices, 12);
+            for (int a = 0; a < 3; ++a) {
+                b.shifts[a] = a == 0 ? 0 : b.shifts[a - 1] + b.bits[a - 1];
+                b.masks[a] = (std::uint64_t{1} << b.bits[a]) - 1;
+            }
+        }
+        return true;
+    }
+
+    // One group of triangles: where its data starts and how wide its fields are.
+    struct Group {
+        const std::uint8_t* at;
+        std::uint32_t first, n;
+        std::uint32_t corner_base, cw, id_base, iw, palette_base, pw;
+        bool split;                  // two id bases
+        std::uint32_t id_distance;   // the second one's distance from the first
+        std::size_t ids, colours;    // bit offsets of the id fields and the palette fields
+    };
+    // Group j (< the group count); false when its widths are out of range. Its fields
+    // then lie within 110 bytes of a data offset below 64 KiB, so reading them stays
+    // within the block and the 64 KiB after it (the cache's spare slot); fits() says
+    // whether they also end inside the data.
+    VASTRAY_HOT bool group(std::uint32_t j, Group& g) const {
+        std::size_t bit = std::size_t{j} * header_bits;
+        const std::uint8_t* h = data + groups;
+        auto field = [&](std::uint32_t width) {
+            const auto v = static_cast<std::uint32_t>(read_bits(h, bit, width));
+            bit += width;
+            return v;
+        };
+        const std::size_t at = group_data + field(16);
+        if (at >= palette) return false;
+        g.at = data + at;
+        g.first = j * compact::kGroup;
+        g.n = std::min(compact::kGroup, tris - g.first);
+        g.corner_base = field(vertex_bits);
+        g.cw = field(compact::kWidthBits);
+        g.id_base = field(id_bits);
+        g.iw = field(compact::kIdWidthBits);
+        g.split = field(1) != 0;
+        g.palette_base = g.pw = g.id_distance = 0;
+        if (palette_size != 0) {  // the model has colours
+            g.palette_base = field(palette_bits);
+            g.pw = field(compact::kWidthBits);
+        }
+        if (g.cw > 16 || g.iw > 32 || g.pw > 16) return false;
+        g.ids = std::size_t{3} * g.cw * g.n;
+        std::uint32_t id_field = g.iw;
+        if (g.split) {
+            const auto dw = static_cast<std::uint32_t>(read_bits(g.at, g.ids, compact::kIdWidthBits));
+            if (dw > 32) return false;
+            g.id_distance = static_cast<std::uint32_t>(read_bits(g.at, g.ids + compact::kIdWidthBits, dw));
+            g.ids += compact::kIdWidthBits + dw;
+            id_field += 1;
+        }
+        g.colours = g.ids + std::size_t{id_field} * g.n;
+        return true;
+    }
+    bool fits(const Group& g) const {
+        return static_cast<std::size_t>(g.at - data) + (g.colours + std::size_t{g.pw} * g.n + 7) / 8 <= palette;
+    }
+    // Triangle `local`'s three vertex indices (not checked against V), from the first
+    // fields of its group's header alone (the path of every triangle a ray tests); false
+    // when that group is damaged as group() would say.
+    VASTRAY_HOT bool corners(std::uint32_t local, std::uint32_t v[3]) const {
+        const std::uint32_t j = local / compact::kGroup;
+        const std::uint64_t h = read_bits(data + groups, std::size_t{j} * header_bits, 16 + vertex_bits + compact::kWidthBits);
+        const std::size_t at = group_data + (h & 0xffffu);
+        const auto base = static_cast<std::uint32_t>(h >> 16) & ((1u << vertex_bits) - 1);
+        const auto cw = static_cast<std::uint32_t>(h >> (16 + vertex_bits)) & 31u;
+        if (cw > 16 || at >= palette) return false;
+        const std::uint64_t w = read_bits(data + at, std::size_t{3} * cw * (local - j * compact::kGroup), 3 * cw);
+        const std::uint64_t mask = (std::uint64_t{1} << cw) - 1;
+        v[0] = base + static_cast<std::uint32_t>(w & mask);
+        v[1] = base + static_cast<std::uint32_t>((w >> cw) & mask);
+        v[2] = base + static_cast<std::uint32_t>((w >> (2 * cw)) & mask);
+        return true;
+    }
+    // Triangle i of group g: its three vertex indices (not checked against V).
+    VASTRAY_HOT void corners(const Group& g, std::uint32_t i, std::uint32_t v[3]) const {
+        const std::uint64_t w = read_bits(g.at, std::size_t{3} * g.cw * i, 3 * g.cw);
+        const std::uint64_t mask = (std::uint64_t{1} << g.cw) - 1;
+        v[0] = g.corner_base + static_cast<std::uint32_t>(w & mask);
+        v[1] = g.corner_base + static_cast<std::uint32_t>((w >> g.cw) & mask);
+        v[2] = g.corner_base + static_cast<std::uint32_t>((w >> (2 * g.cw)) & mask);
+    }
+    VASTRAY_HOT std::uint32_t id(const Group& g, std::uint32_t i) const {
+        if (!g.split) return id_min + g.id_base + static_cast<std::uint32_t>(read_bits(g.at, g.ids + std::size_t{g.iw} * i, g.iw));
+        const std::uint64_t f = read_bits(g.at, g.ids + std::size_t{g.iw + 1} * i, g.iw + 1);
+        return id_min + g.id_base + ((f & 1u) ? g.id_distance : 0u) + static_cast<std::uint32_t>(f >> 1);
+    }
+    // The palette index of triangle i of group g (not checked against K).
+    std::uint32_t palette_index(const Group& g, std::uint32_t i) const {
+        return g.palette_base + static_cast<std::uint32_t>(read_bits(g.at, g.colours + std::size_t{g.pw} * i, g.pw));
+    }
+    std::uint32_t colour(std::uint32_t index) const {
+        std::uint32_t c;
+        std::memcpy(&c, data + palette + 4 * std::size_t{index}, 4);
+        return c;
+    }
+    // Vertex v (< V): f32 as stored, or f32(origin + offset) * step, as in the plain layout.
+    VASTRAY_HOT Vec3f vertex(std::uint32_t v, const Vec3f& steps) const {
+        Vec3f p;
+        if (!packed) {
+            std::memcpy(&p, data + vertices + 12 * std::size_t{v}, 12);
+            return p;
+        }
+        const std::size_t bit = std::size_t{v} * record_bits;
+        const std::uint8_t* at = data + vertices + 12 + (bit >> 3);
+        const std::uint32_t s = static_cast<std::uint32_t>(bit & 7u);
+        std::uint64_t w;
+        std::memcpy(&w, at, 8);
+        w >>= s;
+        if (record_bits > 57) {
+            // Such a record can straddle two 8-byte words. Whether it does varies from
+            // vertex to vertex, so the second word is always read (the branch on the
+            // block's record width is predictable): s = 0 shifts it out entirely.
+            std::uint64_t hi;
+            std::memcpy(&hi, at + 8, 8);
+            w |= (hi << 1) << (63 - s);
+        }
+        const auto field = [&](int a) { return origin[a] + static_cast<std::int32_t>((w >> shifts[a]) & masks[a]); };
+        return {grid_vertex(field(0), steps.x), grid_vertex(field(1), steps.y), grid_vertex(field(2), steps.z)};
+    }
+};
+
+// Reads one leaf record of a compact block, entry by entry.
+class CompactLeafRecord {
+public:
+    // The record at byte `at` of block b, for a leaf with `remaining` entries not read
+    // yet; false when it lies outside the records or says more than `remaining`.
+    VASTRAY_HOT bool open(const CompactTriangleBlock& b, std::uint32_t at, std::uint32_t remaining) {
+        if (at < compact::kHeader || at >= b.groups) return false;
+        p_ = b.data + at;
+        limit_ = 8 * (b.groups - at);
+        tris_ = b.tris;
+        const std::uint64_t w = read_bits(p_, 0, compact::kBaseBits + compact::kWidthBits + 1 + compact::kCountBits);
+        next_ = static_cast<std::uint32_t>(w & 0xffffu);
+        width_ = static_cast<std::uint32_t>(w >> compact::kBaseBits) & 31u;
+        const bool partial = (w >> (compact::kBaseBits + compact::kWidthBits)) & 1u;
+        bit_ = compact::kBaseBits + compact::kWidthBits + 1 + (partial ? compact::kCountBits : 0);
+        count_ = partial ? static_cast<std::uint32_t>(w >> (compact::kBaseBits + compact::kWidthBits + 1)) & 0xffffu
+                         : remaining;
+        return width_ <= 16 && count_ >= 1 && count_ <= remaining && bit_ <= limit_;
+    }
+    std::uint32_t count() const { return count_; }
+    // Whether the last read ran past the records (else a failed next() pointed outside the block).
+    bool overrun() const { return bit_ > limit_; }
+    // The next entry's triangle index; false when the record is damaged there (it runs
+    // past the records or points outside the block's triangles).
+    VASTRAY_HOT bool next(std::uint32_t& local) {
+        // Without branches on the flag: new and old entries mix unpredictably.
+        const std::uint64_t w = read_bits(p_, bit_, 1 + width_);  // the flag and a distance
+        const bool fresh = (w & 1u) != 0;
+        const auto d = static_cast<std::uint32_t>(w >> 1);
+        const std::uint32_t old = next_ - 1 - d;  // wraps past 0 when d >= next: caught below
+        local = fresh ? next_ : old;
+        next_ += fresh ? 1u : 0u;
+        bit_ += fresh ? 1u : 1u + width_;
+        return (fresh || d < next_) && local < tris_ && bit_ <= limit_;
+    }
+
+private:
+    const std::uint8_t* p_;
+    std::size_t bit_, limit_;
+    std::uint32_t next_, width_, count_, tris_;
+};
+
+#undef VASTRAY_HOT
 }  // namespace vastray::format

@@ -57,8 +57,9 @@ struct alignas(64) LodLane {
     bool tiered = false;
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
-    bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: u16 grid offsets in triangle blocks
+    bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: bit-packed grid offsets in triangle blocks
     Vec3f vertex_steps{1, 1, 1};      // that grid's steps
+    bool compact_triangles = false;   // FLAG_COMPACT_TRIANGLES: compact triangle blocks (format.h)
     std::vector<std::pair<CachedModel*, std::uint32_t>> requests;  // first requests
     std::uint64_t lookups = 0, hits = 0, missing = 0, bad = 0, ws_blocks = 0, ws_bytes = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0, voxel_hits = 0;
@@ -239,25 +240,32 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
 // Walks the triangles of one leaf: its run of list entries in a triangle block and, for
 // leaves too big for one block, on into the following blocks. Entries that point
 // outside their block are skipped; a block that is missing (requested) or has a
-// damaged header ends the walk with `missing()` true.
+// damaged header ends the walk with `missing()` true. A compact block (format.h) is
+// read the same way through its leaf record; a record that is damaged ends the walk
+// like a missing block, since the entries after a bad one cannot be found.
 class LeafTriangles {
 public:
     LeafTriangles(LodLane& lane, const std::uint8_t* leaf_node, float priority)
         : lane_(lane), priority_(priority) {
         const std::uint32_t w = load<std::uint32_t>(leaf_node);
         left_ = format::leaf_count(w);
+        empty_ = left_ == 0;
         entry_ = format::leaf_first(w);
+        // A leaf of no triangles reads no block (the kd builder leaves a few, where an
+        // empty-space cut keeps nothing); its reference is not read.
+        if (left_ == 0) return;
         const auto [block, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(leaf_node + 4));
         block_id_ = block;
         end_ = end;
         open(block_id_);
     }
 
-    bool missing() const { return block_ == nullptr; }
+    bool missing() const { return block_ == nullptr && !empty_; }
 
     // The next triangle (its index in the current block); false at the end of the leaf
     // or when a block is missing.
     bool next(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& local) {
+        if (lane_.compact_triangles) return next_compact(v0, v1, v2, local);
         while (block_ && left_ > 0) {
             --left_;
             while (block_ && entry_ >= entries_) {  // a big leaf continues in the next block
@@ -283,6 +291,9 @@ public:
     // The input id of triangle `local` of the current block, read only when needed: the
     // ids live in their own section, a cache line away from the vertices.
     std::uint32_t id(std::uint32_t local) const {
+        if (lane_.compact_triangles) {
+            return group_for(local) ? compact_.id(group_, local - group_.first) : kNoHit;
+        }
         return load<std::uint32_t>(block_ + layout_.ids + 4 * std::size_t{local});
     }
 
@@ -291,6 +302,20 @@ private:
     void open(std::uint64_t id) {
         block_ = id < end_ ? lane_.lookup(static_cast<std::uint32_t>(id), priority_) : nullptr;
         if (!block_) return;
+        if (lane_.compact_triangles) {
+            // A damaged header or record: treat as missing. An empty leaf has no record.
+            group_index_ = ~0u;
+            record_left_ = 0;
+            if (left_ == 0) return;
+            if (!format::CompactTriangleBlock::parse(block_, format::kBlockSize, lane_.has_colours,
+                                                     lane_.quantized_vertices, compact_) ||
+                !record_.open(compact_, entry_, left_)) {
+                block_ = nullptr;
+                return;
+            }
+            record_left_ = record_.count();
+            return;
+        }
         entries_ = load<std::uint32_t>(block_);
         tris_ = load<std::uint32_t>(block_ + 4);
         verts_ = load<std::uint32_t>(block_ + 8);
@@ -298,12 +323,54 @@ private:
         if (layout_.end > format::kBlockSize) block_ = nullptr;  // damaged header: treat as missing
     }
 
+    bool next_compact(Vec3f& v0, Vec3f& v1, Vec3f& v2, std::uint32_t& local) {
+        while (block_ && left_ > 0) {
+            if (record_left_ == 0) {  // a big leaf continues at the next block's first record
+                entry_ = format::compact::kHeader;
+                open(++block_id_);
+                if (!block_) return false;
+            }
+            --left_;
+            --record_left_;
+            if (!record_.next(local)) {
+                block_ = nullptr;
+                return false;
+            }
+            std::uint32_t v[3];
+            if (!compact_.corners(local, v)) continue;
+            if ((v[0] >= compact_.verts) | (v[1] >= compact_.verts) | (v[2] >= compact_.verts)) continue;
+            v0 = compact_.vertex(v[0], lane_.vertex_steps);
+            v1 = compact_.vertex(v[1], lane_.vertex_steps);
+            v2 = compact_.vertex(v[2], lane_.vertex_steps);
+            return true;
+        }
+        return false;
+    }
+    // Decodes the group holding triangle `local` unless it is the one decoded last (a
+    // leaf's triangles mostly come in runs); false for a damaged group.
+    bool group_for(std::uint32_t local) const {
+        const std::uint32_t g = local / format::compact::kGroup;
+        if (g == group_index_) return true;
+        group_index_ = ~0u;
+        if (!compact_.group(g, group_)) return false;
+        group_index_ = g;
+        return true;
+    }
+
     LodLane& lane_;
     float priority_;
     const std::uint8_t* block_ = nullptr;
     std::uint64_t block_id_ = 0, end_ = 0;
     std::uint32_t left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;
+    bool empty_ = false;  // a leaf of no triangles: nothing to read, nothing missing
     format::TriangleBlockLayout layout_;
+    // Compact blocks: the block's view, the leaf record being read, the last group
+    // (uninitialised until open() parses a compact block).
+    format::CompactTriangleBlock compact_;
+    format::CompactLeafRecord record_;
+    std::uint32_t record_left_ = 0;
+    mutable format::CompactTriangleBlock::Group group_;
+    mutable std::uint32_t group_index_ = ~0u;
 };
 
 }  // namespace lod_detail
@@ -413,7 +480,6 @@ public:
                     leaf = true;
                     if constexpr (Yield) {
                         if (prefetch_leaf(lane, block + off)) {
-                            leaf_stage_ = 1;
                             why = Stop::Leaf;
                             goto yield;
                         }
@@ -614,13 +680,23 @@ private:
     // Asks for the triangle block header and the list entries of the leaf at `node`;
     // false when the block is not cached (the leaf's walk requests it and moves on).
     bool prefetch_leaf(const LodLane& lane, const std::uint8_t* node) {
+        if (format::leaf_count(load<std::uint32_t>(node)) == 0) return false;  // reads no block
         const auto [id, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(node + 4));
         if (id >= end) return false;
         const std::int32_t slot = lane.model->slot(static_cast<std::uint32_t>(id));
         if (slot < 0) return false;
         leaf_block_ = lane.cache->slot_data(slot);
+        const std::size_t first = format::leaf_first(load<std::uint32_t>(node));
         __builtin_prefetch(leaf_block_);
-        __builtin_prefetch(leaf_block_ + 16 + 2 * std::size_t{format::leaf_first(load<std::uint32_t>(node))});
+        if (lane.compact_triangles) {
+            // A compact leaf's record is at byte `first`; its triangles' group headers and
+            // vertices are found only by decoding it, so this is the one wait.
+            __builtin_prefetch(leaf_block_ + first);
+            leaf_stage_ = 3;
+        } else {
+            __builtin_prefetch(leaf_block_ + 16 + 2 * first);
+            leaf_stage_ = 1;
+        }
         return true;
     }
 
@@ -630,6 +706,8 @@ private:
     void prefetch_leaf_data(const LodLane& lane, const std::uint8_t* node) {
         const std::uint8_t* tb = leaf_block_;
         const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
+        ++leaf_stage_;
+        if (layout.end > format::kBlockSize) return;  // a damaged header: LeafTriangles says so
         const std::uint32_t w = load<std::uint32_t>(node);
         const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
         const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
@@ -640,8 +718,7 @@ private:
             t_lo = std::min(t_lo, t);
             t_hi = std::max(t_hi, t);
         }
-        ++leaf_stage_;
-        if (t_lo > t_hi || layout.end > format::kBlockSize) return;
+        if (t_lo > t_hi) return;
         if (leaf_stage_ == 2) {
             prefetch_range(tb + layout.triangles + 6 * std::size_t{t_lo}, 6 * std::size_t{t_hi - t_lo + 1});
             return;

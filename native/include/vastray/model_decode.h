@@ -26,6 +26,7 @@ struct DecodeInput {
     bool has_colours = false;
     bool quantized_splits = false;            // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes
     bool quantized_vertices = false;          // FLAG_QUANTIZED_VERTICES: vertices on the root cell's grid
+    bool compact_triangles = false;           // FLAG_COMPACT_TRIANGLES: compact triangle blocks
 };
 
 std::shared_ptr<Scene> decode_model(const DecodeInput& in);

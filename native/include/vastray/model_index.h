@@ -29,6 +29,7 @@ public:
     bool has_colours() const { return has_colours_; }
     bool quantized_splits() const { return quantized_splits_; }  // FLAG_QUANTIZED_SPLITS
     bool quantized_vertices() const { return quantized_vertices_; }  // FLAG_QUANTIZED_VERTICES
+    bool compact_triangles() const { return compact_triangles_; }  // FLAG_COMPACT_TRIANGLES
     const Vec3f& vertex_steps() const { return vertex_steps_; }  // that flag's grid (format.h)
     const Vec3d& centre() const { return centre_; }
     const Box3f& root_cell() const { return root_cell_; }
@@ -62,7 +63,7 @@ private:
     std::string path_;
     int fd_ = -1;
     bool has_colours_ = false;
-    bool quantized_splits_ = false, quantized_vertices_ = false;
+    bool quantized_splits_ = false, quantized_vertices_ = false, compact_triangles_ = false;
     Vec3f vertex_steps_{1, 1, 1};
     Vec3d centre_;
     Box3f root_cell_;

@@ -32,7 +32,7 @@ struct ModelWriterParams {
     float one_sample_colour = 0.05f;    // six samples collapse to one when every colour
     float one_sample_normal = 0.10f;    // and normal component is this close to the mean
     // FLAG_QUANTIZED_VERTICES: the records' vertices are on the root cell's grid with
-    // these steps (format.h), and triangle blocks store them as u16 grid offsets.
+    // these steps (format.h), and triangle blocks store them as bit-packed grid offsets.
     bool quantized_vertices = false;
     Vec3f vertex_steps{1, 1, 1};
     // FLAG_TIERED (writer/tiers.h): each level's units go to streams by the radius of
@@ -41,6 +41,8 @@ struct ModelWriterParams {
     double tier_width = 0;
     int tier_coarse_octaves = 4;
     float root_radius = 0;  // half the root cell's diagonal (format::cell_radius)
+    // FLAG_COMPACT_TRIANGLES: triangle blocks in the compact layout (format.h).
+    bool compact_triangles = false;
 };
 
 // What one stream of a level holds: its blocks and their raw bytes; nodes and LOD voxels

@@ -23,7 +23,8 @@ void ProgressCounter::add(std::uint64_t n) {
 SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
     : p_(params), counter_(counter), out_(std::move(out)), defer_(defer),
       tiering_(params.root_radius, params.tier_width, params.tier_coarse_octaves), nodes(out_, stats),
-      triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, out_, stats) {}
+      triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, params.compact_triangles,
+                out_, stats) {}
 
 std::uint32_t SubtreeEmitter::reference(std::uint32_t tier, std::uint32_t block) const {
     if (!tiering_.enabled()) return block;
@@ -171,11 +172,12 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& tri
                 const std::uint32_t k = ref_tier(w, tiered), rel = ref_relative(w, tiered);
                 if (k >= tiers) throw std::logic_error("a leaf refers to a tier its part never used");
                 const std::vector<OpenLeaf>& open = part.open_leaves_[k];
-                if (rel == part.closed_[k] && !open.empty()) {
+                std::uint32_t w0;
+                std::memcpy(&w0, at - 4, 4);
+                if (rel == part.closed_[k] && !open.empty() && leaf_count(w0) > 0) {
                     // A leaf of the part's open block: where the merge put it. Leaves in a
-                    // block have distinct first entries, added in rising order.
-                    std::uint32_t w0;
-                    std::memcpy(&w0, at - 4, 4);
+                    // block have distinct first entries, added in rising order. (A leaf of
+                    // no triangles reads no block: readers ignore its reference.)
                     const auto it = std::lower_bound(open.begin(), open.end(), leaf_first(w0),
                                                      [](const OpenLeaf& l, std::uint32_t f) { return l.first < f; });
                     if (it == open.end() || it->first != leaf_first(w0)) throw std::logic_error("an open leaf was lost in the merge");

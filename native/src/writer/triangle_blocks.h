@@ -109,11 +109,14 @@ struct OpenLeaf {
 class TriangleBlocks {
 public:
     // `vertex_steps`: the grid of FLAG_QUANTIZED_VERTICES (null: f32 vertices as given).
-    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, std::uint32_t tier, BlockStream& out,
+    // `compact`: FLAG_COMPACT_TRIANGLES blocks (format.h) instead of the plain layout.
+    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, bool compact, std::uint32_t tier, BlockStream& out,
                    ModelWriterStats& stats)
-        : has_colours_(has_colours), quantized_(vertex_steps != nullptr),
-          steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)), max_vertices_(quantized_ ? 3 * kMaxTriangles : kMaxVertices),
-          tier_(tier), out_(out), stats_(stats), vertex_map_(quantized_ ? 15 : 13) {
+        : has_colours_(has_colours), quantized_(vertex_steps != nullptr), compact_(compact),
+          steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)),
+          max_vertices_(compact ? kCompactMaxVertices : quantized_ ? 3 * kMaxTriangles : kMaxVertices),
+          max_triangles_(compact ? kCompactMaxTriangles : kMaxTriangles), tier_(tier), out_(out), stats_(stats),
+          id_map_(compact ? 15 : 13), vertex_map_(compact ? 16 : quantized_ ? 15 : 13), palette_map_(compact ? 15 : 1) {
         reset_span();
     }
 
@@ -128,10 +131,11 @@ public:
     // the block, when it holds the end of a leaf that began in an earlier block.
     bool take_open_leaves(std::vector<OpenLeaf>& out);
 
-    // Adds one leaf's triangles (soup indices); returns (block id, first list entry).
-    // A leaf's list normally lies in one block. A leaf too big for one (a fan of
+    // Adds one leaf's triangles (soup indices); returns (block id, first): the leaf's
+    // first list entry, or in a compact block the byte offset of its leaf record. A
+    // leaf's list normally lies in one block. A leaf too big for one (a fan of
     // thousands of triangles around a vertex, which no split can separate) continues
-    // at entry 0 of the following triangle blocks.
+    // at entry 0 (the first leaf record) of the following triangle blocks.
     std::pair<std::uint32_t, std::uint32_t> add_leaf(const std::uint32_t* tris, std::uint32_t count,
                                                      const TriangleSource& src);
 
@@ -144,35 +148,87 @@ private:
     std::uint32_t packing() const {
         if (!quantized_ || grid_.empty()) return 0;
         std::uint32_t word = 0;
-        for (int a = 0; a < 3; ++a) {
-            std::uint32_t span = static_cast<std::uint32_t>(k_hi_[a] - k_lo_[a]), bits = 0;
-            while (span >> bits) ++bits;
-            word |= bits << (8 * a);
-        }
+        for (int a = 0; a < 3; ++a) word |= format::bit_length(static_cast<std::uint32_t>(k_hi_[a] - k_lo_[a])) << (8 * a);
         return word;
     }
     format::TriangleBlockLayout layout() const {
         return format::TriangleBlockLayout::of(list_.size(), ids_.size(), verts_.size(), has_colours_, quantized_,
                                                packing());
     }
+    // The raw size of the block as it stands, in its layout.
+    std::size_t size() const { return compact_ ? compact_size() : layout().end; }
     void reset_span();
     void clear_open();
     std::array<std::int32_t, 3> grid_index(const Vec3f& p) const;
     void extend_span(const std::array<std::int32_t, 3>& k);
     void truncate(std::size_t list_size, std::size_t tris, std::size_t verts);
+    void clear_maps();
     // Inserts triangles into the current block; false when it stopped because the block
     // certainly cannot hold them.
     bool insert(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src);
+    // A leaf tried whole in the current block, then in a fresh one; false when it fits
+    // in neither (the block is left empty).
+    bool add_whole(const std::uint32_t* tris, std::uint32_t count, const TriangleSource& src, std::uint32_t& first);
+    std::vector<std::uint8_t> plain_bytes(const format::TriangleBlockLayout& l) const;
+
+    // ---- compact blocks (FLAG_COMPACT_TRIANGLES) ----
+    // A leaf record: its run of list entries and the first triangle it may bring in.
+    struct Record {
+        std::size_t begin, end;
+        std::uint32_t base;
+        bool partial;  // the leaf continues in the next block
+    };
+    // What a record's size depends on, replayed from its entries.
+    struct RecordShape {
+        std::uint32_t entries = 0, old = 0, max_distance = 0;
+        std::size_t bits(bool partial) const;
+    };
+    // A group's fields: the range of its corners and palette indices, and how its ids
+    // are stored (one base, or two for ids from two runs far apart; FORMAT.md §11a).
+    struct Range {
+        std::uint32_t lo = ~0u, hi = 0;
+        void add(std::uint32_t v) {
+            lo = std::min(lo, v);
+            hi = std::max(hi, v);
+        }
+        std::uint32_t width() const { return lo > hi ? 0 : format::bit_length(hi - lo); }
+    };
+    struct IdCoding {
+        std::uint32_t base = 0, width = 0;  // the smallest id; bits of an offset
+        bool split = false;
+        std::uint32_t second = 0, distance_bits = 0;  // split: ids >= second use the second base
+        std::size_t bits(std::size_t n) const;        // of the ids in the data record
+    };
+    struct GroupShape {
+        Range corners, palette;
+        IdCoding ids;
+        std::size_t n = 0;
+        std::size_t bits() const;  // of its data record
+    };
+    static IdCoding id_coding(const std::uint32_t* ids, std::size_t n);
+    GroupShape group_shape(std::size_t first, std::size_t n) const;
+    void open_record();
+    void close_record();
+    RecordShape replay(const Record& r) const;
+    void add_to_group(std::size_t t);
+    std::size_t compact_size() const;
+    std::vector<std::uint8_t> compact_bytes() const;
+    void reset_compact();
 
     // A vertex takes 12 bytes, a triangle at least 12 (record, id, list entry); a packed
     // vertex can take less than a byte, but a triangle brings at most three.
     static constexpr std::size_t kMaxVertices = (format::kBlockSize - 16) / 12;
     static constexpr std::size_t kMaxTriangles = (format::kBlockSize - 16) / 12;
+    // A compact triangle can take a few bits; these bound the dedup tables (format.h
+    // allows 2^16 of each).
+    static constexpr std::size_t kCompactMaxTriangles = 1u << 14;
+    static constexpr std::size_t kCompactMaxVertices = 1u << 15;
 
     bool has_colours_;
     bool quantized_;
+    bool compact_;
     Vec3f steps_;
-    std::size_t max_vertices_;
+    std::size_t max_vertices_, max_triangles_;
     std::uint32_t tier_;
     BlockStream& out_;
     ModelWriterStats& stats_;
@@ -184,21 +240,33 @@ private:
     std::array<std::int32_t, 3> k_lo_{}, k_hi_{};    // and their bounds in this block
     std::vector<OpenLeaf> open_leaves_;  // the leaves that began in the open block
     bool open_continues_ = false;        // it holds the end of one that began earlier
-    // Sized for kMax* entries (plus one triangle's overshoot) at most 3/4 full.
-    SmallMap<std::uint32_t, IdHash> id_map_{13};
-    SmallMap<VertexKey, VertexHash> vertex_map_;  // 2^13 slots, 2^15 for packed vertices
+    // Compact: leaf records, the palette and each triangle's index in it, the groups
+    // closed so far (their field bits) and the open one, the block's id range.
+    std::vector<Record> records_;
+    bool record_open_ = false;  // the last record is still taking entries
+    std::size_t closed_record_bytes_ = 0;
+    RecordShape open_shape_;
+    std::vector<std::uint32_t> palette_, palette_index_;
+    std::size_t closed_group_bytes_ = 0;  // the data records of the full groups
+    Range block_ids_;
+    // Sized for the most entries a block takes (plus one triangle's overshoot) at most 3/4 full.
+    SmallMap<std::uint32_t, IdHash> id_map_;
+    SmallMap<VertexKey, VertexHash> vertex_map_;
+    SmallMap<std::uint32_t, IdHash> palette_map_;  // compact: colour -> palette index
 };
 
 // The triangle blocks of every tier, each made on first use (a part uses a few of the
 // tiers, and each tier's dedup tables take a few hundred KiB).
 class TriangleTiers {
 public:
-    TriangleTiers(bool has_colours, const Vec3f* vertex_steps, BlockStream& out, ModelWriterStats& stats)
-        : has_colours_(has_colours), steps_(vertex_steps), out_(out), stats_(stats) {}
+    TriangleTiers(bool has_colours, const Vec3f* vertex_steps, bool compact, BlockStream& out, ModelWriterStats& stats)
+        : has_colours_(has_colours), compact_(compact), steps_(vertex_steps), out_(out), stats_(stats) {}
 
     TriangleBlocks& operator[](std::uint32_t tier) {
         if (tiers_.size() <= tier) tiers_.resize(tier + 1);
-        if (!tiers_[tier]) tiers_[tier] = std::make_unique<TriangleBlocks>(has_colours_, steps_, tier, out_, stats_);
+        if (!tiers_[tier]) {
+            tiers_[tier] = std::make_unique<TriangleBlocks>(has_colours_, steps_, compact_, tier, out_, stats_);
+        }
         return *tiers_[tier];
     }
     // A tier's blocks, or null when nothing went to it.
@@ -215,7 +283,7 @@ public:
     void release() { tiers_.clear(); }
 
 private:
-    bool has_colours_;
+    bool has_colours_, compact_;
     const Vec3f* steps_;
     BlockStream& out_;
     ModelWriterStats& stats_;
