@@ -43,7 +43,6 @@ class Scheduler:
         self.deliver = deliver
         self.views: set[View] = set()
         self.running = 0
-        self.data_epoch = 0  # counts block arrivals seen by the watcher
         self._wake: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
@@ -108,9 +107,19 @@ class Scheduler:
             self._wake.clear()
             self._start_ready()
 
+    def _arrivals(self) -> int:
+        """Blocks the fetchers have finished so far (read or failed): the block-arrival
+        count a view that waits for data compares with its last frame's. Counted where the
+        fetch ends, not when a frame publishes the block or the watcher wakes: a view whose
+        blocks arrive before its frame is taken back, or are published by another view's
+        frame, must still see them arrive."""
+        t = self.cache.totals()
+        return int(t["bytes_read"]) + int(t["failed"])
+
     def _start_ready(self) -> None:
         assert self._loop is not None
         now = time.monotonic()
+        arrivals = self._arrivals()
         next_wake: float | None = None
         waiting_for_data = False
         candidates: list[tuple[float, View, RenderJob]] = []
@@ -121,7 +130,7 @@ class Scheduler:
             if view.busy or not view.wants_frame():
                 continue
             budget = 1.0 / (view.quality.target_fps * moving)
-            job = view.next_job(now, self.data_epoch, budget)
+            job = view.next_job(now, arrivals, budget)
             if isinstance(job, float):
                 next_wake = job if next_wake is None else min(next_wake, job)
             elif job is not None:
@@ -144,10 +153,11 @@ class Scheduler:
         assert self._loop is not None
         view.busy = True
         self.running += 1
+        arrivals = self._arrivals()  # before the frame: what arrives later is news to it
         future = self._loop.run_in_executor(self.executor, view.render, job)
-        future.add_done_callback(lambda f: self._done(view, job, f))
+        future.add_done_callback(lambda f: self._done(view, job, f, arrivals))
 
-    def _done(self, view: View, job: RenderJob, future: asyncio.Future[RenderedFrame]) -> None:
+    def _done(self, view: View, job: RenderJob, future: asyncio.Future[RenderedFrame], arrivals: int) -> None:
         self.running -= 1
         try:
             result = future.result()
@@ -158,7 +168,7 @@ class Scheduler:
             self.notify()
             return
         view.vtime += result.finished_at - result.started_at
-        frame, warning = view.finish(job, result, self.data_epoch)
+        frame, warning = view.finish(job, result, arrivals)
         if frame is not None or warning is not None:
             self.deliver(view, frame, warning)  # type: ignore[arg-type]
         self.notify()
@@ -186,5 +196,4 @@ class Scheduler:
                 return
 
     def _blocks_arrived(self) -> None:
-        self.data_epoch += 1
         self.notify()

@@ -148,7 +148,7 @@ class View:
         self.accum: np.ndarray | None = None
         self.accum_n = 0
         self.waiting_for_data = False
-        self.data_epoch = 0  # the scheduler's block-arrival count when the last frame was rendered
+        self.data_epoch = 0  # the scheduler's block-arrival count when the last frame began
         self.stalls = 0
         self.controller = QualityController()
         self.sections: list[SectionPlane] = []
