@@ -58,8 +58,6 @@ from common import (  # bench/ is a folder of scripts, not a package
     save_figure,
 )
 
-from vastray.pagecache import drop_page_cache
-
 BENCH_DIR = Path(__file__).resolve().parent
 DEFAULT_CACHE = BENCH_DIR / ".cache"
 PROCEDURAL = ("plant", "mandelbulb")
@@ -519,6 +517,9 @@ def one_build(
     model: Model, kind: str, memory: int, threads: int, snapshot: str, workdir: Path
 ) -> dict[str, Any]:
     """Drops the input from the page cache, builds it in a fresh process, returns a flat row."""
+    # (Imported here: main() must point `import vastray` at the run's snapshot first.)
+    from vastray.pagecache import drop_page_cache
+
     out = workdir / f"{model.label}.vrm"
     resident = drop_page_cache(model.path)
     tag = f"{model.label} budget {budget_text(memory)} threads {threads}"
