@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from modelwalk import COMPACT_HEADER, GROUP, TIERED, BitReader, Walker, WalkError, walk
 from test_build import SMALL_MEMORY, rewrite_version, run_cli
-from test_model_writer import write_ply
+from test_model_writer import fan, write_ply
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
@@ -188,10 +188,7 @@ def test_a_leaf_bigger_than_a_block_continues(tmp_path: Path) -> None:
     triangles than a compact block takes, so its record says it is partial and the leaf
     goes on in the next blocks; every triangle decodes to its input, out of core too."""
     n = 20_000
-    angles = np.linspace(0.0, 2 * np.pi, n + 1)
-    rim = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
-    corners = np.stack([np.zeros((n, 3)), rim[1:], rim[:-1]], axis=1)
-    colours = np.tile(np.array([90, 160, 90], np.uint8), (n, 1))
+    corners, colours = fan(n)
     write_ply(tmp_path / "fan.ply", corners, colours)
     path = tmp_path / "fan.vast"
     build_model(tmp_path / "fan.ply", path, BuildOptions(compact_triangles=True))

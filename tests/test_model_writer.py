@@ -37,6 +37,16 @@ def write_ply(path: Path, corners: np.ndarray, colours: np.ndarray) -> None:
         f.write(faces.tobytes())
 
 
+def fan(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Corners and colours of a disc of `n` thin triangles around one vertex (a fine
+    tessellation): no split can separate them near the centre, so some leaf holds more
+    than a block fits."""
+    angles = np.linspace(0.0, 2 * np.pi, n + 1)
+    rim = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
+    corners = np.stack([np.zeros((n, 3)), rim[1:], rim[:-1]], axis=1)
+    return corners, np.tile(np.array([90, 160, 90], np.uint8), (n, 1))
+
+
 def grid_plane(size: float, cells: int, y: float) -> np.ndarray:
     """A square in the XZ plane at height y, split into 2 * cells^2 triangles."""
     t = np.linspace(-size / 2, size / 2, cells + 1)
@@ -125,13 +135,9 @@ def test_more_threads_than_cores_build_the_same_file(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_a_fan_too_big_for_one_block_continues_into_the_next(tmp_path: Path) -> None:
-    # 20,000 thin triangles around one vertex (a finely tessellated disc): no split can
-    # separate them near the centre, so some leaf holds more than a 64 KB block fits.
+    # 20,000 thin triangles around one vertex: some leaf holds more than a 64 KB block fits.
     n = 20_000
-    angles = np.linspace(0.0, 2 * np.pi, n + 1)
-    rim = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)
-    corners = np.stack([np.zeros((n, 3)), rim[1:], rim[:-1]], axis=1)
-    colours = np.tile(np.array([90, 160, 90], np.uint8), (n, 1))
+    corners, colours = fan(n)
     write_ply(tmp_path / "fan.ply", corners, colours)
     report = build_model(tmp_path / "fan.ply", tmp_path / "fan.vast")
     assert report["triangles"] == n
