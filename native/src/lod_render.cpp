@@ -29,7 +29,6 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.tick = tick;
         lane.level_first = index.level_first().data();
         lane.tri_level = static_cast<std::uint32_t>(index.level_count() - 1);
-        lane.block_count = static_cast<std::uint32_t>(index.block_count());
         lane.stream_first = index.stream_first().data();
         lane.tier_count = index.tier_count();
         lane.tiered = index.tiered();

@@ -49,7 +49,7 @@ struct alignas(64) LodLane {
     CachedModel* model = nullptr;
     std::uint32_t tick = 0;
     const std::uint32_t* level_first = nullptr;
-    std::uint32_t tri_level = 0, block_count = 0;
+    std::uint32_t tri_level = 0;
     // The streams of each level (FLAG_TIERED; one per level untiered): first block of
     // stream L * tier_count + k, and past the last one block_count (ModelIndex).
     const std::uint32_t* stream_first = nullptr;
@@ -180,44 +180,26 @@ inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, f
     return block < end ? lane.lookup(static_cast<std::uint32_t>(block), priority) : nullptr;
 }
 
-// An inner node's children (null block: empty child), with their cells split at
-// `split`. `child` is the child block of a LOD node. False for a damaged node, whose
-// offsets would loop or leave the block.
-inline bool children_of(bool quantized, const NodeRef& node, std::uint32_t w, float split,
-                        const std::uint8_t* child, NodeRef& left, NodeRef& right) {
+// The offsets of an inner node's children in their block (the node's own for a basic
+// node, the child block for a LOD node); false for a damaged node, whose offsets would
+// loop or leave the block. The right child never lies before the left (a basic node's
+// offset is at least two nodes, a LOD node's at least 0), so when present it is the one
+// furthest on. Basic nodes are 8 bytes, 4 in a quantized model; offsets count in that.
+template <bool Quantized>
+inline bool child_offsets(std::uint32_t w, std::uint32_t off, std::uint32_t& l_off, std::uint32_t& r_off) {
     using namespace format;
     const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
-    const int axis = std::min(axis_of(w), 2);
-    left = right = node;
-    left.hi[axis] = split;
-    right.lo[axis] = split;
-    left.block = right.block = nullptr;
     if (is_lod(w)) {
-        const std::uint32_t first = 8 * lod_child_off8(w);
-        left.level = right.level = node.level + 1;
-        if (has_l) {
-            left.block = child;
-            left.off = first;
-        }
-        if (has_r) {
-            right.block = child;
-            right.off = has_l ? first + 8 * lod_right_from_left8(w) : first;
-        }
+        l_off = 8 * lod_child_off8(w);
+        r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
     } else {
-        // Basic nodes are 8 bytes, 4 in a quantized model; offsets count in their size.
-        const std::uint32_t size = quantized ? 4 : 8;
+        constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;
         const std::uint32_t r = basic_right_off8(w);
         if (has_l && has_r && r < 2) return false;
-        if (has_l) {
-            left.block = node.block;
-            left.off = node.off + size;
-        }
-        if (has_r) {
-            right.block = node.block;
-            right.off = has_l ? node.off + size * r : node.off + size;
-        }
+        l_off = off + kNodeSize;
+        r_off = has_l ? off + kNodeSize * r : l_off;
     }
-    return !(left.block && left.off > kBlockSize - 8) && !(right.block && right.off > kBlockSize - 8);
+    return (has_r ? r_off : l_off) <= kBlockSize - 8;
 }
 
 // Root clip that also says through which face the ray enters (the axis of the largest
@@ -445,7 +427,6 @@ public:
         using namespace format;
         const Ray& ray = lray_->ray;
         const float cone = lray_->cone, cone_t0 = lray_->cone_t0;
-        constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;  // a basic node; offsets count in it
         LodHit& hit = *hit_;
         const std::uint8_t* block = block_;
         std::uint32_t off = off_, level = level_;
@@ -519,18 +500,8 @@ public:
                     }
                     voxel = here;
                     child_level = level + 1;
-                    l_off = 8 * lod_child_off8(w);
-                    r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
-                } else {
-                    const std::uint32_t r = basic_right_off8(w);
-                    if (has_l && has_r && r < 2) goto done;  // damaged: the offsets would loop
-                    l_off = off + kNodeSize;
-                    r_off = has_l ? off + kNodeSize * r : off + kNodeSize;
                 }
-                // Damaged offsets leave the block. The right child never lies before the left
-                // (a basic node's offset is at least 2 nodes, a LOD node's at least 0), so the
-                // one furthest on is the right when present.
-                if ((has_r ? r_off : l_off) > kBlockSize - 8) goto done;
+                if (!child_offsets<Quantized>(w, off, l_off, r_off)) goto done;  // damaged
 
                 const float o = org_[axis];
                 const float t_split = (split - o) * inv_[axis];

@@ -270,21 +270,11 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
                 voxel = here;
                 child_level = node.level + 1;
             }
-            // The children's offsets, as lod_detail::Walker finds them (no NodeRef copies:
-            // only the child the packet enters and the one it puts aside are written).
+            // The children's offsets (no NodeRef copies: only the child the packet enters
+            // and the one it puts aside are written).
             const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
             std::uint32_t l_off, r_off;
-            if (is_lod(w)) {
-                l_off = 8 * lod_child_off8(w);
-                r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
-            } else {
-                constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;
-                const std::uint32_t r = basic_right_off8(w);
-                if (has_l && has_r && r < 2) return finish();  // damaged: the offsets would loop
-                l_off = node.off + kNodeSize;
-                r_off = has_l ? node.off + kNodeSize * r : l_off;
-            }
-            if ((has_r ? r_off : l_off) > kBlockSize - 8) return finish();  // damaged
+            if (!lod_detail::child_offsets<Quantized>(w, node.off, l_off, r_off)) return finish();  // damaged
             // The packet's near child: the origin's side (shared origin), else the side
             // the directions leave.
             bool near_is_left, may_flip = true;
