@@ -13,12 +13,14 @@ the 1280x720 overview (vastray.camera.frame_bounds) at each pixels of error:
 
 Models are measured in turn within each repeat, so all see the same machine; the
 images of the models must be equal (layout changes what is read, never what is drawn).
-`--build INPUT` first builds INPUT both ways with this vastray (--tier-width 0 writes
-the untiered layout, byte for byte that of format version 4 apart from the header's
-version) and reports their build times.
+`--build INPUT` first builds INPUT with this vastray at each of `--widths` (default:
+untiered and the default tier width; --tier-width 0 writes the untiered layout, byte for
+byte that of format version 4 apart from the header's version) and reports their build
+times.
 
     python bench/tiers.py --models untiered=bench/.cache/plant-1e7-v4.vast,tiered=bench/.cache/plant-1e7.vast
     python bench/tiers.py --build bench/.cache/plant-1e7-s1.ply --name tiers-1e7
+    python bench/tiers.py --build bench/.cache/plant-1e7-s1.ply --widths 0,1,2,3 --name tier-widths-1e7
 """
 
 from __future__ import annotations
@@ -101,6 +103,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", default="", help="label=path,label=path: the files to compare")
     ap.add_argument("--build", type=Path, help="build this input untiered and tiered first")
+    ap.add_argument(
+        "--widths",
+        default=f"0,{BuildOptions.tier_width:g}",
+        help="with --build: the tier widths to build (octaves; 0: untiered), e.g. 0,1,2,3",
+    )
     ap.add_argument("--poes", default="2")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--frames", type=int, default=8, help="frames per frame-time median")
@@ -118,7 +125,8 @@ def main() -> int:
         models[label] = Path(path)
     if args.build is not None:
         stem = args.build.stem.removesuffix("-s1")
-        for label, width in (("untiered", 0.0), ("tiered", BuildOptions.tier_width)):
+        for width in (float(w) for w in args.widths.split(",")):
+            label = "untiered" if width == 0 else f"tiered-w{width:g}"
             out = args.build.parent / f"{stem}-{label}.vast"
             drop_page_cache(args.build)
             report = build_model(args.build, out, BuildOptions(tier_width=width, overwrite=True))
@@ -169,7 +177,8 @@ def main() -> int:
             f"medians of {args.frames} frames of each complete view, all open in one cache, frames in "
             "turn. *cold_complete_s* counts the open."
         )
-        text = [f"# {args.name}: untiered against tiered", "", note, "", "```sh", info["command"], "```", ""]
+        title = f"# {args.name}: untiered and tiered layouts"
+        text = [title, "", note, "", "```sh", info["command"], "```", ""]
         text += [f"- {k}: {v}" for k, v in info.items() if k != "command"]
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.md").write_text("\n".join([*text, "", table, ""]))
