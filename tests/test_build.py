@@ -28,6 +28,7 @@ Built models are read back through an independent pure-Python walker
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -868,6 +869,39 @@ def test_cancel_leaves_nothing_behind(
     assert cancel.is_set() and seen[-1].phase == phase
     assert os.listdir(outputs) == []
     assert os.listdir(scratch) == []
+
+
+_FULL_DISK_CHILD = """
+import resource, signal, sys
+from vastray.build import BuildOptions, build_model
+phases = []
+# Files may grow to 256 KiB, as on a full disk: a write past it fails with EFBIG (with
+# SIGXFSZ ignored) instead of killing the process.
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 18, 1 << 18))
+try:
+    options = BuildOptions(memory=int(sys.argv[3]))
+    build_model(sys.argv[1], sys.argv[2], options, progress=lambda p: phases.append(p.phase))
+except OSError as e:
+    print(phases[-1], e.errno, e, flush=True)
+"""
+
+
+def test_a_failed_scratch_write_fails_the_build_cleanly(tmp_path: Path, ooc_ply: Path) -> None:
+    """Out-of-core sifting writes its cells on a thread of its own: when a write fails
+    (here a file-size limit, as on a full disk), the build stops in its read phase with
+    the system's error, instead of hanging or writing a model, and leaves nothing behind."""
+    out = tmp_path / "out"
+    out.mkdir()
+    result = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK_CHILD, str(ooc_ply), str(out / "m.vast"), str(SMALL_MEMORY)],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    phase, code, *_ = result.stdout.split()
+    assert phase == "read" and int(code) == errno.EFBIG, result.stdout
+    assert "scratch write failed: File too large" in result.stdout and ".tri" in result.stdout
+    assert os.listdir(out) == []
 
 
 _CANCEL_CHILD = """

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import numbers
 import os
+import queue
 import resource
 import shutil
 import tempfile
@@ -186,7 +187,6 @@ def _open_input(source: str | os.PathLike[str], scratch: Path, scan: Callable[[i
     text = str(source)
     scene = parse_scene(text)
     if scene is not None:
-
         spec = scenes.SCENES[scene.name]
 
         def generated(_size: int = 0) -> Iterator[TriangleChunk]:
@@ -400,7 +400,12 @@ class _Split:
 
 class _Sifter:
     """Sorts record chunks into the eight cells of a split, a scratch file per cell: a
-    triangle goes to each cell whose closed half-spaces its bounding box touches."""
+    triangle goes to each cell whose closed half-spaces its bounding box touches.
+
+    A thread of its own writes each chunk's cells while the caller makes and sifts the
+    next chunk: at 10^8 triangles the writes are gigabytes, paced by the disk once the
+    kernel's dirty-page limit is reached, and would otherwise stall everything else. At
+    most one chunk waits for the writer, so the memory in flight stays two chunks."""
 
     def __init__(self, split: _Split, scratch: Path, stride: int) -> None:
         self.split, self.stride = split, stride
@@ -409,21 +414,65 @@ class _Sifter:
         self.counts = [0] * 8
         self.tlo = [np.full(3, np.inf, dtype=np.float32) for _ in range(8)]
         self.thi = [np.full(3, -np.inf, dtype=np.float32) for _ in range(8)]
+        self._pending: queue.Queue[list[np.ndarray] | None] = queue.Queue(maxsize=1)
+        self._error: BaseException | None = None
+        self._writer: threading.Thread | None = threading.Thread(
+            target=self._write_cells, name="vastray-sift-writer", daemon=True
+        )
+        self._writer.start()
+
+    def _write_cells(self) -> None:
+        # Keeps taking chunks after a failure, so that add() and close() never block on
+        # a full queue; the first error is raised to the caller there.
+        while (cells := self._pending.get()) is not None:
+            if self._error is not None:
+                continue
+            k = 0
+            try:
+                for k, cell in enumerate(cells):
+                    if len(cell):
+                        # The file object's write: the GIL is let go during the system
+                        # call, and a failure keeps its errno (numpy's tofile loses it).
+                        self.files[k].write(memoryview(cell).cast("B"))
+            except OSError as e:  # handed to the caller's thread
+                self._error = self._scratch_error(e, k)
+            except BaseException as e:
+                self._error = e
+
+    def _scratch_error(self, e: OSError, k: int) -> OSError:
+        return OSError(e.errno, f"scratch write failed: {e.strerror}", str(self.paths[k]))
+
+    def _raise_writer_error(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
 
     def add(self, records: np.ndarray) -> None:
         """records: (n, stride) uint8."""
+        self._raise_writer_error()
         s = self.split
         cells, bounds = native.sift8(records, s.axes, s.splits, s.slot_lo, s.slot_hi)
         for k, cell in enumerate(cells):
             if len(cell):
-                cell.tofile(self.files[k])
                 self.counts[k] += len(cell)
                 self.tlo[k] = np.minimum(self.tlo[k], bounds[k, :3])
                 self.thi[k] = np.maximum(self.thi[k], bounds[k, 3:])
+        self._pending.put(cells)
 
     def close(self) -> None:
-        for f in self.files:
-            f.close()
+        """Waits for the writes, closes the files; raises what the writer met. Safe to
+        call again."""
+        if self._writer is not None:
+            self._pending.put(None)
+            self._writer.join()
+            self._writer = None
+        for k, f in enumerate(self.files):
+            try:
+                f.close()  # writes what is still buffered
+            except OSError as e:
+                if self._error is None:
+                    self._error = self._scratch_error(e, k)
+        self._raise_writer_error()
 
     def finish(self) -> list[tuple[Path, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None]:
         """Per cell (path, count, cell lo, cell hi, triangles' lo, hi), or None if empty."""
