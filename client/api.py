@@ -161,18 +161,22 @@ class AsyncClient:
         quantized_splits: bool = True,
         quantized_vertices: bool = False,
         compact_triangles: bool = False,
+        tier_width: float | None = None,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
         directory; wait for it with `wait`. `quantized_splits`: the smaller node layout
         with the same images (docs/FORMAT.md §8); `quantized_vertices`: vertices on a grid of
         the model's box, smaller and lossy by at most a grid step (§11); `compact_triangles`:
         bit-packed triangle blocks, about 30 % smaller and lossless, full-detail frames a few
-        per cent slower (§11a)."""
+        per cent slower (§11a); `tier_width`: octaves of LOD radius per coarseness tier
+        (server default 1; 0: untiered, smaller and faster to build, far views read more; §15)."""
         options = {"memory": memory, "threads": threads, "quantized_splits": quantized_splits}
         if quantized_vertices:
             options["quantized_vertices"] = True
         if compact_triangles:
             options["compact_triangles"] = True
+        if tier_width is not None:
+            options["tier_width"] = tier_width
         body = {"source": source, "name": name, "options": options}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 

@@ -95,6 +95,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             quantized_splits=bool(options.get("quantized_splits", False)),
             quantized_vertices=bool(options.get("quantized_vertices", False)),
             compact_triangles=bool(options.get("compact_triangles", False)),
+            tier_width=float(options.get("tier_width", BuildOptions.tier_width)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

@@ -279,6 +279,14 @@ class BuildOptionsIn(Strict):
         description="triangle blocks with bit-packed leaf lists, corners, ids and colours: about 30 % "
         "smaller, lossless, full-detail frames 4-12 % slower",
     )
+    tier_width: float | None = Field(
+        None,
+        ge=0,
+        le=16,
+        description="coarseness tiers, octaves of LOD radius per tier (default 1): far views read "
+        "the first tiers only; wider tiers or 0 (untiered) make smaller files and faster builds, "
+        "and far views read more",
+    )
 
 
 class JobRequest(Strict):

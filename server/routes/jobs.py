@@ -48,7 +48,7 @@ def resolve_source(state: State, source: str | None, upload: str | None) -> tupl
     return str(path), Path(source).stem
 
 
-def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int | bool]:
+def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int | float | bool]:
     s = state.settings
     memory = s.build_memory
     if options is not None and options.memory is not None:
@@ -70,7 +70,7 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
             f"limit of {format_bytes(s.job_memory_limit)} per job",
         )
     threads = s.build_threads if options is None or options.threads is None else options.threads
-    opts: dict[str, int | bool] = {"memory": memory, "threads": threads}
+    opts: dict[str, int | float | bool] = {"memory": memory, "threads": threads}
     # Layout options are recorded only when on, as the model's options (absent: off).
     if options is None or options.quantized_splits:
         opts["quantized_splits"] = True
@@ -78,6 +78,8 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
         opts["quantized_vertices"] = True
     if options is not None and options.compact_triangles:
         opts["compact_triangles"] = True
+    if options is not None and options.tier_width is not None:
+        opts["tier_width"] = options.tier_width
     return opts
 
 

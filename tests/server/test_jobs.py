@@ -172,3 +172,34 @@ def test_a_build_with_quantized_splits(server: ServerProcess, api: httpx.Client)
     assert any(flagged)
     r = api.post(f"/api/models/{done['model_id']}/render", json={"camera": {"width": 32, "height": 24}})
     assert r.status_code == 200, r.text
+
+
+def test_a_build_chooses_its_tier_width(server: ServerProcess, api: httpx.Client) -> None:
+    """`tier_width` reaches the builder: 0 writes an untiered file, 2 a tiered one with
+    fewer tiers than the default's; the job and the model record the width asked for, and
+    a width outside 0 ... 16 is refused with the field named."""
+    from vastray.modelfile import ModelFile
+
+    files = {}
+    for width in (0, 2):
+        body = {"source": "scene:plant:20000:4", "name": f"tiers-{width}", "options": {"tier_width": width}}
+        job = api.post("/api/jobs", json=body)
+        assert job.status_code == 202, job.text
+        done = wait_for_job(api, job.json()["id"])
+        assert done["state"] == "succeeded", done
+        assert done["options"]["tier_width"] == width
+        info = api.get(f"/api/models/{done['model_id']}").json()
+        assert info["build"]["options"]["tier_width"] == width
+        files[width] = server.data_dir / "models" / f"{done['model_id']}.vast"
+    default = api.post("/api/jobs", json={"source": "scene:plant:20000:4", "name": "tiers-default"}).json()
+    done = wait_for_job(api, default["id"])
+    assert "tier_width" not in done["options"]
+    files[None] = server.data_dir / "models" / f"{done['model_id']}.vast"
+    tiers = {}
+    for width, path in files.items():
+        with ModelFile(path) as model:
+            tiers[width] = model.tier_count if model.tiered else 0
+    assert tiers[0] == 0 and 0 < tiers[2] < tiers[None], tiers
+    for bad in (-1, 17, "wide"):
+        r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"tier_width": bad}})
+        assert r.status_code == 422 and "tier_width" in r.text, r.text
