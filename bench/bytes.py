@@ -143,6 +143,7 @@ def main() -> None:
     ap.add_argument("--quantized-splits", action="store_true")
     ap.add_argument("--quantized-vertices", action="store_true")
     ap.add_argument("--tier-width", type=float, default=BuildOptions.tier_width, help="0: untiered")
+    ap.add_argument("--traversal-cost", type=float, default=BuildOptions.traversal_cost)
     ap.add_argument("--triangles", choices=("plain", "compact"), default=None,
                     help="triangle block layout (default: the builder's)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=HERE / "results")
@@ -160,6 +161,7 @@ def main() -> None:
                     quantized_splits=args.quantized_splits,
                     quantized_vertices=args.quantized_vertices,
                     tier_width=args.tier_width,
+                    traversal_cost=args.traversal_cost,
                     overwrite=True,
                     **layout,
                 )

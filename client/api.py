@@ -162,6 +162,7 @@ class AsyncClient:
         quantized_vertices: bool = False,
         compact_triangles: bool = False,
         tier_width: float | None = None,
+        traversal_cost: float | None = None,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
         directory; wait for it with `wait`. `quantized_splits`: the smaller node layout
@@ -169,7 +170,9 @@ class AsyncClient:
         the model's box, smaller and lossy by at most a grid step (§11); `compact_triangles`:
         bit-packed triangle blocks, about 30 % smaller and lossless, full-detail frames a few
         per cent slower (§11a); `tier_width`: octaves of LOD radius per coarseness tier
-        (server default 1; 0: untiered, smaller and faster to build, far views read more; §15)."""
+        (server default 1; 0: untiered, smaller and faster to build, far views read more; §15);
+        `traversal_cost`: the kd-tree's SAH cost of a node step (default 4; higher: a coarser
+        tree, faster to build and smaller, LOD frames slower where rays end in leaves)."""
         options = {"memory": memory, "threads": threads, "quantized_splits": quantized_splits}
         if quantized_vertices:
             options["quantized_vertices"] = True
@@ -177,6 +180,8 @@ class AsyncClient:
             options["compact_triangles"] = True
         if tier_width is not None:
             options["tier_width"] = tier_width
+        if traversal_cost is not None:
+            options["traversal_cost"] = traversal_cost
         body = {"source": source, "name": name, "options": options}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 

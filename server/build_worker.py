@@ -96,6 +96,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             quantized_vertices=bool(options.get("quantized_vertices", False)),
             compact_triangles=bool(options.get("compact_triangles", False)),
             tier_width=float(options.get("tier_width", BuildOptions.tier_width)),
+            traversal_cost=float(options.get("traversal_cost", BuildOptions.traversal_cost)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

@@ -1122,3 +1122,26 @@ def test_cli_rejects_negative_threads_without_a_traceback(tmp_path: Path) -> Non
     expected = "vastray: error: threads must be 0 (every core) or a positive count, got -1"
     assert result.stderr.strip() == expected
     assert os.listdir(tmp_path) == []
+
+
+def test_traversal_cost_makes_a_coarser_smaller_tree(tmp_path: Path) -> None:
+    """`--traversal-cost` reaches the kd builder: a costlier node step gives fewer leaves,
+    fewer references and a smaller file of the same triangles, and a cost that is not a
+    positive number is refused before any work."""
+    files = {}
+    for cost in (None, "8"):
+        out = tmp_path / f"tc-{cost}.vast"
+        extra = [] if cost is None else ["--traversal-cost", cost]
+        result = run_cli("build", "scene:plant:20000:1", "-o", str(out), *extra, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        files[cost] = out
+    with ModelFile(files[None]) as default, ModelFile(files["8"]) as coarse:
+        assert coarse.header["triangle_count"] == default.header["triangle_count"]
+        assert coarse.header["leaves"] < default.header["leaves"]
+        assert coarse.header["references"] < default.header["references"]
+        assert coarse.header["file_size"] < default.header["file_size"]
+    for bad in ("0", "-1", "nan"):
+        out = tmp_path / "bad.vast"
+        result = run_cli("build", "scene:plant:2000:1", "-o", str(out), "--traversal-cost", bad, cwd=tmp_path)
+        assert result.returncode == 2 and "traversal_cost must be a positive number" in result.stderr
+        assert not out.exists()

@@ -287,6 +287,13 @@ class BuildOptionsIn(Strict):
         "the first tiers only; wider tiers or 0 (untiered) make smaller files and faster builds, "
         "and far views read more",
     )
+    traversal_cost: float | None = Field(
+        None,
+        gt=0,
+        le=64,
+        description="the kd-tree's SAH cost of a node step in triangle tests (default 4): higher "
+        "builds a coarser tree, faster and smaller, with slower LOD frames where rays end in leaves",
+    )
 
 
 class JobRequest(Strict):

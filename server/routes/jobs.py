@@ -80,6 +80,8 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
         opts["compact_triangles"] = True
     if options is not None and options.tier_width is not None:
         opts["tier_width"] = options.tier_width
+    if options is not None and options.traversal_cost is not None:
+        opts["traversal_cost"] = options.traversal_cost
     return opts
 
 

@@ -203,3 +203,23 @@ def test_a_build_chooses_its_tier_width(server: ServerProcess, api: httpx.Client
     for bad in (-1, 17, "wide"):
         r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"tier_width": bad}})
         assert r.status_code == 422 and "tier_width" in r.text, r.text
+
+
+def test_a_build_chooses_its_traversal_cost(server: ServerProcess, api: httpx.Client) -> None:
+    """`traversal_cost` reaches the kd builder: 8 builds fewer leaves than the default 4
+    from the same input, the job records it, and a cost that is not positive is refused."""
+    from vastray.modelfile import ModelFile
+
+    leaves = {}
+    for cost in (None, 8):
+        options = {} if cost is None else {"traversal_cost": cost}
+        body = {"source": "scene:plant:20000:5", "name": f"cost-{cost}", "options": options}
+        done = wait_for_job(api, api.post("/api/jobs", json=body).json()["id"])
+        assert done["state"] == "succeeded", done
+        assert done["options"].get("traversal_cost") == cost
+        with ModelFile(server.data_dir / "models" / f"{done['model_id']}.vast") as model:
+            leaves[cost] = model.header["leaves"]
+    assert leaves[8] < leaves[None], leaves
+    for bad in (0, -2, 100):
+        r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"traversal_cost": bad}})
+        assert r.status_code == 422 and "traversal_cost" in r.text, r.text
