@@ -249,6 +249,31 @@ def test_clear_messages_for_a_wrong_key_and_a_missing_model(open_viewer: Any, se
     assert "model is gone" in text and "mdl-000000000000" in text, text
 
 
+def delete_all_but(server: Any, model: dict[str, Any]) -> None:
+    """Deletes the models a test added: the other tests open the server's URL, which
+    shows its one model."""
+    with server.client() as api:
+        for m in api.get("/api/models").json():
+            if m["id"] != model["id"]:
+                api.delete(f"/api/models/{m['id']}")
+
+
+def drop_file(v: Any, path: Path) -> None:
+    """Drops the file on the stage, as a user drags it from the desktop."""
+    v.js(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+            const data = new DataTransfer();
+            data.items.add(new File([bytes], name));
+            const stage = document.getElementById('stage');
+            const drag = {dataTransfer: data, bubbles: true, cancelable: true};
+            stage.dispatchEvent(new DragEvent('dragover', drag));
+            stage.dispatchEvent(new DragEvent('drop', drag));
+        }""",
+        [path.name, base64.b64encode(path.read_bytes()).decode()],
+    )
+
+
 def test_a_dropped_mesh_is_uploaded_built_and_shown(
     open_viewer: Any, server: Any, model: dict[str, Any], tmp_path: Path
 ) -> None:
@@ -266,19 +291,7 @@ def test_a_dropped_mesh_is_uploaded_built_and_shown(
                 .observe(label, {childList: true, characterData: true, subtree: true});
         }"""
     )
-    # Drop the file on the stage, as a user drags it from the desktop.
-    v.js(
-        """([name, b64]) => {
-            const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
-            const data = new DataTransfer();
-            data.items.add(new File([bytes], name));
-            const stage = document.getElementById('stage');
-            const drag = {dataTransfer: data, bubbles: true, cancelable: true};
-            stage.dispatchEvent(new DragEvent('dragover', drag));
-            stage.dispatchEvent(new DragEvent('drop', drag));
-        }""",
-        [mesh.name, base64.b64encode(mesh.read_bytes()).decode()],
-    )
+    drop_file(v, mesh)
     try:
         v.wait_for("() => window.vastray.model?.name === 'balls'")
         v.wait_final(n)
@@ -290,7 +303,30 @@ def test_a_dropped_mesh_is_uploaded_built_and_shown(
         assert "balls (3,0" in v.page.locator("#model-select option:checked").inner_text()
         assert not_blank(v.thumbnail())
     finally:
-        with server.client() as api:  # the other tests open the server's URL: one model there
-            for m in api.get("/api/models").json():
-                if m["id"] != model["id"]:
-                    api.delete(f"/api/models/{m['id']}")
+        delete_all_but(server, model)
+
+
+def test_an_upload_builds_with_the_chosen_layout(
+    open_viewer: Any, server: Any, model: dict[str, Any], tmp_path: Path
+) -> None:
+    """The upload's layout choice reaches the builder: "smallest files" builds the mesh
+    untiered, with compact blocks, quantized vertices and a coarser tree, and the page
+    shows the model it built."""
+    mesh = tmp_path / "pipes.ply"
+    subprocess.run([VASTRAY, "scene", "plant", "--triangles", "20000", "--seed", "3", "-o", mesh], check=True)
+    v = open_viewer(f"{server.open_url}&model={model['id']}")
+    v.wait_final()
+    assert v.page.locator("#upload-layout").is_visible()
+    v.page.select_option("#upload-layout", "smallest")
+    drop_file(v, mesh)
+    try:
+        v.wait_for("() => window.vastray.model?.name === 'pipes'")
+        v.wait_final()
+        with server.client() as api:
+            built = next(m for m in api.get("/api/models").json() if m["name"] == "pipes")
+            options = api.get(f"/api/models/{built['id']}").json()["build"]["options"]
+        assert options["compact_triangles"] is True and options["quantized_vertices"] is True
+        assert options["tier_width"] == 0 and options["traversal_cost"] == 6
+        assert not_blank(v.thumbnail())
+    finally:
+        delete_all_but(server, model)

@@ -49,12 +49,16 @@ export class Api {
   review(id) { return this.request("GET", `/api/reviews/${id}`); }
   createReview(model, title) { return this.request("POST", "/api/reviews", { model, title }); }
 
+  // Registers an upload (a mesh starts a build with these options).
+  register(upload, options) { return this.request("POST", "/api/models", { upload, options }); }
+
   // Streams a file to the server (XMLHttpRequest: fetch cannot report upload progress).
-  upload(file, onProgress) {
+  // With `register`, the server registers it at once with its default build options.
+  upload(file, onProgress, { register = true } = {}) {
     return new Promise((resolve, reject) => {
       const xhr = new XMLHttpRequest();
       const name = encodeURIComponent(file.name);
-      xhr.open("POST", `${this.base}/api/uploads?filename=${name}&register=true`);
+      xhr.open("POST", `${this.base}/api/uploads?filename=${name}&register=${register}`);
       for (const [k, v] of Object.entries(this.headers())) xhr.setRequestHeader(k, v);
       xhr.upload.onprogress = (e) => e.lengthComputable && onProgress(e.loaded / e.total);
       xhr.onload = () => {

@@ -484,9 +484,15 @@ class App {
     $("job").hidden = false;
     $("job-label").textContent = `uploading ${file.name}`;
     const bar = $("job-progress");
+    // The build options of each layout choice (docs/FORMAT.md, Measured choices).
+    const layouts = {
+      smaller: { compact_triangles: true },
+      smallest: { compact_triangles: true, quantized_vertices: true, tier_width: 0, traversal_cost: 6 },
+    };
+    const options = layouts[$("upload-layout").value];
     try {
-      const up = await this.api.upload(file, (f) => { bar.value = 100 * f; });
-      const created = up.created;
+      const up = await this.api.upload(file, (f) => { bar.value = 100 * f; }, { register: !options });
+      const created = options ? await this.api.register(up.id, options) : up.created;
       if (created?.job) {
         $("job-label").textContent = `building ${created.model.name}`;
         await this.api.followJob(created.job.id, (job) => this.panels.job(job));

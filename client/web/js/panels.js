@@ -88,6 +88,7 @@ export class Panels {
   // API key (a token only views).
   access({ hasKey, review, storedKey }) {
     $("upload-button").hidden = !hasKey;
+    $("upload-layout").hidden = !hasKey;
     $("review-start").disabled = !hasKey;
     $("review-start").title = hasKey ? "" : "Starting a review needs the API key (the URL the server printed)";
     $("model-select").disabled = review; // a review is of one model
