@@ -22,6 +22,7 @@ import pytest
 from modelwalk import COMPACT_HEADER, GROUP, TIERED, BitReader, Walker, WalkError, walk
 from test_build import SMALL_MEMORY, rewrite_version, run_cli
 from test_model_writer import fan, write_ply
+from views import model_views
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
@@ -64,13 +65,6 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[Key, Path]:
     return out
 
 
-def views(path: Path, size: tuple[int, int] = (96, 72)) -> list:
-    with ModelFile(path) as model:
-        lo, hi = model.bounds
-    directions = ((0.5, 0.4, 0.8), (-0.7, 0.9, -0.3))
-    return [frame_bounds(lo, hi, width=size[0], height=size[1], direction=d) for d in directions]
-
-
 def assert_same_frame(a, b) -> None:  # type: ignore[no-untyped-def]
     np.testing.assert_array_equal(a.prim, b.prim)
     np.testing.assert_array_equal(a.depth, b.depth)
@@ -106,7 +100,7 @@ def test_same_scene_and_frames(models: dict[Key, Path], name: str) -> None:
         np.testing.assert_array_equal(scene_p.local_vertices, scene_c.local_vertices)
         cache = make_cache(256 << 20, 1)
         with OutOfCoreModel(plain, cache) as ooc_p, OutOfCoreModel(compact, cache) as ooc_c:
-            for camera in views(plain):
+            for camera in model_views(plain):
                 in_core = trace(scene_c, camera)
                 assert_same_frame(trace(scene_p, camera), in_core)
                 assert (in_core.prim >= 0).mean() > 0.05
@@ -230,7 +224,7 @@ def test_old_versions_and_the_flag(tmp_path: Path, models: dict[Key, Path]) -> N
     """A version-5 file without the flag reads as version 4 (the plain layout is version
     4's); a compact file cannot pass for version 4 (the flag came with version 5)."""
     plain, compact = models["plant", "full", False], models["plant", "full", True]
-    camera = views(plain)[0]
+    camera = model_views(plain)[0]
     with ModelFile(plain) as model:
         reference = trace(model.to_scene(), camera)
     copy = tmp_path / "v4.vast"
@@ -374,7 +368,7 @@ def test_damaged_blocks_are_reported_and_read_safely(models: dict[Key, Path], tm
         block = model.levels[-1][0]  # the first triangle block: every field of it is in use
         raw = model.read_block(block)
         assert model.has_colours
-        good = trace(model.to_scene(), views(source)[0])
+        good = trace(model.to_scene(), model_views(source)[0])
         input_triangles = model.header["input_triangles"]
     assert Fields(raw, True).palette_bits > 0
     cases = damaged_blocks(raw, True)
@@ -389,7 +383,7 @@ def test_damaged_blocks_are_reported_and_read_safely(models: dict[Key, Path], tm
             with pytest.raises(WalkError, match=walker_says):
                 list(Walker(model).walk())
         with OutOfCoreModel(path, make_cache(64 << 20, 1)) as ooc:
-            frame = ooc.render_complete(views(source)[0], pixels_of_error=0.0, timeout=60)
+            frame = ooc.render_complete(model_views(source)[0], pixels_of_error=0.0, timeout=60)
         hits = frame.prim >= 0
         assert (frame.prim[hits] < input_triangles).all(), what
         assert hits.sum() + (frame.prim == PRIM_VOXEL).sum() > 0.5 * (good.prim >= 0).sum(), what

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from modelwalk import dequantize, walk
 from test_build import SMALL_MEMORY, rewrite_version
+from views import model_views
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
-from vastray.camera import frame_bounds
 from vastray.modelfile import (
     FLAG_QUANTIZED_SPLITS,
     SPLIT_STEPS,
@@ -44,13 +44,6 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, bool], P
             build_model(source, path, BuildOptions(memory=memory, quantized_splits=quantized))
             out[name, quantized] = path
     return out
-
-
-def views(path: Path) -> list:
-    with ModelFile(path) as model:
-        lo, hi = model.bounds
-    directions = ((0.5, 0.4, 0.8), (-0.7, 0.9, -0.3))
-    return [frame_bounds(lo, hi, width=64, height=48, direction=d) for d in directions]
 
 
 def test_the_header_says_which(models: dict[tuple[str, bool], Path]) -> None:
@@ -105,7 +98,7 @@ def test_images_are_identical(models: dict[tuple[str, bool], Path]) -> None:
     triangle wherever two triangles do not tie for the nearest hit."""
     for name in SOURCES:
         full, small = models[name, False], models[name, True]
-        for camera in views(full):
+        for camera in model_views(full, (64, 48)):
             frames = []
             for path in (full, small):
                 with ModelFile(path) as model:
@@ -125,7 +118,7 @@ def test_old_versions_still_read(models: dict[tuple[str, bool], Path], tmp_path:
     # untiered (the layout of versions 1-4).
     full = tmp_path / "spheres.vast"
     build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0, quantized_splits=False))
-    camera = views(full)[0]
+    camera = model_views(full, (64, 48))[0]
     with ModelFile(full) as model:
         reference = trace(model.to_scene(), camera)
     for version in (1, 2):
@@ -179,7 +172,7 @@ def test_dequantization_is_one_formula() -> None:
 def test_frame_counters_and_the_cli(models: dict[tuple[str, bool], Path], tmp_path: Path) -> None:
     """Node visits and triangle tests per ray are counted for both (the measure of paper
     004's extra work); `vastray build --quantized-splits` writes the flag."""
-    camera = views(models["plant", False])[0]
+    camera = model_views(models["plant", False], (64, 48))[0]
     counts = []
     for quantized in (False, True):
         with OutOfCoreModel(models["plant", quantized], make_cache(64 << 20, 1)) as ooc:

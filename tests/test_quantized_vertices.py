@@ -18,10 +18,10 @@ import pytest
 from modelwalk import grid_step, walk
 from test_build import SMALL_MEMORY, rewrite_version
 from test_watertight import COS_MARGIN, unique_edges
+from views import model_views
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
-from vastray.camera import frame_bounds
 from vastray.modelfile import (
     FLAG_QUANTIZED_SPLITS,
     FLAG_QUANTIZED_VERTICES,
@@ -55,13 +55,6 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Pa
             build_model(source, path, BuildOptions(memory=memory, **options))
             out[name, kind] = path
     return out
-
-
-def views(path: Path, size: tuple[int, int] = (96, 72)) -> list:
-    with ModelFile(path) as model:
-        lo, hi = model.bounds
-    directions = ((0.5, 0.4, 0.8), (-0.7, 0.9, -0.3))
-    return [frame_bounds(lo, hi, width=size[0], height=size[1], direction=d) for d in directions]
 
 
 def test_the_header_says_which_and_the_file_is_smaller(models: dict[tuple[str, str], Path]) -> None:
@@ -139,7 +132,7 @@ def test_images_within_the_grid_step(models: dict[tuple[str, str], Path]) -> Non
         with ModelFile(full) as m:
             step = max(vertex_grid_steps(m.header["cell_lo"], m.header["cell_hi"]))
         for kind in ("vertices", "both"):
-            for camera in views(full):
+            for camera in model_views(full):
                 with ModelFile(full) as m:
                     a = trace(m.to_scene(), camera)
                 with ModelFile(models[name, kind]) as m:
@@ -210,7 +203,7 @@ def test_old_files_still_read(tmp_path: Path, models: dict[tuple[str, str], Path
     flag came with version 4); the flag's absence keeps word 3 ignored."""
     full = tmp_path / "spheres.vast"
     build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0, quantized_splits=False))
-    camera = views(full)[0]
+    camera = model_views(full)[0]
     with ModelFile(full) as model:
         assert not model.quantized_vertices
         reference = trace(model.to_scene(), camera)

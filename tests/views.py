@@ -1,14 +1,17 @@
 """Frames of native targets from the camera-and-parameter keywords the tests spell views
 in: `render_view(scene, eye, target, up, fov, width, height, shading=..., sun=...)`,
 positional or by name, for a native.Scene or a native.CachedModel. `sun` is short for
-sun_direction. Returns a vastray.renderer.Frame."""
+sun_direction. Returns a vastray.renderer.Frame. `model_views(path)`: two cameras that
+frame a built model from two sides, the views the layout tests compare frames in."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from vastray import native
-from vastray.camera import Camera
+from vastray.camera import Camera, frame_bounds
+from vastray.modelfile import ModelFile
 from vastray.renderer import Frame, trace
 
 CAMERA_FIELDS = ("eye", "target", "up", "fov", "width", "height")
@@ -31,3 +34,10 @@ def render_view(model: native.Scene | native.CachedModel, /, *args: Any, **kwarg
 
 def render_camera(model: native.Scene | native.CachedModel, camera: Camera, **params: Any) -> Frame:
     return trace(model, camera, **params)
+
+
+def model_views(path: Path, size: tuple[int, int] = (96, 72)) -> list[Camera]:
+    with ModelFile(path) as model:
+        lo, hi = model.bounds
+    directions = ((0.5, 0.4, 0.8), (-0.7, 0.9, -0.3))
+    return [frame_bounds(lo, hi, width=size[0], height=size[1], direction=d) for d in directions]
