@@ -134,29 +134,17 @@ class TriangleBlock:
         at_ids = at_tri + _pad4(6 * tris)
         at_col = at_ids + 4 * tris
         at_vert = at_col + (4 * tris if has_colours else 0)
+        widths, stride = [], 0
         if steps is None:
             size = 12 * verts
         else:
-            bits = [packing & 0xFF, (packing >> 8) & 0xFF, (packing >> 16) & 0xFF]
-            if packing >> 24 or max(bits) > 21:
-                raise WalkError(f"vertex packing word {packing:#x} is damaged")
-            record = (sum(bits) + 7) // 8
+            widths = axis_bits(packing)
+            record = (sum(widths) + 7) // 8  # whole bytes per vertex record
+            stride = 8 * record
             size = 12 + _pad4(record * verts + 8 - record)
         if at_vert + size != len(raw):
             raise WalkError(f"triangle block of {len(raw)} bytes does not match its section counts")
-        if steps is None:
-            vertices = np.frombuffer(raw, "<f4", 3 * verts, at_vert).reshape(verts, 3)
-        else:
-            origin = struct.unpack_from("<3i", raw, at_vert)
-            vertices = np.empty((verts, 3), np.float32)
-            for v in range(verts):
-                word = int.from_bytes(
-                    raw[at_vert + 12 + record * v : at_vert + 12 + record * (v + 1)], "little"
-                )
-                for a in range(3):
-                    k = origin[a] + (word & ((1 << bits[a]) - 1))
-                    word >>= bits[a]
-                    vertices[v, a] = np.float32(k) * np.float32(steps[a])  # exact: a power of two
+        vertices = block_vertices(raw, at_vert, verts, steps, widths, stride)
         return cls(
             np.frombuffer(raw, "<u2", entries, 16),
             np.frombuffer(raw, "<u2", 3 * tris, at_tri).reshape(tris, 3),
@@ -179,6 +167,8 @@ def read_streams(path: str | os.PathLike[str]) -> tuple[int, list[list[tuple[int
         table = f.read(24 * level_count * tiers)
     records = [struct.unpack_from("<II", table, 24 * i) for i in range(level_count * tiers)]
     return tiers, [records[level * tiers : (level + 1) * tiers] for level in range(level_count)]
+
+
 def bits(raw: bytes, pos: int, width: int) -> int:
     """`width` bits at bit `pos` of raw (bit i is bit i % 8 of byte i // 8); past the end
     reads zeros (the callers check extents first)."""
@@ -196,6 +186,31 @@ class BitReader:
         value = bits(self.raw, self.pos, width)
         self.pos += width
         return value
+
+
+def axis_bits(packing: int) -> list[int]:
+    """The bits per axis of a quantized block's vertex records (its packing word)."""
+    widths = [packing & 0xFF, (packing >> 8) & 0xFF, (packing >> 16) & 0xFF]
+    if packing >> 24 or max(widths) > 21:
+        raise WalkError(f"vertex packing word {packing:#x} is damaged")
+    return widths
+
+
+def block_vertices(
+    raw: bytes, at: int, count: int, steps: tuple[float, float, float] | None, widths: list[int], stride: int
+) -> np.ndarray:
+    """A triangle block's vertex section at byte `at`: float32 xyz, or (with `steps`) a
+    grid origin (3 x i32) and then a record of x, y, z offsets (`widths` bits) every
+    `stride` bits, each vertex (origin + offset) * step (exact: a power of two)."""
+    if steps is None:
+        return np.frombuffer(raw, "<f4", 3 * count, at).reshape(count, 3)
+    origin = struct.unpack_from("<3i", raw, at)
+    vertices = np.empty((count, 3), np.float32)
+    for v in range(count):
+        r = BitReader(raw, 8 * (at + 12) + v * stride)
+        for a in range(3):
+            vertices[v, a] = np.float32(origin[a] + r(widths[a])) * np.float32(steps[a])
+    return vertices
 
 
 @dataclass
@@ -222,15 +237,15 @@ class CompactBlock:
         n_groups = (tris + GROUP - 1) // GROUP
         data = groups + (n_groups * width + 7) // 8
         at_vertices = palette + 4 * n_colours
+        widths, stride = [], 0
         if steps is None:
             if packing != 0:
                 raise WalkError("a compact block of float32 vertices with a packing word")
             size = 12 * verts
         else:
-            axis_bits = [packing & 0xFF, (packing >> 8) & 0xFF, (packing >> 16) & 0xFF]
-            if packing >> 24 or max(axis_bits) > 21:
-                raise WalkError(f"vertex packing word {packing:#x} is damaged")
-            size = 12 + (sum(axis_bits) * verts + 7) // 8 + 8
+            widths = axis_bits(packing)
+            stride = sum(widths)  # vertex records back to back, bit after bit
+            size = 12 + (stride * verts + 7) // 8 + 8
         if not COMPACT_HEADER <= groups <= data <= palette or at_vertices + size != len(raw):
             raise WalkError(f"compact triangle block of {len(raw)} bytes does not match its section offsets")
         triangles = np.empty((tris, 3), np.int64)
@@ -271,15 +286,7 @@ class CompactBlock:
             if (indices >= n_colours).any():
                 raise WalkError("a triangle's colour points past the palette")
             colours = np.frombuffer(raw, "<u4", n_colours, palette)[indices]
-        if steps is None:
-            vertices = np.frombuffer(raw, "<f4", 3 * verts, at_vertices).reshape(verts, 3)
-        else:
-            origin = struct.unpack_from("<3i", raw, at_vertices)
-            vertices = np.empty((verts, 3), np.float32)
-            for v in range(verts):
-                r = BitReader(raw, 8 * (at_vertices + 12) + v * sum(axis_bits))
-                for a in range(3):
-                    vertices[v, a] = np.float32(origin[a] + r(axis_bits[a])) * np.float32(steps[a])
+        vertices = block_vertices(raw, at_vertices, verts, steps, widths, stride)
         return cls(raw, groups, triangles, ids.astype(np.uint32), colours, vertices)
 
     def record(self, at: int, remaining: int) -> np.ndarray:
