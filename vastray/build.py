@@ -904,20 +904,20 @@ class _Builder:
         }
         written = 0
 
-        def blocks() -> Iterator[bytes]:
+        def blocks() -> Iterator[modelfile.FileRange]:
             nonlocal written
             for path, runs in reads:
                 fd = os.open(path, os.O_RDONLY)
                 try:
+                    if os.fstat(fd).st_size < max((o + n for o, n in runs), default=0):
+                        raise RuntimeError(f"{path}: shorter than the blocks written to it")
                     for offset, size in runs:
-                        while size > 0:
-                            chunk = os.pread(fd, min(size, 8 << 20), offset)
-                            if not chunk:
-                                raise RuntimeError(f"{path}: shorter than the blocks written to it")
-                            offset, size = offset + len(chunk), size - len(chunk)
-                            written += len(chunk)
+                        while size > 0:  # in pieces, for the progress bar
+                            piece = min(size, 64 << 20)
+                            yield modelfile.FileRange(fd, offset, piece)
+                            offset, size = offset + piece, size - piece
+                            written += piece
                             self.report("write", written, stored_total, unit="bytes")
-                            yield chunk
                 finally:
                     os.close(fd)
                 os.unlink(path)
