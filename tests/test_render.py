@@ -20,6 +20,7 @@ icosphere and a cube, every triangle with its own random colour. What is checked
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -264,3 +265,37 @@ def test_ray_packets_change_speed_not_answers() -> None:
     assert frames[16].stats.node_visits < frames[1].stats.node_visits
     with pytest.raises(ValueError, match="packets"):
         render_view(scene, *args, packets=3)
+
+
+def _anon_huge_pages_kib() -> int:
+    for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
+        if line.startswith("AnonHugePages:"):
+            return int(line.split()[1])
+    raise AssertionError("no AnonHugePages in /proc/self/smaps_rollup")
+
+
+def test_a_large_in_core_tree_lies_on_huge_pages() -> None:
+    """The in-core tree's node, triangle-list and vertex arrays are mapped on 2 MiB
+    transparent huge pages once they are large (native/include/vastray/huge_pages.h):
+    rays reach nodes on pages all over the tree, and small pages make nearly every
+    node load wait for a page walk. Where the kernel has them switched off, nothing
+    changes but the page size."""
+    try:
+        setting = Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        pytest.skip("no transparent huge pages on this kernel")
+    if "[never]" in setting:
+        pytest.skip("transparent huge pages are switched off")
+    from vastray.scenes import to_mesh
+
+    mesh = to_mesh("plant", 300_000, 1)
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+    before = _anon_huge_pages_kib()
+    scene = native.Scene(vertices, faces, threads=0)
+    grown_mib = (_anon_huge_pages_kib() - before) / 1024
+    tree_mib = scene.build_stats["memory_bytes"] / 2**20
+    # The arrays below the threshold (8 MiB) and each array's last partial huge page
+    # stay small; most of the tree (about 40 MiB here) must not.
+    assert tree_mib > 16
+    assert grown_mib >= tree_mib / 2, (grown_mib, tree_mib)

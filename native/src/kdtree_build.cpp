@@ -37,8 +37,8 @@ struct PrimRef {
 };
 
 struct Output {
-    std::vector<KdNode> nodes;
-    std::vector<std::uint32_t> tri_ids;
+    HugeVector<KdNode> nodes;
+    HugeVector<std::uint32_t> tri_ids;
     KdBuildStats stats;
     double sah_area_sum = 0;  // sum over nodes of area-weighted costs, normalised at the end
 };

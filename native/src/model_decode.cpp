@@ -234,9 +234,9 @@ private:
     const DecodeInput& in_;
     Vec3f steps_;  // the quantized vertex grid (used only with FLAG_QUANTIZED_VERTICES)
     std::size_t tri_level_ = 0;
-    std::vector<KdNode> nodes_;
-    std::vector<std::uint32_t> tri_ids_;
-    std::vector<Vec3f> vertices_;
+    HugeVector<KdNode> nodes_;
+    HugeVector<std::uint32_t> tri_ids_;
+    HugeVector<Vec3f> vertices_;
     std::vector<std::uint8_t> seen_, colours_;
 };
 

@@ -11,6 +11,7 @@
 #include <cstring>
 #include <vector>
 
+#include "vastray/huge_pages.h"
 #include "vastray/vecmath.h"
 
 namespace vastray {
@@ -79,8 +80,8 @@ struct KdBuildStats {
 };
 
 struct KdTree {
-    std::vector<KdNode> nodes;
-    std::vector<std::uint32_t> tri_ids;  // leaf triangle lists
+    HugeVector<KdNode> nodes;
+    HugeVector<std::uint32_t> tri_ids;  // leaf triangle lists
     Box3f bounds;                        // root cell (model-local coordinates)
     KdBuildStats stats;
 

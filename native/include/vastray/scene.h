@@ -25,7 +25,7 @@ public:
           const KdBuildParams& params);
 
     // A scene whose tree was built elsewhere (decoded from a built model).
-    Scene(const Vec3d& centre, std::vector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colours, KdTree&& tree)
+    Scene(const Vec3d& centre, HugeVector<Vec3f>&& tri_vertices, std::vector<std::uint8_t>&& colours, KdTree&& tree)
         : centre_(centre), tri_vertices_(std::move(tri_vertices)), colours_(std::move(colours)), tree_(std::move(tree)) {}
 
     std::size_t triangle_count() const { return tri_vertices_.size() / 3; }
@@ -49,7 +49,7 @@ public:
 
 private:
     Vec3d centre_;
-    std::vector<Vec3f> tri_vertices_;  // 3 per triangle, model-local
+    HugeVector<Vec3f> tri_vertices_;  // 3 per triangle, model-local
     std::vector<std::uint8_t> colours_;
     std::vector<std::uint32_t> input_ids_;  // empty: the identity
     KdTree tree_;
