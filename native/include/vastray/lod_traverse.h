@@ -624,7 +624,7 @@ public:
         }
         finished_ = finished;
         why = Stop::Done;
-    yield:
+    yield: __attribute__((unused));  // reached only where Yield
         lane.node_visits += node_visits;
         if constexpr (Yield) {
             block_ = block;

@@ -64,6 +64,11 @@ namespace lod_detail {
 // lod_packet_walk for a full-precision (Quantized = false) or quantized model: only the
 // rays that part from the packet (Walker) need to know which at compile time.
 
+// GCC cannot see that an entry is popped only after it was pushed (top counts them),
+// and calls the stack maybe-uninitialised; it is left uninitialised on purpose (a
+// packet walk starts for every 16 rays, and clearing 64 entries would cost more).
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 template <int N, bool AnyHit, LodPacketOrder Order, bool Quantized>
 inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
                                  const std::uint32_t* skip, std::uint32_t mask) {
@@ -417,6 +422,7 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
         }
     }
 }
+#pragma GCC diagnostic pop
 
 }  // namespace lod_detail
 
