@@ -194,7 +194,9 @@ PYBIND11_MODULE(native, m) {
 
     py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene", "An in-core triangle model with its kd-tree")
         .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colours") = py::none(),
-             py::arg("triangle_ids") = py::none(), py::arg("leaf_size") = 2, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
+             py::arg("triangle_ids") = py::none(), py::arg("leaf_size") = KdBuildParams{}.leaf_size,
+             py::arg("traversal_cost") = KdBuildParams{}.traversal_cost,
+             py::arg("intersection_cost") = KdBuildParams{}.intersection_cost,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("max_depth") = 0,
              py::arg("threads") = 0u)
         .def_property_readonly("triangle_count", &Scene::triangle_count)
