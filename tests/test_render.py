@@ -267,6 +267,36 @@ def test_ray_packets_change_speed_not_answers() -> None:
         render_view(scene, *args, packets=3)
 
 
+def test_packets_in_flight_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a large tree the in-core renderer keeps several 4x4 packets in flight, each
+    stopping where its next node, leaf list or vertices would miss the caches
+    (traverse_packets). VASTRAY_INTERLEAVE_BYTES=0 turns that on for any tree: every
+    shading mode must give the frame of packets traced one at a time, and of single rays."""
+    from vastray import scenes
+    from vastray.camera import frame_bounds
+
+    mesh = scenes.to_mesh("plant", 300_000, 2)
+    scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colours)
+    cam = frame_bounds(*scene.bounds, width=320, height=240)
+    args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
+    for shading in ("normal", "sun", "ao"):
+        monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", str(2**62))
+        alone = render_view(scene, *args, packets=16, shading=shading, ao_samples=4)
+        single = render_view(scene, *args, packets=1, shading=shading, ao_samples=4)
+        monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
+        together = render_view(scene, *args, packets=16, shading=shading, ao_samples=4)
+        for frame in (together, single):
+            np.testing.assert_array_equal(frame.prim, alone.prim)
+            np.testing.assert_array_equal(frame.depth, alone.depth)
+            np.testing.assert_array_equal(frame.image, alone.image)
+        assert together.stats.node_visits == alone.stats.node_visits
+        assert together.stats.triangle_tests == alone.stats.triangle_tests
+    assert (np.asarray(alone.prim) >= 0).mean() > 0.2  # the view sees the model
+    monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "lots")
+    with pytest.raises(ValueError, match="VASTRAY_INTERLEAVE_BYTES must be a number of bytes"):
+        render_view(scene, *args, packets=16)
+
+
 def _anon_huge_pages_kib() -> int:
     for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
         if line.startswith("AnonHugePages:"):

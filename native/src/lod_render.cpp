@@ -137,6 +137,12 @@ public:
         return true;
     }
 
+    // (One packet after another: the packet walk does not stop for memory.)
+    template <int Side>
+    void trace_packets(Lane& lane, const Ray* const* rays, Hit* const* hits, bool* traced, int count) const {
+        for (int j = 0; j < count; ++j) traced[j] = trace_packet<Side>(lane, rays[j], hits[j]);
+    }
+
     std::int32_t prim_id(const Hit& hit) const {
         return hit.prim == kVoxelPrim ? kPrimVoxel : static_cast<std::int32_t>(hit.prim);
     }

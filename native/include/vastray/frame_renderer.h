@@ -12,6 +12,10 @@
 //       // gives them; the backend may keep several rays in flight to overlap memory waits
 //   template <int Side> bool trace_packet(Lane&, const Ray*, Hit*) const;
 //       // Side x Side rays in row order; false (nothing traced) when not coherent
+//   template <int Side> void trace_packets(Lane&, const Ray* const* rays, Hit* const* hits,
+//                                          bool* traced, int count) const;
+//       // count such packets, which the backend may keep in flight together; traced[j]
+//       // as trace_packet would return for packet j
 //   std::int32_t prim_id(const Hit&) const;                          // what Frame::prim holds
 //   void surface(const Hit&, Vec3f& unit_normal, Vec3f& colour) const;
 //   Secondary secondary_ray(const Ray& incoming, const Hit&, const Vec3f& n, const Vec3f& dir,
@@ -152,16 +156,18 @@ public:
             return;
         }
         for (int y = y0; y < y1; y += 4) {
-            for (int x = x0; x < x1; x += 4) {
-                if (packets_ == 16 && x + 3 < x1 && y + 3 < y1 && trace_packet<4>(x, y, lane, rays)) continue;
-                for (int qy = y; qy < std::min(y + 4, y1); qy += 2) {
-                    for (int qx = x; qx < std::min(x + 4, x1); qx += 2) {
-                        if (packets_ >= 4 && qx + 1 < x1 && qy + 1 < y1 && trace_packet<2>(qx, qy, lane, rays)) continue;
-                        for (int py = qy; py < std::min(qy + 2, y1); ++py) {
-                            for (int px = qx; px < std::min(qx + 2, x1); ++px) trace_single(px, py, lane, rays);
-                        }
-                    }
+            int x = x0;
+            if (packets_ == 16 && y + 3 < y1) {
+                // The row's whole 4x4 blocks go to the backend a group at a time.
+                while (x + 3 < x1) {
+                    int xs[kPacketGroup], m = 0;
+                    for (; m < kPacketGroup && x + 3 < x1; ++m, x += 4) xs[m] = x;
+                    trace_packet_group(xs, m, y, x1, y1, lane, rays);
                 }
+            }
+            for (; x < x1; x += 4) {
+                if (packets_ == 16 && x + 3 < x1 && y + 3 < y1 && trace_packet<4>(x, y, lane, rays)) continue;
+                trace_quads(x, y, x1, y1, lane, rays);
             }
         }
     }
@@ -179,20 +185,64 @@ private:
         std::uint32_t marked = 0;  // pixels that see a highlighted triangle
     };
 
+    // 4x4 packets handed to the backend together (trace_packets), so that it can overlap
+    // their memory waits (the in-core backend keeps 4 in flight on large trees).
+    static constexpr int kPacketGroup = 4;
+
+    template <int N>
+    void primary_block(Block<N>& b, int x, int y, int side) const {
+        for (int i = 0; i < N; ++i) {
+            b.x[i] = x + i % side;
+            b.y[i] = y + i / side;
+            b.ray[i] = backend_.primary_ray(b.x[i], b.y[i]);
+            b.entered[i] = -1;  // (no sections: packets are off when there are any)
+        }
+    }
+
     template <int Side>
     bool trace_packet(int x, int y, Lane& lane, LaneRays& rays) const {
         constexpr int N = Side * Side;
         Block<N> b;
-        for (int i = 0; i < N; ++i) {
-            b.x[i] = x + i % Side;
-            b.y[i] = y + i / Side;
-            b.ray[i] = backend_.primary_ray(b.x[i], b.y[i]);
-            b.entered[i] = -1;  // (no sections: packets are off when there are any)
-        }
+        primary_block(b, x, y, Side);
         if (!backend_.template trace_packet<Side>(lane, b.ray, b.hit)) return false;
         rays.primary += N;
         shade(b, lane, rays);
         return true;
+    }
+
+    // The 4x4 blocks at xs[0 .. m) of the row at y; a block that is not coherent goes as
+    // 2x2 quads and single rays, as it would alone.
+    void trace_packet_group(const int* xs, int m, int y, int x1, int y1, Lane& lane, LaneRays& rays) const {
+        Block<16> blocks[kPacketGroup];
+        const Ray* ray_of[kPacketGroup];
+        Hit* hit_of[kPacketGroup];
+        bool traced[kPacketGroup];
+        for (int j = 0; j < m; ++j) {
+            primary_block(blocks[j], xs[j], y, 4);
+            ray_of[j] = blocks[j].ray;
+            hit_of[j] = blocks[j].hit;
+        }
+        backend_.template trace_packets<4>(lane, ray_of, hit_of, traced, m);
+        for (int j = 0; j < m; ++j) {
+            if (traced[j]) {
+                rays.primary += 16;
+                shade(blocks[j], lane, rays);
+            } else {
+                trace_quads(xs[j], y, x1, y1, lane, rays);
+            }
+        }
+    }
+
+    // The 4x4 block at (x, y), clipped to the tile: 2x2 packets where coherent, else rays.
+    void trace_quads(int x, int y, int x1, int y1, Lane& lane, LaneRays& rays) const {
+        for (int qy = y; qy < std::min(y + 4, y1); qy += 2) {
+            for (int qx = x; qx < std::min(x + 4, x1); qx += 2) {
+                if (packets_ >= 4 && qx + 1 < x1 && qy + 1 < y1 && trace_packet<2>(qx, qy, lane, rays)) continue;
+                for (int py = qy; py < std::min(qy + 2, y1); ++py) {
+                    for (int px = qx; px < std::min(qx + 2, x1); ++px) trace_single(px, py, lane, rays);
+                }
+            }
+        }
     }
 
     // Single rays: the tile's primary rays go to the backend a run at a time, which traces

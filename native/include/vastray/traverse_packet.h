@@ -10,6 +10,7 @@
 // same sign across the packet, so all rays order the children alike.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -32,166 +33,288 @@ inline bool packet_is_coherent(const Ray* rays, int count) {
     return true;
 }
 
-// Closest hits of N coherent rays given in row order; hits[i] gets ray i's result.
-template <int N>
-inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const Ray* rays_in, Hit* hits_out,
-                            TraversalCounters& counters) {
-    constexpr int W = packet_width<N>();
-    constexpr int K = N / W;
+namespace kd_detail {
+
+// The closest-hit walk of one packet as an object. With Yield it stops where its next
+// load would likely miss (a jump to a node that is not the next in memory, a leaf's id
+// list, its vertices), having prefetched it, so that a caller with several packets in
+// flight (traverse_packets) runs the others meanwhile and their misses overlap. Without
+// it run() goes to the end in one call: that is traverse_packet(). Either way each ray
+// does the same arithmetic in the same order.
+template <int N, bool Yield>
+class PacketWalker {
+    static constexpr int W = packet_width<N>();
+    static constexpr int K = N / W;
     using vf = simd::vfloat<W>;
     using vm = simd::vmask<W>;
-    constexpr float kInf = std::numeric_limits<float>::infinity();
 
-    Ray rays[N];
-    for (int i = 0; i < N; ++i) rays[packet_lane<N, W>(i)] = rays_in[i];
-    Hit hits[N];
-    alignas(32) float lo[N], hi[N];
-    bool any_active = false;
-    for (int k = 0; k < N; ++k) {
-        hits[k] = Hit{};
-        hits[k].t = rays[k].tmax;
-        float t0, t1;
-        if (clip_ray_to_box(rays[k], tree.bounds, t0, t1)) {
-            lo[k] = t0;
-            hi[k] = t1;
-            any_active = true;
-        } else {
-            lo[k] = kInf;
-            hi[k] = -kInf;
-        }
-    }
-    auto finish = [&] {
-        for (int i = 0; i < N; ++i) hits_out[i] = hits[packet_lane<N, W>(i)];
-    };
-    if (!any_active) return finish();
-    // Shear constants once per ray, not once per leaf visit.
-    ShearedRay sheared[N];
-    for (int k = 0; k < N; ++k) sheared[k] = ShearedRay(rays[k].dir);
-    ShearedRayV<W> sheared_v[K];
-    for (int v = 0; v < K; ++v) sheared_v[v] = ShearedRayV<W>(rays + W * v, sheared + W * v);
-    vf org[3][K], inv[3][K];
-    for (int a = 0; a < 3; ++a) {
-        for (int v = 0; v < K; ++v) {
-            alignas(32) float o[W], d[W];
-            for (int k = 0; k < W; ++k) {
-                o[k] = rays[W * v + k].org[a];
-                d[k] = rays[W * v + k].dir[a];
+public:
+    // Sets up the packet of N coherent rays in row order, whose hits go to hits_out.
+    // False when no ray enters the tree: hits_out is then already written.
+    bool start(const KdTree& tree, const Ray* rays_in, Hit* hits_out) {
+        constexpr float kInf = std::numeric_limits<float>::infinity();
+        hits_out_ = hits_out;
+        for (int i = 0; i < N; ++i) rays_[packet_lane<N, W>(i)] = rays_in[i];
+        alignas(32) float lo[N], hi[N];
+        bool any_active = false;
+        for (int k = 0; k < N; ++k) {
+            hits_[k] = Hit{};
+            hits_[k].t = rays_[k].tmax;
+            float t0, t1;
+            if (clip_ray_to_box(rays_[k], tree.bounds, t0, t1)) {
+                lo[k] = t0;
+                hi[k] = t1;
+                any_active = true;
+            } else {
+                lo[k] = kInf;
+                hi[k] = -kInf;
             }
-            org[a][v] = vf::load(o);
-            inv[a][v] = vf::broadcast(1.0f) / vf::load(d);
+        }
+        if (!any_active) {
+            finish();
+            return false;
+        }
+        // Shear constants once per ray, not once per leaf visit.
+        for (int k = 0; k < N; ++k) sheared_[k] = ShearedRay(rays_[k].dir);
+        for (int v = 0; v < K; ++v) sheared_v_[v] = ShearedRayV<W>(rays_ + W * v, sheared_ + W * v);
+        for (int a = 0; a < 3; ++a) {
+            for (int v = 0; v < K; ++v) {
+                alignas(32) float o[W], d[W];
+                for (int k = 0; k < W; ++k) {
+                    o[k] = rays_[W * v + k].org[a];
+                    d[k] = rays_[W * v + k].dir[a];
+                }
+                org_[a][v] = vf::load(o);
+                inv_[a][v] = vf::broadcast(1.0f) / vf::load(d);
+            }
+            // With equal signs, "below first" is the same for every ray of the packet.
+            below_first_[a] = !std::signbit(rays_[0].dir[a]);
+        }
+        for (int v = 0; v < K; ++v) {
+            tmin_[v] = vf::load(lo + W * v);
+            tmax_[v] = vf::load(hi + W * v);
+            alignas(32) float t[W];
+            for (int k = 0; k < W; ++k) t[k] = hits_[W * v + k].t;
+            hit_t_[v] = vf::load(t);
+        }
+        index_ = 0;
+        top_ = 0;
+        stage_ = Stage::Descend;
+        return true;
+    }
+
+    // Walks on; true when the walk is over and hits_out is written.
+    bool run(const KdTree& tree, const Vec3f* tri_vertices, std::uint64_t& node_visits,
+             std::uint64_t& triangle_tests) {
+        const KdNode* nodes = tree.nodes.data();
+        const vf slack_scale = vf::broadcast(kSplitSlack);
+        vf tmin[K], tmax[K];
+        for (int v = 0; v < K; ++v) {
+            tmin[v] = tmin_[v];
+            tmax[v] = tmax_[v];
+        }
+        std::uint32_t index = index_;
+        int top = top_;
+        // Keeps the position for the next call (Yield only).
+        auto pause = [&](Stage next) {
+            for (int v = 0; v < K; ++v) {
+                tmin_[v] = tmin[v];
+                tmax_[v] = tmax[v];
+            }
+            index_ = index;
+            top_ = top;
+            stage_ = next;
+            return false;
+        };
+        for (;;) {
+            bool at_leaf = true;
+            if (stage_ == Stage::Descend) {
+                const KdNode* node = nodes + index;
+                while (!node->is_leaf()) {
+                    ++node_visits;
+                    const int axis = node->axis();
+                    const vf split = vf::broadcast(node->split());
+                    const std::uint32_t left = node->left_empty() ? 0u : index + 1;
+                    const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
+                    const std::uint32_t near_child = below_first_[axis] ? left : right;
+                    const std::uint32_t far_child = below_first_[axis] ? right : left;
+                    // Each ray's part of its segment on either side of the plane, overlapping
+                    // by the same slack as single rays; an empty part (tmin > tmax) makes the
+                    // ray inactive in that child.
+                    vf near_tmax[K], far_tmin[K];
+                    int near_mask = 0, far_mask = 0;
+                    for (int v = 0; v < K; ++v) {
+                        const vf t_split = (split - org_[axis][v]) * inv_[axis][v];
+                        const vf slack = abs(t_split) * slack_scale;
+                        near_tmax[v] = min(t_split + slack, tmax[v]);
+                        far_tmin[v] = max(t_split - slack, tmin[v]);
+                        near_mask |= (tmin[v] <= near_tmax[v]).bits();
+                        far_mask |= (far_tmin[v] <= tmax[v]).bits();
+                    }
+                    const bool near_active = near_child != 0 && near_mask != 0;
+                    const bool far_active = far_child != 0 && far_mask != 0;
+                    const std::uint32_t from = index;
+                    if (near_active) {
+                        if (far_active && top < kStack) {
+                            for (int v = 0; v < K; ++v) {
+                                stack_[top].tmin[v] = far_tmin[v];
+                                stack_[top].tmax[v] = tmax[v];
+                            }
+                            stack_[top].node = far_child;
+                            ++top;
+                            // Wanted when the near subtree is done: its line arrives meanwhile.
+                            if constexpr (Yield) __builtin_prefetch(nodes + far_child);
+                        }
+                        for (int v = 0; v < K; ++v) tmax[v] = near_tmax[v];
+                        index = near_child;
+                    } else if (far_active) {
+                        for (int v = 0; v < K; ++v) tmin[v] = far_tmin[v];
+                        index = far_child;
+                    } else {
+                        at_leaf = false;
+                        break;
+                    }
+                    node = nodes + index;
+                    if constexpr (Yield) {
+                        if (index != from + 1) {  // (the left child shares its parent's line)
+                            __builtin_prefetch(node);
+                            return pause(Stage::Descend);
+                        }
+                    }
+                }
+                if (at_leaf) {
+                    if constexpr (Yield) {
+                        __builtin_prefetch(tree.tri_ids.data() + node->first());
+                        return pause(Stage::LeafIds);
+                    }
+                    stage_ = Stage::LeafTest;
+                }
+            } else if (stage_ == Stage::LeafIds) {
+                const KdNode* node = nodes + index;
+                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+                const std::uint32_t count = std::min<std::uint32_t>(node->count(), kPrefetchTriangles);
+                for (std::uint32_t i = 0; i < count; ++i) {
+                    const char* p = reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[i]));
+                    __builtin_prefetch(p);
+                    __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
+                }
+                stage_ = Stage::LeafTest;
+            }
+            if (at_leaf && stage_ == Stage::LeafTest) {
+                const KdNode* node = nodes + index;
+                const std::uint32_t count = node->count();
+                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+                for (int v = 0; v < K; ++v) {
+                    const vm active = tmin[v] <= tmax[v];
+                    const int active_mask = active.bits();
+                    if (active_mask == 0) continue;
+                    Hit* h = hits_ + W * v;
+                    HitV<W> hv = HitV<W>::load(h);
+                    for (std::uint32_t i = 0; i < count; ++i) {
+                        const std::uint32_t id = ids[i];
+                        const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
+                        intersect_triangle_v<W>(sheared_v_[v], rays_ + W * v, sheared_ + W * v, p[0], p[1], p[2], id,
+                                                active, hv);
+                    }
+                    triangle_tests += static_cast<std::uint64_t>(count) *
+                                      static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
+                    hv.store(h);
+                    hit_t_[v] = hv.t;
+                }
+            }
+            // Pop the next subtree in which some ray still has a segment before its hit.
+            // Clipping each segment to the ray's hit retires rays that are finished, the
+            // packet form of the single-ray early exit.
+            for (;;) {
+                if (top == 0) {
+                    finish();
+                    return true;
+                }
+                --top;
+                int active = 0;
+                for (int v = 0; v < K; ++v) {
+                    tmin[v] = stack_[top].tmin[v];
+                    tmax[v] = min(stack_[top].tmax[v], hit_t_[v]);
+                    active |= (tmin[v] <= tmax[v]).bits();
+                }
+                if (active != 0) {
+                    index = stack_[top].node;
+                    break;
+                }
+            }
+            stage_ = Stage::Descend;
         }
     }
-    // With equal signs, "below first" is the same for every ray of the packet.
-    const bool below_first[3] = {!std::signbit(rays[0].dir.x), !std::signbit(rays[0].dir.y),
-                                 !std::signbit(rays[0].dir.z)};
-    const vf slack_scale = vf::broadcast(kSplitSlack);
 
+private:
+    enum class Stage : std::uint8_t { Descend, LeafIds, LeafTest };
     struct Entry {
         vf tmin[K], tmax[K];
         std::uint32_t node;
     };
-    Entry stack[64];
-    int top = 0;
+    static constexpr int kStack = 64;
+    // A leaf's vertices prefetched before its tests; leaves hold a few triangles.
+    static constexpr std::uint32_t kPrefetchTriangles = 8;
+
+    void finish() {
+        for (int i = 0; i < N; ++i) hits_out_[i] = hits_[packet_lane<N, W>(i)];
+    }
+
+    Ray rays_[N];
+    Hit hits_[N];
+    ShearedRay sheared_[N];
+    ShearedRayV<W> sheared_v_[K];
+    vf org_[3][K], inv_[3][K];
+    vf tmin_[K], tmax_[K], hit_t_[K];
+    bool below_first_[3];
+    Stage stage_ = Stage::Descend;
+    std::uint32_t index_ = 0;
+    int top_ = 0;
+    Hit* hits_out_ = nullptr;
+    Entry stack_[kStack];
+};
+
+}  // namespace kd_detail
+
+// Closest hits of N coherent rays given in row order; hits[i] gets ray i's result.
+template <int N>
+inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const Ray* rays_in, Hit* hits_out,
+                            TraversalCounters& counters) {
+    kd_detail::PacketWalker<N, false> walker;
+    if (!walker.start(tree, rays_in, hits_out)) return;
     std::uint64_t node_visits = 0, triangle_tests = 0;
-    vf tmin[K], tmax[K], hit_t[K];
-    for (int v = 0; v < K; ++v) {
-        tmin[v] = vf::load(lo + W * v);
-        tmax[v] = vf::load(hi + W * v);
-        alignas(32) float t[W];
-        for (int k = 0; k < W; ++k) t[k] = hits[W * v + k].t;
-        hit_t[v] = vf::load(t);
-    }
-    const KdNode* nodes = tree.nodes.data();
-    std::uint32_t index = 0;
-    for (;;) {
-        const KdNode* node = nodes + index;
-        bool descend = true;
-        while (!node->is_leaf()) {
-            ++node_visits;
-            const int axis = node->axis();
-            const vf split = vf::broadcast(node->split());
-            const std::uint32_t left = node->left_empty() ? 0u : index + 1;
-            const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
-            const std::uint32_t near_child = below_first[axis] ? left : right;
-            const std::uint32_t far_child = below_first[axis] ? right : left;
-            // Each ray's part of its segment on either side of the plane, overlapping by
-            // the same slack as single rays; an empty part (tmin > tmax) makes the ray
-            // inactive in that child.
-            vf near_tmax[K], far_tmin[K];
-            int near_mask = 0, far_mask = 0;
-            for (int v = 0; v < K; ++v) {
-                const vf t_split = (split - org[axis][v]) * inv[axis][v];
-                const vf slack = abs(t_split) * slack_scale;
-                near_tmax[v] = min(t_split + slack, tmax[v]);
-                far_tmin[v] = max(t_split - slack, tmin[v]);
-                near_mask |= (tmin[v] <= near_tmax[v]).bits();
-                far_mask |= (far_tmin[v] <= tmax[v]).bits();
-            }
-            const bool near_active = near_child != 0 && near_mask != 0;
-            const bool far_active = far_child != 0 && far_mask != 0;
-            if (near_active) {
-                if (far_active && top < 64) {
-                    for (int v = 0; v < K; ++v) {
-                        stack[top].tmin[v] = far_tmin[v];
-                        stack[top].tmax[v] = tmax[v];
-                    }
-                    stack[top].node = far_child;
-                    ++top;
-                }
-                for (int v = 0; v < K; ++v) tmax[v] = near_tmax[v];
-                index = near_child;
-            } else if (far_active) {
-                for (int v = 0; v < K; ++v) tmin[v] = far_tmin[v];
-                index = far_child;
-            } else {
-                descend = false;
-                break;
-            }
-            node = nodes + index;
+    walker.run(tree, tri_vertices, node_visits, triangle_tests);
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
+}
+
+// Closest hits of `count` packets of N coherent rays each (rays[j], hits[j] as in
+// traverse_packet), G of them in flight at once: while one waits for a node, a leaf's
+// list or its vertices, the others go on. The same answers as traverse_packet.
+template <int N, int G>
+inline void traverse_packets(const KdTree& tree, const Vec3f* tri_vertices, const Ray* const* rays,
+                             Hit* const* hits, int count, TraversalCounters& counters) {
+    static_assert(G >= 1 && G <= 32, "packets in flight are a 32-bit mask");
+    kd_detail::PacketWalker<N, true> walkers[G];
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    int next = 0;
+    auto launch = [&](int g) {
+        while (next < count) {
+            const int j = next++;
+            if (walkers[g].start(tree, rays[j], hits[j])) return true;
         }
-        if (descend) {
-            const std::uint32_t count = node->count();
-            const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-            for (int v = 0; v < K; ++v) {
-                const vm active = tmin[v] <= tmax[v];
-                const int active_mask = active.bits();
-                if (active_mask == 0) continue;
-                Hit* h = hits + W * v;
-                HitV<W> hv = HitV<W>::load(h);
-                for (std::uint32_t i = 0; i < count; ++i) {
-                    const std::uint32_t id = ids[i];
-                    const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                    intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0], p[1], p[2], id, active,
-                                            hv);
-                }
-                triangle_tests += static_cast<std::uint64_t>(count) *
-                                  static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(active_mask)));
-                hv.store(h);
-                hit_t[v] = hv.t;
-            }
-        }
-        // Pop the next subtree in which some ray still has a segment before its hit.
-        // Clipping each segment to the ray's hit retires rays that are finished, the
-        // packet form of the single-ray early exit.
-        for (;;) {
-            if (top == 0) {
-                counters.node_visits += node_visits;
-                counters.triangle_tests += triangle_tests;
-                return finish();
-            }
-            --top;
-            int active = 0;
-            for (int v = 0; v < K; ++v) {
-                tmin[v] = stack[top].tmin[v];
-                tmax[v] = min(stack[top].tmax[v], hit_t[v]);
-                active |= (tmin[v] <= tmax[v]).bits();
-            }
-            if (active != 0) {
-                index = stack[top].node;
-                break;
-            }
+        return false;
+    };
+    std::uint32_t live = 0;
+    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
+    while (live) {
+        for (int g = 0; g < G; ++g) {
+            if ((live >> g & 1u) && walkers[g].run(tree, tri_vertices, node_visits, triangle_tests) && !launch(g))
+                live &= ~(1u << g);
         }
     }
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
 }
 
 // Any-hit queries of N rays in lane order (shadow and AO rays): returns the rays of
