@@ -155,21 +155,24 @@ public:
             stream_tile(x0, y0, x1, y1, lane, rays);
             return;
         }
+        // The tile's whole 4x4 blocks go to the backend a group at a time; blocks cut by
+        // the tile's edge go as quads and single rays.
+        int xs[kPacketGroup], ys[kPacketGroup], m = 0;
         for (int y = y0; y < y1; y += 4) {
-            int x = x0;
-            if (packets_ == 16 && y + 3 < y1) {
-                // The row's whole 4x4 blocks go to the backend a group at a time.
-                while (x + 3 < x1) {
-                    int xs[kPacketGroup], m = 0;
-                    for (; m < kPacketGroup && x + 3 < x1; ++m, x += 4) xs[m] = x;
-                    trace_packet_group(xs, m, y, x1, y1, lane, rays);
+            for (int x = x0; x < x1; x += 4) {
+                if (packets_ == 16 && x + 3 < x1 && y + 3 < y1) {
+                    xs[m] = x;
+                    ys[m++] = y;
+                    if (m == kPacketGroup) {
+                        trace_packet_group(xs, ys, m, x1, y1, lane, rays);
+                        m = 0;
+                    }
+                } else {
+                    trace_quads(x, y, x1, y1, lane, rays);
                 }
             }
-            for (; x < x1; x += 4) {
-                if (packets_ == 16 && x + 3 < x1 && y + 3 < y1 && trace_packet<4>(x, y, lane, rays)) continue;
-                trace_quads(x, y, x1, y1, lane, rays);
-            }
         }
+        if (m > 0) trace_packet_group(xs, ys, m, x1, y1, lane, rays);
     }
 
 private:
@@ -186,8 +189,9 @@ private:
     };
 
     // 4x4 packets handed to the backend together (trace_packets), so that it can overlap
-    // their memory waits (the in-core backend keeps 4 in flight on large trees).
-    static constexpr int kPacketGroup = 4;
+    // their memory waits (the in-core backend keeps 8 in flight on large trees): up to a
+    // whole 16x16 tile. (Groups of 4, a tile's row, measured 0.93-0.97x groups of 16.)
+    static constexpr int kPacketGroup = 16;
 
     template <int N>
     void primary_block(Block<N>& b, int x, int y, int side) const {
@@ -210,15 +214,15 @@ private:
         return true;
     }
 
-    // The 4x4 blocks at xs[0 .. m) of the row at y; a block that is not coherent goes as
-    // 2x2 quads and single rays, as it would alone.
-    void trace_packet_group(const int* xs, int m, int y, int x1, int y1, Lane& lane, LaneRays& rays) const {
+    // The 4x4 blocks at (xs[j], ys[j]), j < m; a block that is not coherent goes as 2x2
+    // quads and single rays, as it would alone.
+    void trace_packet_group(const int* xs, const int* ys, int m, int x1, int y1, Lane& lane, LaneRays& rays) const {
         Block<16> blocks[kPacketGroup];
         const Ray* ray_of[kPacketGroup];
         Hit* hit_of[kPacketGroup];
         bool traced[kPacketGroup];
         for (int j = 0; j < m; ++j) {
-            primary_block(blocks[j], xs[j], y, 4);
+            primary_block(blocks[j], xs[j], ys[j], 4);
             ray_of[j] = blocks[j].ray;
             hit_of[j] = blocks[j].hit;
         }
@@ -228,7 +232,7 @@ private:
                 rays.primary += 16;
                 shade(blocks[j], lane, rays);
             } else {
-                trace_quads(xs[j], y, x1, y1, lane, rays);
+                trace_quads(xs[j], ys[j], x1, y1, lane, rays);
             }
         }
     }
