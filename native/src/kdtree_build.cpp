@@ -37,6 +37,9 @@ struct PrimRef {
 };
 
 struct Output {
+    explicit Output(bool huge_pages = true)
+        : nodes(HugePageAllocator<KdNode>(huge_pages)), tri_ids(HugePageAllocator<std::uint32_t>(huge_pages)) {}
+
     HugeVector<KdNode> nodes;
     HugeVector<std::uint32_t> tri_ids;
     KdBuildStats stats;
@@ -338,6 +341,7 @@ public:
     void run(Task* t, RefStack& rs) {
         try {
             rs.reserve(std::max<std::size_t>(2 * t->n, 16));
+            t->out = Output(p_.huge_pages);
             // Room for the subtree's nodes and leaf lists (address space: only what is
             // written becomes resident), so they do not grow by copying.
             t->out.nodes.reserve(t->n / 2 + 16);
@@ -847,7 +851,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
     const unsigned helpers = root_refs >= (1u << 14) ? threads - 1 : 0;  // small trees: one thread
     Builder builder(soup, params, max_depth, helpers > 0);
-    Output out;
+    Output out(params.huge_pages);
     // Measured: about one node and three leaf references per triangle.
     out.nodes.reserve(soup.count + soup.count / 4 + 16);
     out.tri_ids.reserve(3 * soup.count + 16);

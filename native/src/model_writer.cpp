@@ -59,6 +59,7 @@ struct ModelWriter::Impl {
                [this](int level, std::uint32_t tier, StoredBlock&& block) { sink(level, tier, std::move(block)); },
                false) {
         counter.sink = std::move(pr);
+        p.kd.huge_pages = false;  // a part's tree is written out and freed (kdtree.h)
     }
 
     int keep(Pending&& t) {

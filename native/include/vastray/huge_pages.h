@@ -17,6 +17,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <new>
+#include <type_traits>
 #include <vector>
 
 #include <sys/mman.h>
@@ -55,18 +56,26 @@ inline void unmap(void* p, std::size_t bytes) { munmap(p, mapped_size(bytes)); }
 
 }  // namespace huge_pages
 
+// `huge` false: ordinary memory. The builder's trees want that (kdtree.h, KdBuildParams::
+// huge_pages); the flag travels with the memory when a vector is moved.
 template <class T>
 struct HugePageAllocator {
     using value_type = T;
+    using propagate_on_container_move_assignment = std::true_type;
+    using propagate_on_container_copy_assignment = std::true_type;
+    using propagate_on_container_swap = std::true_type;
+
+    bool huge = true;
 
     HugePageAllocator() = default;
+    explicit HugePageAllocator(bool use_huge_pages) : huge(use_huge_pages) {}
     template <class U>
-    HugePageAllocator(const HugePageAllocator<U>&) {}
+    HugePageAllocator(const HugePageAllocator<U>& other) : huge(other.huge) {}
 
     T* allocate(std::size_t n) {
         if (n > static_cast<std::size_t>(-1) / sizeof(T)) throw std::bad_array_new_length();
         const std::size_t bytes = n * sizeof(T);
-        if (bytes < huge_pages::kThreshold) return static_cast<T*>(::operator new(bytes));
+        if (!huge || bytes < huge_pages::kThreshold) return static_cast<T*>(::operator new(bytes));
         void* p = huge_pages::map(bytes);
         if (!p) throw std::bad_alloc();
         return static_cast<T*>(p);
@@ -74,7 +83,7 @@ struct HugePageAllocator {
 
     void deallocate(T* p, std::size_t n) {
         const std::size_t bytes = n * sizeof(T);
-        if (bytes < huge_pages::kThreshold) {
+        if (!huge || bytes < huge_pages::kThreshold) {
             ::operator delete(p);
         } else {
             huge_pages::unmap(p, bytes);
@@ -82,12 +91,12 @@ struct HugePageAllocator {
     }
 
     template <class U>
-    bool operator==(const HugePageAllocator<U>&) const {
-        return true;
+    bool operator==(const HugePageAllocator<U>& other) const {
+        return huge == other.huge;
     }
     template <class U>
-    bool operator!=(const HugePageAllocator<U>&) const {
-        return false;
+    bool operator!=(const HugePageAllocator<U>& other) const {
+        return huge != other.huge;
     }
 };
 
