@@ -190,9 +190,12 @@ def test_secondary_packets_give_single_ray_answers(plant_model: Path, shading: s
                     assert frame.stats.secondary_rays == single.stats.secondary_rays
 
 
-def test_batch_occlusion_packs_rays_without_changing_answers(plant_model: Path) -> None:
+def test_batch_occlusion_packs_rays_without_changing_answers(
+    plant_model: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Rays from one origin go as packets; the same rays with their runs broken up (so
-    every ray goes alone) give the same answers."""
+    every ray goes alone) give the same answers, and so do the packets when several are in
+    flight at once (as on a large tree; VASTRAY_INTERLEAVE_BYTES=0 makes every tree one)."""
     with ModelFile(plant_model) as f:
         scene = f.to_scene()
     camera = views_of(plant_model)[1]
@@ -216,6 +219,11 @@ def test_batch_occlusion_packs_rays_without_changing_answers(plant_model: Path) 
     alone[order] = scene.occluded(o[order], d[order], 0.0, tmax[order])
     assert 0.05 < packed.mean() < 0.95
     np.testing.assert_array_equal(packed, alone)
+    monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
+    np.testing.assert_array_equal(scene.occluded(o, d, 0.0, tmax), packed)
+    in_flight = np.empty_like(packed)
+    in_flight[order] = scene.occluded(o[order], d[order], 0.0, tmax[order])
+    np.testing.assert_array_equal(in_flight, packed)
 
 
 # ---- indirect light ---------------------------------------------------------------------------

@@ -19,6 +19,29 @@ VASTRAY_KERNEL_BEGIN
 
 namespace {
 
+// Packets of a tree at least this large go several in flight (traverse_packets,
+// occluded_packets): their node and triangle loads then miss the caches, and overlapping
+// the misses pays (plant 3*10^6, a 175 MiB tree: 1.06x; 10^7: 1.18-1.21x). Below it the
+// pauses cost more than they save (10^6, 60 MiB: 0.95x). VASTRAY_INTERLEAVE_BYTES sets
+// another size (0: every tree), for tests and studies.
+constexpr std::size_t kInterleaveBytes = std::size_t{128} << 20;
+
+bool interleaves(const Scene& scene) {
+    std::size_t from = kInterleaveBytes;
+    const char* env = std::getenv("VASTRAY_INTERLEAVE_BYTES");
+    if (env != nullptr && *env != '\0') {
+        char* end = nullptr;
+        errno = 0;
+        const unsigned long long bytes = std::strtoull(env, &end, 10);
+        if (*end != '\0' || errno != 0 || !std::isdigit(static_cast<unsigned char>(env[0]))) {
+            throw std::invalid_argument("VASTRAY_INTERLEAVE_BYTES must be a number of bytes (got '" +
+                                        std::string(env) + "')");
+        }
+        from = static_cast<std::size_t>(bytes);
+    }
+    return scene.tree().memory_bytes() >= from;
+}
+
 // A secondary ray of the in-core scene: never reports the triangle it starts on.
 struct SceneSecondary {
     Ray ray;
@@ -58,7 +81,7 @@ public:
     using Secondary = SceneSecondary;
 
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
-        : scene_(scene), camera_(camera), interleave_(scene.tree().memory_bytes() >= interleave_bytes()) {
+        : scene_(scene), camera_(camera), interleave_(interleaves(scene)) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
@@ -144,24 +167,6 @@ public:
     Vec3d centre() const { return scene_.centre(); }
 
 private:
-    // Packets of a tree at least this large go several in flight (traverse_packets): their
-    // node and triangle loads then miss the caches, and overlapping the misses pays
-    // (plant 3*10^6, a 175 MiB tree: 1.06x; 10^7: 1.18-1.21x). Below it the pauses cost
-    // more than they save (10^6, 60 MiB: 0.95x). VASTRAY_INTERLEAVE_BYTES sets another
-    // size (0: every tree), for tests and studies.
-    static constexpr std::size_t kInterleaveBytes = std::size_t{128} << 20;
-    static std::size_t interleave_bytes() {
-        const char* env = std::getenv("VASTRAY_INTERLEAVE_BYTES");
-        if (env == nullptr || *env == '\0') return kInterleaveBytes;
-        char* end = nullptr;
-        errno = 0;
-        const unsigned long long bytes = std::strtoull(env, &end, 10);
-        if (*end != '\0' || errno != 0 || !std::isdigit(static_cast<unsigned char>(env[0]))) {
-            throw std::invalid_argument("VASTRAY_INTERLEAVE_BYTES must be a number of bytes (got '" +
-                                        std::string(env) + "')");
-        }
-        return static_cast<std::size_t>(bytes);
-    }
     static constexpr int kMaxGroup = 16;
     // 8 in flight, from groups of up to 16 packets (a 16x16 tile): 10^7 plant 4x4-packet
     // frames 1.28x one packet at a time in two series (4 in flight from groups of 4:
@@ -190,6 +195,7 @@ bool ray_is_valid(const WorldRay& r) {
 }
 
 constexpr std::size_t kBatch = 1024;
+constexpr int kOcclusionInFlight = 8;
 
 }  // namespace
 
@@ -251,10 +257,62 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
 
 std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
                                          const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    // Runs of rays from one origin (the AO rays of a point) go as packets of up to 8.
+    // Runs of rays from one origin (the AO rays of a point) go as packets of up to 8; on a
+    // large tree a batch's packets go several in flight (occluded_packets).
     constexpr int kPacket = 8;
     std::vector<std::uint8_t> out(n, 0);
     ThreadPool& pool = ThreadPool::global();
+    if (interleaves(scene)) {
+        pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
+            TraversalCounters c;
+            const std::size_t end = std::min(n, (b + 1) * kBatch);
+            struct Packet {
+                Ray rays[kPacket];
+                std::size_t first;
+                int count;
+            };
+            Uninitialised<Packet, kBatch> store;  // (a batch holds at most kBatch runs)
+            Packet* packets = store.data();
+            const Ray* rays_of[kBatch];
+            std::uint32_t masks[kBatch], blocked[kBatch];
+            int m = 0;
+            for (std::size_t i = b * kBatch; i < end;) {
+                Packet& p = *new (packets + m) Packet;
+                std::uint32_t mask = 0;
+                int count = 0;
+                const Vec3d o(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]);
+                for (; count < kPacket && i + static_cast<std::size_t>(count) < end; ++count) {
+                    const std::size_t j = i + static_cast<std::size_t>(count);
+                    if (origins[3 * j] != o.x || origins[3 * j + 1] != o.y || origins[3 * j + 2] != o.z) break;
+                    const WorldRay wr = load_ray(origins, directions, tmin, tmax, j);
+                    if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
+                    p.rays[count] = scene.to_local(wr);
+                    mask |= 1u << count;
+                }
+                count = std::max(count, 1);
+                if (mask) {
+                    // Lanes outside the mask copy a live ray (occluded_packet ignores them).
+                    const int any = __builtin_ctz(mask);
+                    for (int k = 0; k < kPacket; ++k) {
+                        if (!(mask >> k & 1u)) p.rays[k] = p.rays[any];
+                    }
+                    p.first = i;
+                    p.count = count;
+                    rays_of[m] = p.rays;
+                    masks[m++] = mask;
+                }
+                i += static_cast<std::size_t>(count);
+            }
+            occluded_packets<kPacket, kOcclusionInFlight>(scene.tree(), scene.tri_vertices(), rays_of, nullptr, masks,
+                                                          blocked, m, c);
+            for (int j = 0; j < m; ++j) {
+                for (int k = 0; k < packets[j].count; ++k) {
+                    out[packets[j].first + static_cast<std::size_t>(k)] = (blocked[j] >> k & 1u) ? 1 : 0;
+                }
+            }
+        }, threads);
+        return out;
+    }
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
         TraversalCounters c;
         const std::size_t end = std::min(n, (b + 1) * kBatch);

@@ -317,6 +317,243 @@ inline void traverse_packets(const KdTree& tree, const Vec3f* tri_vertices, cons
     counters.triangle_tests += triangle_tests;
 }
 
+namespace kd_detail {
+
+// occluded_packet's walk as an object, as PacketWalker is traverse_packet's: with Yield
+// it stops where its next load would likely miss, having prefetched it, for a caller
+// with several packets in flight (occluded_packets); without, run() goes to the end.
+template <int N, bool Yield>
+class OcclusionWalker {
+    static_assert(N <= 32, "ray masks are 32-bit");
+    static constexpr int W = packet_width<N>();
+    static constexpr int K = N / W;
+    using vf = simd::vfloat<W>;
+    using vm = simd::vmask<W>;
+
+public:
+    // The rays (lane order), skip ids and mask stay the caller's until the walk is over.
+    // False when no ray of `mask` enters the tree (the answer is then 0).
+    bool start(const KdTree& tree, const Ray* rays, const std::uint32_t* skip, std::uint32_t mask) {
+        constexpr float kInf = std::numeric_limits<float>::infinity();
+        rays_ = rays;
+        skip_ = skip;
+        occluded_ = 0;
+        if (tree.nodes.empty()) return false;
+        alignas(32) float lo[N], hi[N], d[3][N], o[3][N], t1[N];
+        std::uint32_t clipped = 0, negative[3] = {0, 0, 0};
+        for (int i = 0; i < N; ++i) {
+            const Ray& r = rays[i];
+            t1[i] = r.tmax;
+            if ((mask >> i & 1u) && clip_ray_to_box(r, tree.bounds, lo[i], hi[i])) {
+                clipped |= 1u << i;
+            } else {
+                lo[i] = kInf;
+                hi[i] = -kInf;
+            }
+            for (int a = 0; a < 3; ++a) {
+                d[a][i] = r.dir[a];
+                o[a][i] = r.org[a];
+                negative[a] |= (std::signbit(r.dir[a]) ? 1u : 0u) << i;
+            }
+        }
+        if (!clipped) return false;
+        for (int i = 0; i < N; ++i) sheared_[i] = ShearedRay(rays[i].dir);
+        for (int v = 0; v < K; ++v) {
+            sheared_v_[v] = ShearedRayV<W>(rays + W * v, sheared_ + W * v);
+            for (int a = 0; a < 3; ++a) {
+                inv_[a][v] = vf::broadcast(1.0f) / vf::load(d[a] + W * v);
+                org_[a][v] = vf::load(o[a] + W * v);
+                dir_neg_[a][v] = vm::from_bits(negative[a] >> (W * v));
+            }
+            tmin_[v] = vf::load(lo + W * v);
+            tmax_[v] = vf::load(hi + W * v);
+            ray_tmax_[v] = vf::load(t1 + W * v);
+            live_[v] = vm::from_bits(clipped >> (W * v));
+        }
+        top_ = 0;
+        index_ = 0;
+        at_leaf_ = false;
+        return true;
+    }
+
+    // The rays of the mask found blocked (final once run() returned true).
+    std::uint32_t occluded() const { return occluded_; }
+
+    bool run(const KdTree& tree, const Vec3f* tri_vertices, std::uint64_t& node_visits,
+             std::uint64_t& triangle_tests) {
+        constexpr float kInf = std::numeric_limits<float>::infinity();
+        const Ray* rays = rays_;
+        const vf zero = vf::broadcast(0.0f), v_inf = vf::broadcast(kInf), v_neg_inf = vf::broadcast(-kInf);
+        const KdNode* nodes = tree.nodes.data();
+        vf tmin[K], tmax[K];
+        for (int v = 0; v < K; ++v) {
+            tmin[v] = tmin_[v];
+            tmax[v] = tmax_[v];
+        }
+        std::uint32_t index = index_;
+        int top = top_;
+        bool at_leaf = at_leaf_;
+        auto pause = [&](bool leaf_next) {
+            for (int v = 0; v < K; ++v) {
+                tmin_[v] = tmin[v];
+                tmax_[v] = tmax[v];
+            }
+            index_ = index;
+            top_ = top;
+            at_leaf_ = leaf_next;
+            return false;
+        };
+        for (;;) {
+            const KdNode* node = nodes + index;
+            vm active[K];
+            bool leaf = true;
+            if (!at_leaf) {
+                for (;;) {
+                    int any = 0;
+                    for (int v = 0; v < K; ++v) {
+                        active[v] = live_[v] & (tmin[v] <= tmax[v]);
+                        any |= active[v].bits();
+                    }
+                    if (!any) {
+                        leaf = false;
+                        break;
+                    }
+                    if (node->is_leaf()) break;
+                    ++node_visits;
+                    const int axis = node->axis();
+                    const float split = node->split();
+                    const std::uint32_t left = node->left_empty() ? 0u : index + 1;
+                    const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
+                    // The packet's order: lane 0's own (its origin's side first).
+                    const float o0 = rays[0].org[axis];
+                    const bool near_is_left = o0 < split || (o0 == split && std::signbit(rays[0].dir[axis]));
+                    const std::uint32_t near_child = near_is_left ? left : right;
+                    const std::uint32_t far_child = near_is_left ? right : left;
+                    PacketSplit<W, K> seg(split, near_is_left, true, org_[axis], inv_[axis], dir_neg_[axis], tmin,
+                                          tmax, active);
+                    int any_near = seg.any_near, any_far = seg.any_far;
+                    if (near_child == 0) any_near = 0;
+                    if (far_child == 0) any_far = 0;
+                    if (!any_near && !any_far) {
+                        leaf = false;
+                        break;
+                    }
+                    if (any_near && any_far && top < kStack) {
+                        Entry& e = stack_[top++];
+                        e.node = far_child;
+                        for (int v = 0; v < K; ++v) {
+                            e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
+                            e.tmax[v] = select(seg.far_in[v], seg.far_hi[v], v_neg_inf);
+                        }
+                        if constexpr (Yield) __builtin_prefetch(nodes + far_child);
+                    }
+                    const vf* lo_v = any_near ? seg.near_lo : seg.far_lo;
+                    const vf* hi_v = any_near ? seg.near_hi : seg.far_hi;
+                    const vm* in_v = any_near ? seg.near_in : seg.far_in;
+                    for (int v = 0; v < K; ++v) {
+                        tmin[v] = select(in_v[v], lo_v[v], v_inf);
+                        tmax[v] = select(in_v[v], hi_v[v], v_neg_inf);
+                    }
+                    const std::uint32_t from = index;
+                    index = any_near ? near_child : far_child;
+                    node = nodes + index;
+                    if constexpr (Yield) {
+                        if (index != from + 1) {  // (the left child shares its parent's line)
+                            __builtin_prefetch(node);
+                            return pause(false);
+                        }
+                    }
+                }
+                if (leaf) {
+                    if constexpr (Yield) {
+                        __builtin_prefetch(tree.tri_ids.data() + node->first());
+                        return pause(true);
+                    }
+                }
+            } else {
+                at_leaf = false;
+                for (int v = 0; v < K; ++v) active[v] = live_[v] & (tmin[v] <= tmax[v]);
+            }
+            if (leaf) {
+                const std::uint32_t count = node->count();
+                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+                if constexpr (Yield) {
+                    const std::uint32_t ahead = std::min<std::uint32_t>(count, kPrefetchTriangles);
+                    for (std::uint32_t t = 0; t < ahead; ++t) {
+                        const char* p =
+                            reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[t]));
+                        __builtin_prefetch(p);
+                        __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
+                    }
+                }
+                int act[K];
+                for (int v = 0; v < K; ++v) act[v] = active[v].bits();
+                for (std::uint32_t t = 0; t < count; ++t) {
+                    const std::uint32_t id = ids[t];
+                    const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
+                    for (int v = 0; v < K; ++v) {
+                        int lanes = act[v];
+                        if (skip_ && lanes) {
+                            for (int k = 0; k < W; ++k) lanes &= ~((skip_[W * v + k] == id ? 1 : 0) << k);
+                        }
+                        if (!lanes) continue;
+                        triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
+                        // No hit yet (a lane retires at its first): test against [tmin, tmax).
+                        HitV<W> hv{ray_tmax_[v], zero, zero, vf::bits(kNoHit)};
+                        const int changed = intersect_triangle_v<W>(sheared_v_[v], rays + W * v, sheared_ + W * v,
+                                                                    p[0], p[1], p[2], id,
+                                                                    vm::from_bits(static_cast<unsigned>(lanes)), hv);
+                        occluded_ |= static_cast<std::uint32_t>(changed) << (W * v);
+                        act[v] &= ~changed;
+                        live_[v] = andnot(vm::from_bits(static_cast<unsigned>(changed)), live_[v]);
+                    }
+                    int any = 0;
+                    for (int v = 0; v < K; ++v) any |= act[v];
+                    if (!any) break;
+                }
+            }
+            for (;;) {
+                int live_bits = 0;
+                for (int v = 0; v < K; ++v) live_bits |= live_[v].bits();
+                if (top == 0 || !live_bits) return true;
+                const Entry& e = stack_[--top];
+                int any = 0;
+                for (int v = 0; v < K; ++v) {
+                    const vm in = live_[v] & (e.tmin[v] <= e.tmax[v]);
+                    tmin[v] = select(in, e.tmin[v], v_inf);
+                    tmax[v] = select(in, e.tmax[v], v_neg_inf);
+                    any |= in.bits();
+                }
+                if (!any) continue;
+                index = e.node;
+                break;
+            }
+        }
+    }
+
+private:
+    struct Entry {
+        vf tmin[K], tmax[K];
+        std::uint32_t node;
+    };
+    static constexpr int kStack = 64;
+    static constexpr std::uint32_t kPrefetchTriangles = 8;
+
+    const Ray* rays_ = nullptr;
+    const std::uint32_t* skip_ = nullptr;
+    ShearedRay sheared_[N];
+    ShearedRayV<W> sheared_v_[K];
+    vf inv_[3][K], org_[3][K], tmin_[K], tmax_[K], ray_tmax_[K];
+    vm live_[K], dir_neg_[3][K];
+    std::uint32_t occluded_ = 0;
+    std::uint32_t index_ = 0;
+    int top_ = 0;
+    bool at_leaf_ = false;
+    Entry stack_[kStack];
+};
+
+}  // namespace kd_detail
+
 // Any-hit queries of N rays in lane order (shadow and AO rays): returns the rays of
 // `mask` that hit a triangle in [tmin, tmax) other than skip[i]. Each lane walks exactly
 // the single ray's segments (PacketSplit: the child on its origin's side first, as
@@ -324,167 +561,53 @@ inline void traverse_packets(const KdTree& tree, const Vec3f* tri_vertices, cons
 // rays may share a packet, which takes the children in lane 0's order. Packets pay where
 // the rays' paths agree: a shared origin (the AO rays of a point) or a shared direction
 // (the shadow rays of a pixel block). (Unlike the primary packets they do not hand a
-// lone ray to traverse_from(): their subtrees are small, and the hand-over cost more
+// lone ray to a single walk: their subtrees are small, and the hand-over cost more
 // than it saved.)
 template <int N>
 inline std::uint32_t occluded_packet(const KdTree& tree, const Vec3f* tri_vertices, const Ray* rays,
                                      const std::uint32_t* skip, std::uint32_t mask, TraversalCounters& counters) {
-    static_assert(N <= 32, "ray masks are 32-bit");
-    constexpr int W = packet_width<N>();
-    constexpr int K = N / W;
-    using vf = simd::vfloat<W>;
-    using vm = simd::vmask<W>;
-    constexpr float kInf = std::numeric_limits<float>::infinity();
-    if (tree.nodes.empty()) return 0;
-
-    alignas(32) float lo[N], hi[N], d[3][N], o[3][N], t1[N];
-    std::uint32_t clipped = 0, negative[3] = {0, 0, 0};
-    for (int i = 0; i < N; ++i) {
-        const Ray& r = rays[i];
-        t1[i] = r.tmax;
-        if ((mask >> i & 1u) && clip_ray_to_box(r, tree.bounds, lo[i], hi[i])) {
-            clipped |= 1u << i;
-        } else {
-            lo[i] = kInf;
-            hi[i] = -kInf;
-        }
-        for (int a = 0; a < 3; ++a) {
-            d[a][i] = r.dir[a];
-            o[a][i] = r.org[a];
-            negative[a] |= (std::signbit(r.dir[a]) ? 1u : 0u) << i;
-        }
-    }
-    if (!clipped) return 0;
-    ShearedRay sheared[N];
-    for (int i = 0; i < N; ++i) sheared[i] = ShearedRay(rays[i].dir);
-    ShearedRayV<W> sheared_v[K];
-    vf inv[3][K], org[3][K], tmin[K], tmax[K], ray_tmax[K];
-    vm live[K], dir_neg[3][K];
-    for (int v = 0; v < K; ++v) {
-        sheared_v[v] = ShearedRayV<W>(rays + W * v, sheared + W * v);
-        for (int a = 0; a < 3; ++a) {
-            inv[a][v] = vf::broadcast(1.0f) / vf::load(d[a] + W * v);
-            org[a][v] = vf::load(o[a] + W * v);
-            dir_neg[a][v] = vm::from_bits(negative[a] >> (W * v));
-        }
-        tmin[v] = vf::load(lo + W * v);
-        tmax[v] = vf::load(hi + W * v);
-        ray_tmax[v] = vf::load(t1 + W * v);
-        live[v] = vm::from_bits(clipped >> (W * v));
-    }
-    const vf zero = vf::broadcast(0.0f), v_inf = vf::broadcast(kInf), v_neg_inf = vf::broadcast(-kInf);
-    std::uint32_t occluded = 0;
+    kd_detail::OcclusionWalker<N, false> walker;
+    if (!walker.start(tree, rays, skip, mask)) return 0;
     std::uint64_t node_visits = 0, triangle_tests = 0;
+    walker.run(tree, tri_vertices, node_visits, triangle_tests);
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
+    return walker.occluded();
+}
 
-    struct Entry {
-        vf tmin[K], tmax[K];
-        std::uint32_t node;
+// occluded_packet of `count` packets at once (rays[j], skip[j] or null, mask[j]),
+// G of them in flight; blocked[j] gets packet j's answer.
+template <int N, int G>
+inline void occluded_packets(const KdTree& tree, const Vec3f* tri_vertices, const Ray* const* rays,
+                             const std::uint32_t* const* skip, const std::uint32_t* mask, std::uint32_t* blocked,
+                             int count, TraversalCounters& counters) {
+    static_assert(G >= 1 && G <= 32, "packets in flight are a 32-bit mask");
+    kd_detail::OcclusionWalker<N, true> walkers[G];
+    int of[G];
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    int next = 0;
+    auto launch = [&](int g) {
+        while (next < count) {
+            const int j = next++;
+            blocked[j] = 0;
+            if (walkers[g].start(tree, rays[j], skip ? skip[j] : nullptr, mask[j])) {
+                of[g] = j;
+                return true;
+            }
+        }
+        return false;
     };
-    Entry stack[64];
-    int top = 0;
-    const KdNode* nodes = tree.nodes.data();
-    std::uint32_t index = 0;
-    for (;;) {
-        const KdNode* node = nodes + index;
-        vm active[K];
-        bool leaf = true;
-        for (;;) {
-            int any = 0;
-            for (int v = 0; v < K; ++v) {
-                active[v] = live[v] & (tmin[v] <= tmax[v]);
-                any |= active[v].bits();
-            }
-            if (!any) {
-                leaf = false;
-                break;
-            }
-            if (node->is_leaf()) break;
-            ++node_visits;
-            const int axis = node->axis();
-            const float split = node->split();
-            const std::uint32_t left = node->left_empty() ? 0u : index + 1;
-            const std::uint32_t right = node->right_empty() ? 0u : index + node->right_offset();
-            // The packet's order: lane 0's own (its origin's side first).
-            const float o0 = rays[0].org[axis];
-            const bool near_is_left = o0 < split || (o0 == split && std::signbit(rays[0].dir[axis]));
-            const std::uint32_t near_child = near_is_left ? left : right;
-            const std::uint32_t far_child = near_is_left ? right : left;
-            PacketSplit<W, K> seg(split, near_is_left, true, org[axis], inv[axis], dir_neg[axis], tmin, tmax, active);
-            int any_near = seg.any_near, any_far = seg.any_far;
-            if (near_child == 0) any_near = 0;
-            if (far_child == 0) any_far = 0;
-            if (!any_near && !any_far) {
-                leaf = false;
-                break;
-            }
-            if (any_near && any_far && top < 64) {
-                Entry& e = stack[top++];
-                e.node = far_child;
-                for (int v = 0; v < K; ++v) {
-                    e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
-                    e.tmax[v] = select(seg.far_in[v], seg.far_hi[v], v_neg_inf);
-                }
-            }
-            const vf* lo_v = any_near ? seg.near_lo : seg.far_lo;
-            const vf* hi_v = any_near ? seg.near_hi : seg.far_hi;
-            const vm* in_v = any_near ? seg.near_in : seg.far_in;
-            for (int v = 0; v < K; ++v) {
-                tmin[v] = select(in_v[v], lo_v[v], v_inf);
-                tmax[v] = select(in_v[v], hi_v[v], v_neg_inf);
-            }
-            index = any_near ? near_child : far_child;
-            node = nodes + index;
-        }
-        if (leaf) {
-            const std::uint32_t count = node->count();
-            const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-            int act[K];
-            for (int v = 0; v < K; ++v) act[v] = active[v].bits();
-            for (std::uint32_t t = 0; t < count; ++t) {
-                const std::uint32_t id = ids[t];
-                const Vec3f* p = tri_vertices + 3 * static_cast<std::size_t>(id);
-                for (int v = 0; v < K; ++v) {
-                    int lanes = act[v];
-                    if (skip && lanes) {
-                        for (int k = 0; k < W; ++k) lanes &= ~((skip[W * v + k] == id ? 1 : 0) << k);
-                    }
-                    if (!lanes) continue;
-                    triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
-                    // No hit yet (a lane retires at its first): test against [tmin, tmax).
-                    HitV<W> hv{ray_tmax[v], zero, zero, vf::bits(kNoHit)};
-                    const int changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, p[0],
-                                                                p[1], p[2], id,
-                                                                vm::from_bits(static_cast<unsigned>(lanes)), hv);
-                    occluded |= static_cast<std::uint32_t>(changed) << (W * v);
-                    act[v] &= ~changed;
-                    live[v] = andnot(vm::from_bits(static_cast<unsigned>(changed)), live[v]);
-                }
-                int any = 0;
-                for (int v = 0; v < K; ++v) any |= act[v];
-                if (!any) break;
-            }
-        }
-        for (;;) {
-            int live_bits = 0;
-            for (int v = 0; v < K; ++v) live_bits |= live[v].bits();
-            if (top == 0 || !live_bits) {
-                counters.node_visits += node_visits;
-                counters.triangle_tests += triangle_tests;
-                return occluded;
-            }
-            const Entry& e = stack[--top];
-            int any = 0;
-            for (int v = 0; v < K; ++v) {
-                const vm in = live[v] & (e.tmin[v] <= e.tmax[v]);
-                tmin[v] = select(in, e.tmin[v], v_inf);
-                tmax[v] = select(in, e.tmax[v], v_neg_inf);
-                any |= in.bits();
-            }
-            if (!any) continue;
-            index = e.node;
-            break;
+    std::uint32_t live = 0;
+    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
+    while (live) {
+        for (int g = 0; g < G; ++g) {
+            if (!(live >> g & 1u) || !walkers[g].run(tree, tri_vertices, node_visits, triangle_tests)) continue;
+            blocked[of[g]] = walkers[g].occluded();
+            if (!launch(g)) live &= ~(1u << g);
         }
     }
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
 }
 
 VASTRAY_KERNEL_END
