@@ -42,6 +42,9 @@ class Scheduler:
         self.workers = max(1, workers)
         self.deliver = deliver
         self.views: set[View] = set()
+        # Views removed while a frame of theirs was rendering, with what to do once it is
+        # done (release the model: it must stay open until no frame uses it).
+        self._leaving: dict[View, Callable[[], None]] = {}
         self.running = 0
         self._wake: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -85,9 +88,21 @@ class Scheduler:
         self.views.add(view)
         self.notify()
 
-    def remove(self, view: View) -> None:
+    def remove(self, view: View, then: Callable[[], None] | None = None) -> None:
+        """Takes the view out of the schedule; `then` runs once no frame of the view is
+        rendering any more: now, or when the frame in flight is done."""
         self.views.discard(view)
+        if then is not None:
+            if view.busy:
+                self._leaving[view] = then
+            else:
+                then()
         self.notify()
+
+    def _left(self, view: View) -> None:
+        then = self._leaving.pop(view, None)
+        if then is not None:
+            then()
 
     def notify(self) -> None:
         """Something changed (a camera, an ack, a new view): look again."""
@@ -163,12 +178,14 @@ class Scheduler:
             result = future.result()
         except Exception as exc:
             view.busy = False
+            self._left(view)
             log.exception("view %s: render failed", view.id)
             self.deliver(view, None, f"render failed: {exc}")  # type: ignore[arg-type]
             self.notify()
             return
         view.vtime += result.finished_at - result.started_at
         frame, warning = view.finish(job, result, arrivals)
+        self._left(view)
         if frame is not None or warning is not None:
             self.deliver(view, frame, warning)  # type: ignore[arg-type]
         self.notify()

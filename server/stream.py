@@ -274,8 +274,11 @@ class Connection:
             self._drop(view)
 
     def _drop(self, view: View) -> None:
-        self.hub.scheduler.remove(view)
-        self.state.store.release(view.model_id)
+        # The lease ends when no frame of the view renders any more: releasing the last
+        # one closes a model that is being deleted, and a frame still tracing it would
+        # read freed memory (the server died so, a viewer leaving a deleted model).
+        model_id = view.model_id
+        self.hub.scheduler.remove(view, then=lambda: self.state.store.release(model_id))
 
     def _new_view(
         self,

@@ -161,6 +161,51 @@ def test_delete_while_rendering_is_deferred(tmp_path: Path) -> None:
         s.stop()
 
 
+def test_a_viewer_leaving_a_deleted_model_mid_frame(tmp_path: Path) -> None:
+    """A viewer's lease on a model lasts until no frame of its view renders any more. A
+    model deleted while viewed goes when its last viewer leaves; if the viewer vanishes
+    while a refining frame still traces the model, closing it then would free what the
+    frame reads (the server died of it). Each round: a slow frame in flight, the model
+    deleted, the socket aborted; the server lives on and each file goes once its frame
+    is done."""
+    from test_stream import Viewer, orbit, run
+
+    s = ServerProcess(tmp_path / "data", "--no-demo").start()
+    try:
+        with s.client() as api:
+            sources = [f"scene:plant:150000:{seed}" for seed in (1, 2, 3)]
+            jobs = [api.post("/api/jobs", json={"source": source}).json() for source in sources]
+            models = [wait_for_job(api, j["id"])["model_id"] for j in jobs]
+            files = [s.data_dir / api.get(f"/api/models/{m}").json()["file"] for m in models]
+
+            async def leave_mid_frame(model_id: str) -> None:
+                v = Viewer(s, model_id, viewport={"width": 1920, "height": 1080})
+                await v.__aenter__()
+                await v.send({"type": "quality", "shading": "sun"})
+                await v.camera(*orbit(v.welcome, 0.4))
+                # The first frame of a moving camera is small; the refinement after it,
+                # at full size with shadow rays, is what is in flight when the viewer goes.
+                while not v.frames:
+                    await v.recv()
+                r = api.delete(f"/api/models/{model_id}")
+                assert r.status_code == 202 and r.json()["status"] == "deleting"
+                v.ws.transport.abort()
+
+            for model_id in models:
+                run(leave_mid_frame(model_id))
+            deadline = time.monotonic() + 60
+            while any(f.exists() for f in files) and time.monotonic() < deadline:
+                assert s.proc.poll() is None, "the server died"
+                time.sleep(0.05)
+            assert s.proc.poll() is None, "the server died"
+            assert not any(f.exists() for f in files), "a file stayed after its last viewer left"
+            assert api.get("/healthz").status_code == 200
+            assert all(api.get(f"/api/models/{m}").status_code == 404 for m in models)
+        assert "Traceback" not in s.log()
+    finally:
+        s.stop()
+
+
 def test_registry_from_a_newer_release_is_refused(tmp_path: Path) -> None:
     data = tmp_path / "data"
     s = ServerProcess(data, "--no-demo").start()
