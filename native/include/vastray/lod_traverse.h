@@ -814,13 +814,7 @@ inline void trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* ra
         }
         return false;
     };
-    std::uint32_t live = 0;
-    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
-    while (live) {
-        for (int g = 0; g < G; ++g) {
-            if ((live >> g & 1u) && walkers[g].run(lane) == W::Stop::Done && !launch(g)) live &= ~(1u << g);
-        }
-    }
+    walks_in_flight<G>(launch, [&](int g) { return walkers[g].run(lane) == W::Stop::Done; });
 }
 
 }  // namespace lod_detail

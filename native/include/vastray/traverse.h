@@ -158,4 +158,19 @@ inline bool traverse(const KdTree& tree, const Vec3f* tri_vertices, const Ray& r
     return hit.prim != kNoHit;
 }
 
+// Keeps up to G resumable walks going round-robin, so that while one waits for memory
+// the others run: launch(g) starts the next walk in slot g (false when none is left),
+// step(g) runs slot g's walk to its next stop (true when that walk is over).
+template <int G, typename Launch, typename Step>
+inline void walks_in_flight(Launch&& launch, Step&& step) {
+    static_assert(G >= 1 && G <= 32, "walks in flight are a 32-bit mask");
+    std::uint32_t live = 0;
+    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
+    while (live) {
+        for (int g = 0; g < G; ++g) {
+            if ((live >> g & 1u) && step(g) && !launch(g)) live &= ~(1u << g);
+        }
+    }
+}
+
 VASTRAY_KERNEL_END

@@ -294,25 +294,18 @@ inline void traverse_packet(const KdTree& tree, const Vec3f* tri_vertices, const
 template <int N, int G>
 inline void traverse_packets(const KdTree& tree, const Vec3f* tri_vertices, const Ray* const* rays,
                              Hit* const* hits, int count, TraversalCounters& counters) {
-    static_assert(G >= 1 && G <= 32, "packets in flight are a 32-bit mask");
     kd_detail::PacketWalker<N, true> walkers[G];
     std::uint64_t node_visits = 0, triangle_tests = 0;
     int next = 0;
-    auto launch = [&](int g) {
-        while (next < count) {
-            const int j = next++;
-            if (walkers[g].start(tree, rays[j], hits[j])) return true;
-        }
-        return false;
-    };
-    std::uint32_t live = 0;
-    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
-    while (live) {
-        for (int g = 0; g < G; ++g) {
-            if ((live >> g & 1u) && walkers[g].run(tree, tri_vertices, node_visits, triangle_tests) && !launch(g))
-                live &= ~(1u << g);
-        }
-    }
+    walks_in_flight<G>(
+        [&](int g) {
+            while (next < count) {
+                const int j = next++;
+                if (walkers[g].start(tree, rays[j], hits[j])) return true;
+            }
+            return false;
+        },
+        [&](int g) { return walkers[g].run(tree, tri_vertices, node_visits, triangle_tests); });
     counters.node_visits += node_visits;
     counters.triangle_tests += triangle_tests;
 }
@@ -581,31 +574,27 @@ template <int N, int G>
 inline void occluded_packets(const KdTree& tree, const Vec3f* tri_vertices, const Ray* const* rays,
                              const std::uint32_t* const* skip, const std::uint32_t* mask, std::uint32_t* blocked,
                              int count, TraversalCounters& counters) {
-    static_assert(G >= 1 && G <= 32, "packets in flight are a 32-bit mask");
     kd_detail::OcclusionWalker<N, true> walkers[G];
     int of[G];
     std::uint64_t node_visits = 0, triangle_tests = 0;
     int next = 0;
-    auto launch = [&](int g) {
-        while (next < count) {
-            const int j = next++;
-            blocked[j] = 0;
-            if (walkers[g].start(tree, rays[j], skip ? skip[j] : nullptr, mask[j])) {
-                of[g] = j;
-                return true;
+    walks_in_flight<G>(
+        [&](int g) {
+            while (next < count) {
+                const int j = next++;
+                blocked[j] = 0;
+                if (walkers[g].start(tree, rays[j], skip ? skip[j] : nullptr, mask[j])) {
+                    of[g] = j;
+                    return true;
+                }
             }
-        }
-        return false;
-    };
-    std::uint32_t live = 0;
-    for (int g = 0; g < G; ++g) live |= (launch(g) ? 1u : 0u) << g;
-    while (live) {
-        for (int g = 0; g < G; ++g) {
-            if (!(live >> g & 1u) || !walkers[g].run(tree, tri_vertices, node_visits, triangle_tests)) continue;
+            return false;
+        },
+        [&](int g) {
+            if (!walkers[g].run(tree, tri_vertices, node_visits, triangle_tests)) return false;
             blocked[of[g]] = walkers[g].occluded();
-            if (!launch(g)) live &= ~(1u << g);
-        }
-    }
+            return true;
+        });
     counters.node_visits += node_visits;
     counters.triangle_tests += triangle_tests;
 }
