@@ -1,4 +1,5 @@
 #include "vastray/block_cache.h"
+#include "vastray/huge_pages.h"
 
 #include <algorithm>
 #include <chrono>
@@ -26,23 +27,16 @@ CachedModel::CachedModel(std::shared_ptr<const ModelIndex> index, std::uint32_t 
 }
 
 SlotArena::SlotArena(std::size_t bytes, bool huge_pages) {
-    constexpr std::size_t kHuge = std::size_t{2} << 20;
-    // Over-map by one huge page so the slots can start on a 2 MiB boundary.
-    mapped_ = (bytes + kHuge - 1) / kHuge * kHuge + (huge_pages ? kHuge : 0);
-    void* p = mmap(nullptr, mapped_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE, -1, 0);
-    if (p == MAP_FAILED) throw std::bad_alloc();
-    base_ = static_cast<std::uint8_t*>(p);
-    data_ = base_;
-    if (huge_pages) {
-        data_ += (kHuge - reinterpret_cast<std::uintptr_t>(base_) % kHuge) % kHuge;
-#ifdef MADV_HUGEPAGE
-        // Only whole huge pages inside the mapping: the tail is left as it is.
-        huge_ = madvise(data_, (mapped_ - static_cast<std::size_t>(data_ - base_)) / kHuge * kHuge, MADV_HUGEPAGE) == 0;
-#endif
-    }
+    // Whole huge pages either way, 2 MiB-aligned and advised when asked for.
+    mapped_ = ::vastray::huge_pages::mapped_size(bytes);
+    void* p = huge_pages ? ::vastray::huge_pages::map(bytes, MAP_NORESERVE, &huge_)
+                         : mmap(nullptr, mapped_, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS | MAP_NORESERVE,
+                                -1, 0);
+    if (p == nullptr || p == MAP_FAILED) throw std::bad_alloc();
+    data_ = static_cast<std::uint8_t*>(p);
 }
 
-SlotArena::~SlotArena() { munmap(base_, mapped_); }
+SlotArena::~SlotArena() { munmap(data_, mapped_); }
 
 BlockCache::BlockCache(const CacheConfig& config) : config_(config) {
     slot_count_ = config.budget_bytes / kSlotBytes;

@@ -114,8 +114,7 @@ public:
     bool huge_pages() const { return huge_; }  // the kernel accepted the advice
 
 private:
-    std::uint8_t* base_ = nullptr;  // the mapping
-    std::uint8_t* data_ = nullptr;  // the slots, 2 MiB-aligned in it when huge
+    std::uint8_t* data_ = nullptr;  // the slots (the mapping), 2 MiB-aligned when huge
     std::size_t mapped_ = 0;
     bool huge_ = false;
 };

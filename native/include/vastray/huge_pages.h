@@ -5,8 +5,8 @@
 // tree; once the tree is larger than the TLB's reach (a few MiB of 4 KiB pages) nearly
 // every node load also waits for a page walk. Huge pages cut the TLB entries the tree
 // needs by 512x: AO rays on the 10^7 plant ran 1.17-1.18x faster on them (measured with
-// glibc's malloc.hugetlb tunable before this allocator; bench/results/rays.md has the
-// allocator's own figures). The block cache does the same for its slots.
+// glibc's malloc.hugetlb tunable, docs/native-core.md). The block cache maps its slots
+// with huge_pages::map too.
 //
 // Where the kernel runs transparent huge pages only for regions that ask
 // ("madvise", the usual default), the region must ask before it is touched, so the
@@ -33,12 +33,13 @@ constexpr std::size_t kThreshold = 4 * kHugePage;
 
 inline std::size_t mapped_size(std::size_t bytes) { return (bytes + kHugePage - 1) / kHugePage * kHugePage; }
 
-// A 2 MiB-aligned anonymous mapping of mapped_size(bytes), advised for huge pages;
-// nullptr when the system refuses the mapping.
-inline void* map(std::size_t bytes) {
+// A 2 MiB-aligned anonymous mapping of mapped_size(bytes) (mmap flags `extra` added,
+// e.g. MAP_NORESERVE), advised for huge pages; nullptr when the system refuses the
+// mapping. `advised`, if given, says whether the kernel took the advice. unmap() frees it.
+inline void* map(std::size_t bytes, int extra = 0, bool* advised = nullptr) {
     const std::size_t size = mapped_size(bytes);
     // Over-map by one huge page and trim, so the kept range starts on a 2 MiB boundary.
-    void* raw = mmap(nullptr, size + kHugePage, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS, -1, 0);
+    void* raw = mmap(nullptr, size + kHugePage, PROT_READ | PROT_WRITE, MAP_PRIVATE | MAP_ANONYMOUS | extra, -1, 0);
     if (raw == MAP_FAILED) return nullptr;
     const auto base = reinterpret_cast<std::uintptr_t>(raw);
     const std::uintptr_t aligned = (base + kHugePage - 1) & ~(kHugePage - 1);
@@ -46,9 +47,11 @@ inline void* map(std::size_t bytes) {
     const std::uintptr_t end = aligned + size;
     const std::uintptr_t raw_end = base + size + kHugePage;
     if (raw_end > end) munmap(reinterpret_cast<void*>(end), raw_end - end);
+    bool took = false;  // advice: a refusal leaves small pages
 #ifdef MADV_HUGEPAGE
-    madvise(reinterpret_cast<void*>(aligned), size, MADV_HUGEPAGE);  // advice: failure leaves small pages
+    took = madvise(reinterpret_cast<void*>(aligned), size, MADV_HUGEPAGE) == 0;
 #endif
+    if (advised) *advised = took;
     return reinterpret_cast<void*>(aligned);
 }
 
