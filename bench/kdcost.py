@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (  # bench/ is a folder of scripts, not a package
     RESULTS_DIR,
+    ao_rays_from_hits,
     camera_rays,
-    cosine_hemisphere,
     machine_info,
     markdown_table,
     parse_count,
@@ -40,7 +40,7 @@ from common import (  # bench/ is a folder of scripts, not a package
 
 # bench/rays.py pins one build of the native module as it is imported (or, with
 # --no-pin, takes it as installed); its helpers make the same models and rays.
-from rays import NATIVE_BUILD, facing_normals, isa_path, select_models
+from rays import NATIVE_BUILD, isa_path, select_models
 
 from vastray import native
 from vastray.camera import frame_bounds
@@ -57,20 +57,9 @@ def ao_rays(
     d: np.ndarray,
     diagonal: float,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """The AO rays of bench/rays.py: from every facing primary hit, pushed off the surface."""
-    batch = scene.intersect(o, d, threads=0)
-    prim = np.asarray(batch["prim"], dtype=np.int64)
-    idx = np.flatnonzero(prim >= 0)
-    tri = vertices[faces[prim[idx]]]
-    normals, ok = facing_normals(vertices, tri, d[idx])
-    idx, tri, normals = idx[ok], tri[ok], normals[ok]
-    u = np.asarray(batch["u"], dtype=np.float64)[idx, None]
-    v = np.asarray(batch["v"], dtype=np.float64)[idx, None]
-    points = tri[:, 0] * (1.0 - u - v) + tri[:, 1] * u + tri[:, 2] * v
-    offset = 64.0 * np.finfo(np.float32).eps * np.abs(tri).max(axis=(1, 2)) + 1e-6 * diagonal
-    origins = np.repeat(points + normals * offset[:, None], AO_SAMPLES, axis=0)
-    dirs = cosine_hemisphere(normals, AO_SAMPLES, np.random.default_rng(1))
-    return origins, dirs, 0.2 * diagonal
+    """The AO rays of bench/rays.py (seed 1) from this scene's primary hits."""
+    hits = scene.intersect(o, d, threads=0)
+    return ao_rays_from_hits(vertices, faces, d, hits, AO_SAMPLES, np.random.default_rng(1), diagonal)
 
 
 def bench_model(spec: Any, costs: list[float], rounds: int) -> list[dict[str, Any]]:

@@ -45,8 +45,8 @@ from common import (  # bench/ is a folder of scripts, not a package
     RESULTS_DIR,
     Best,
     PeakRss,
+    ao_rays_from_hits,
     camera_rays,
-    cosine_hemisphere,
     fmt,
     format_count,
     geometric_mean,
@@ -239,18 +239,6 @@ def wall(fn: Callable[[], Any]) -> Callable[[], tuple[float, Any]]:
     return lambda: timed(fn)
 
 
-def facing_normals(mesh_v: np.ndarray, tri: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit geometric normals of triangles `tri` (T,3,3) turned towards the incoming rays,
-    and a mask of the non-degenerate ones."""
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(n, axis=1)
-    ok = length > 0
-    n[ok] /= length[ok, None]
-    flip = np.einsum("ij,ij->i", n, dirs) > 0
-    n[flip] = -n[flip]
-    return n, ok
-
-
 def bench_model(
     spec: ModelSpec, args: argparse.Namespace, pool: ThreadPoolExecutor | None, all_threads: int
 ) -> dict[str, Any]:
@@ -344,23 +332,13 @@ def bench_model(
     )
 
     # --- ambient-occlusion rays from the primary hits
-    idx = np.flatnonzero(hit)
-    p_tri = vertices[faces[vprim[idx]]]  # (H, 3, 3) float64
-    normals, ok = facing_normals(vertices, p_tri, dirs[idx])
-    idx, p_tri, normals = idx[ok], p_tri[ok], normals[ok]
-    bu = np.asarray(batch["u"], dtype=np.float64)[idx, None]
-    bv = np.asarray(batch["v"], dtype=np.float64)[idx, None]
-    points = p_tri[:, 0] * (1.0 - bu - bv) + p_tri[:, 1] * bu + p_tri[:, 2] * bv
-    # Push off the surface by a bound on float32 error (Embree sees float32 geometry).
-    offset = 64.0 * np.finfo(np.float32).eps * np.abs(p_tri).max(axis=(1, 2)) + 1e-6 * diagonal
-    ao_origins = np.repeat(points + normals * offset[:, None], args.ao_samples, axis=0)
     rng = np.random.default_rng(args.seed)
-    ao_dirs = cosine_hemisphere(normals, args.ao_samples, rng)
-    ao_tmax = 0.2 * diagonal
+    ao_origins, ao_dirs, ao_tmax = ao_rays_from_hits(
+        vertices, faces, dirs, batch, args.ao_samples, rng, diagonal
+    )
     ao_o32, ao_d32 = ao_origins.astype(np.float32), ao_dirs.astype(np.float32)
     ao_tmax32 = np.full(ao_origins.shape[0], ao_tmax, dtype=np.float32)
     n_ao = ao_origins.shape[0]
-    del p_tri, points
     steps = []
     for tag, threads in thread_settings:
         steps.append(
