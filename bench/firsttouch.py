@@ -8,13 +8,18 @@ write runs at a few GB/s. A virtual machine whose balloon device reports free pa
 its host (VIRTIO_BALLOON_F_REPORTING) gives freed memory back; writing it again then
 waits for the host as well. Writes firsttouch.md to bench/results/.
 
-    python bench/firsttouch.py --sizes 256M,1G,2G --waits 0,5,20
+    python bench/firsttouch.py --sizes 256M,1G,4G --waits 0,5,30 --copy bench/.cache/plant-1e8-s1.ply
+
+With --copy FILE it also copies FILE (read from the page cache) into a new file beside
+it, alternately through the page cache (copy_file_range, then fsync: the build's write
+phase before direct_io.py) and past it (direct_io.DirectFile, as the build writes now).
 """
 
 from __future__ import annotations
 
 import argparse
 import mmap
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import RESULTS_DIR, machine_info, markdown_table
 
+from vastray.direct_io import DirectFile
 from vastray.units import parse_bytes
 
 REPORTING_BIT = 5  # VIRTIO_BALLOON_F_REPORTING in the device's feature bits
@@ -56,10 +62,37 @@ def write_rate(size: int, again: bool = False) -> tuple[float, float]:
     return first, second
 
 
+def copy_seconds(src: Path, direct: bool) -> float:
+    """Seconds to copy `src` into a new file and make it durable, one way or the other."""
+    dst = src.with_name(f".{src.name}.copy-test")
+    size = src.stat().st_size
+    fd = os.open(src, os.O_RDONLY)
+    try:
+        start = time.perf_counter()
+        if direct:
+            with DirectFile(dst) as out:
+                out.copy(fd, 0, size)
+        else:
+            out_fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                done = 0
+                while done < size:
+                    done += os.copy_file_range(fd, out_fd, min(size - done, 64 << 20), done)
+                os.fsync(out_fd)
+            finally:
+                os.close(out_fd)
+        return time.perf_counter() - start
+    finally:
+        os.close(fd)
+        dst.unlink(missing_ok=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="256M,1G,2G")
     ap.add_argument("--waits", default="0,5,20", help="idle seconds before mapping again")
+    ap.add_argument("--copy", type=Path, help="a large file to copy both ways")
+    ap.add_argument("--rounds", type=int, default=2, help="copies each way (with --copy)")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)
     ap.add_argument("--name", default="firsttouch")
     args = ap.parse_args()
@@ -75,6 +108,19 @@ def main() -> int:
         rows.append(row)
         print(" | ".join(row), flush=True)
     headers = ["MiB", "first write GB/s", "resident GB/s", *(f"again after {w:g} s GB/s" for w in waits)]
+    copies = []
+    if args.copy is not None:
+        with open(args.copy, "rb") as f:  # into the page cache, as the level files are
+            while f.read(64 << 20):
+                pass
+        size = args.copy.stat().st_size
+        for r in range(args.rounds):
+            for direct in (False, True) if r % 2 == 0 else (True, False):
+                seconds = copy_seconds(args.copy, direct)
+                way = "past the page cache (DirectFile)" if direct else "copy_file_range + fsync"
+                copies.append([way, f"{size / 2**30:.2f}", f"{seconds:.2f}", f"{size / seconds / 1e9:.2f}"])
+                print(" | ".join(copies[-1]), flush=True)
+                time.sleep(3)
     info = machine_info({"balloon reports free pages": balloon_reports_free_pages()})
     text = (
         "# First writes of memory against writes of resident memory\n\n"
@@ -83,6 +129,12 @@ def main() -> int:
         "## Machine\n\n" + "\n".join(f"- {k}: {v}" for k, v in info.items()) + "\n\n"
         "## Write rates\n\n" + markdown_table(headers, rows) + "\n"
     )
+    if copies:
+        text += (
+            f"\n## Copying {args.copy.name} (from the page cache) into a new, durable file\n\n"
+            + markdown_table(["way", "GiB", "seconds", "GB/s"], copies)
+            + "\n"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.md").write_text(text)
     print(f"wrote {args.out / (args.name + '.md')}")

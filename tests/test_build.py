@@ -1149,10 +1149,9 @@ def test_traversal_cost_makes_a_coarser_smaller_tree(tmp_path: Path) -> None:
 
 
 def test_the_write_phase_copies_blocks_across_file_systems(tmp_path: Path, ooc_ply: Path) -> None:
-    """The write phase copies the level files' blocks into the model in the kernel
-    (copy_file_range). With the scratch folder on another file system (a tmpfs), where
-    the kernel refuses that copy, it reads and writes them instead: the same model, byte
-    for byte."""
+    """The write phase copies the level files' blocks into the model (direct_io.py):
+    with the scratch folder on another file system (a tmpfs) than the output, the same
+    model, byte for byte."""
     shm = Path("/dev/shm")
     if not shm.is_dir() or shm.stat().st_dev == tmp_path.stat().st_dev or not os.access(shm, os.W_OK):
         pytest.skip("no writable file system other than the test folder's")

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from vastray import modelfile, native
+from vastray.direct_io import DirectFile
 from vastray.mesh import MeshError, PartName
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 from vastray.triangle_readers import TriangleChunk, VertexTable
@@ -922,12 +923,11 @@ class _Builder:
                     os.close(fd)
                 os.unlink(path)
 
-        with open(partial, "wb") as out:
+        # Past the page cache (direct_io.py); closing fsyncs.
+        with DirectFile(partial) as out:
             size = modelfile.write_model_file(
                 out, fields, levels, entries, blocks(), part_table, layout.tier_count
             )
-            out.flush()
-            os.fsync(out.fileno())
         t = self.timed("write", t)
 
         raw_total = sum(e[1] for e in entries)

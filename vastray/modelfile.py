@@ -11,18 +11,18 @@ native core; their bit layouts are in native/include/vastray/format.h.
 
 from __future__ import annotations
 
-import errno
 import os
 import struct
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
 from vastray import native
+from vastray.direct_io import DirectFile
 
 # The format's constants have one home, native/include/vastray/format.h.
 _F = native.FORMAT
@@ -253,41 +253,8 @@ class FileRange:
     size: int
 
 
-# copy_file_range's refusals that mean "not between these files": different file
-# systems (older kernels), no support in the file system or the kernel.
-_NO_IN_KERNEL_COPY = {errno.EXDEV, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL, errno.EPERM}
-
-
-def _copy_range(src: FileRange, out: BinaryIO) -> None:
-    """Appends `src` to `out`. The kernel copies between the two files' pages
-    (copy_file_range): at 10^8 triangles the build's write phase copies 4 GB, and a copy
-    through Python buffers took 2-3x as long. Falls back to reading and writing where the
-    kernel will not copy between these files."""
-    out.flush()
-    offset, left = src.offset, src.size
-    in_kernel = hasattr(os, "copy_file_range")
-    while left > 0:
-        n = 0
-        if in_kernel:
-            try:
-                n = os.copy_file_range(src.fd, out.fileno(), left, offset)
-            except OSError as e:
-                if e.errno not in _NO_IN_KERNEL_COPY:
-                    raise
-                in_kernel = False
-        if not in_kernel:
-            chunk = os.pread(src.fd, min(left, 8 << 20), offset)
-            out.write(chunk)
-            out.flush()
-            n = len(chunk)
-        if n == 0:
-            raise RuntimeError(f"the file to copy ends {left} bytes early (at byte {offset})")
-        offset, left = offset + n, left - n
-    out.seek(0, os.SEEK_END)  # the buffered writer's position follows the kernel's
-
-
 def write_model_file(
-    out: BinaryIO,
+    out: DirectFile,
     fields: dict[str, Any],
     levels: list[tuple[int, int, int, int]],
     entries: list[tuple[int, int, int, int]],
@@ -300,8 +267,8 @@ def write_model_file(
     or with `tier_count` > 0 (FLAG_TIERED) that many per level, level-major. `entries`
     are (stored size, raw size, crc, codec) in block order; `block_data` yields the
     stored bytes in the same order (it may yield them in larger runs), as bytes or as
-    ranges of other files. `out` must be a file opened for writing. Returns the file
-    size."""
+    ranges of other files, which `out` (direct_io.py) copies past the page cache.
+    Returns the file size."""
     if tier_count and len(levels) % tier_count:
         raise ValueError("a tiered level table holds tier_count records per level")
     index_size = _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
@@ -348,7 +315,7 @@ def write_model_file(
     written = data_offset
     for chunk in block_data:
         if isinstance(chunk, FileRange):
-            _copy_range(chunk, out)
+            out.copy(chunk.fd, chunk.offset, chunk.size)
             written += chunk.size
         else:
             out.write(chunk)
