@@ -124,3 +124,20 @@ def test_a_model_written_through_the_page_cache_is_the_same(
     assert (tmp_path / "direct.vast").read_bytes() == (tmp_path / "cached.vast").read_bytes()
     with ModelFile(tmp_path / "direct.vast") as model:
         model.verify()
+
+
+def test_a_failed_write_raises_the_systems_error(tmp_path: Path) -> None:
+    """A write that fails (here: a full device), whether a full buffer's or the tail's at
+    close, raises its own error: closing after it neither hides that error nor leaks the
+    descriptor."""
+    full = Path("/dev/full")
+    if not full.exists():
+        pytest.skip("no /dev/full")
+    import errno
+
+    before = len(os.listdir("/proc/self/fd"))
+    for size in (3 << 20, 10):  # a buffer's flush, the tail
+        with pytest.raises(OSError) as raised, DirectFile(full, durable=False, buffer=1 << 20) as f:
+            f.write(b"x" * size)
+        assert raised.value.errno == errno.ENOSPC
+    assert len(os.listdir("/proc/self/fd")) == before

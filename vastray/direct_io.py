@@ -117,7 +117,12 @@ class DirectFile:
     def _release(self) -> None:
         self._closed = True
         self._view.release()
-        self._buffer.close()
+        try:
+            self._buffer.close()
+        except BufferError:
+            # A view of the buffer is still held (by the traceback of a failed write):
+            # the mapping goes with the last of them.
+            pass
         os.close(self._fd)
 
     def _flush_buffer(self) -> None:
