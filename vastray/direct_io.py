@@ -8,10 +8,11 @@ pages: bench/results/firsttouch.md) that can cost more than the disk. On the 2-c
 machine of bench/results the 10^8 build's write phase took 4.7-4.9 s this way against
 19.7 s through the page cache (bench/results/build-1e8-direct.md).
 
-`DirectFile` gathers what it is given in a page-aligned buffer (8 MiB by default) and writes whole
-buffers at aligned offsets; the tail goes out padded to 4 KiB and the file is then cut
-to its size. Where the file system refuses O_DIRECT (tmpfs, some network and FUSE file
-systems) the same writes go through the page cache instead: the same bytes either way.
+`DirectFile` gathers what it is given in a page-aligned buffer (8 MiB by default) and
+writes whole buffers at aligned offsets; the tail goes out padded to 4 KiB and the file
+is then cut to its size. Where the file system refuses O_DIRECT, at open or at the
+first write (older tmpfs, some FUSE and network file systems), the same writes go
+through the page cache instead: the same bytes either way.
 """
 
 from __future__ import annotations
