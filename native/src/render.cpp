@@ -48,17 +48,29 @@ struct SceneSecondary {
     std::uint32_t skip = kNoHit;
 };
 
-// Any hits of N rays (N = 1: traverse(), else a packet), the rays outside `mask` left
-// alone. Shared by the renderer and the batch query.
+// Any hits of N rays in lane order (N = 1: traverse(), else a packet), the lanes outside
+// `mask` holding copies of a live ray; skip[i] is the triangle lane i starts on (null:
+// none). Shared by the renderer (scene_occluded) and the batch query.
+template <int N>
+std::uint32_t occluded_rays(const Scene& scene, const Ray* rays, const std::uint32_t* skip, std::uint32_t mask,
+                            TraversalCounters& counters) {
+    if constexpr (N == 1) {
+        Hit occluder;
+        return (mask & 1u) && traverse<true>(scene.tree(), scene.tri_vertices(), rays[0], occluder, counters,
+                                              skip != nullptr ? skip[0] : kNoHit)
+                   ? 1u
+                   : 0u;
+    } else {
+        return occluded_packet<N>(scene.tree(), scene.tri_vertices(), rays, skip, mask, counters);
+    }
+}
+
+// The renderer's secondary rays, gathered into lane order for occluded_rays.
 template <int N>
 std::uint32_t scene_occluded(const Scene& scene, const SceneSecondary* rays, std::uint32_t mask,
                              TraversalCounters& counters) {
     if constexpr (N == 1) {
-        Hit occluder;
-        return (mask & 1u) && traverse<true>(scene.tree(), scene.tri_vertices(), rays[0].ray, occluder, counters,
-                                              rays[0].skip)
-                   ? 1u
-                   : 0u;
+        return occluded_rays<1>(scene, &rays[0].ray, &rays[0].skip, mask, counters);
     } else {
         Ray r[N];
         std::uint32_t skip[N];
@@ -68,7 +80,7 @@ std::uint32_t scene_occluded(const Scene& scene, const SceneSecondary* rays, std
             r[i] = s.ray;
             skip[i] = s.skip;
         }
-        return occluded_packet<N>(scene.tree(), scene.tri_vertices(), r, skip, mask, counters);
+        return occluded_rays<N>(scene, r, skip, mask, counters);
     }
 }
 
@@ -309,13 +321,8 @@ std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origi
                                                           blocked, m, c);
         } else {
             for (int j = 0; j < m; ++j) {
-                Hit occluder;
-                blocked[j] = packets[j].count == 1
-                                 ? (traverse<true>(scene.tree(), scene.tri_vertices(), packets[j].rays[0], occluder, c)
-                                        ? 1u
-                                        : 0u)
-                                 : occluded_packet<kPacket>(scene.tree(), scene.tri_vertices(), packets[j].rays,
-                                                            nullptr, masks[j], c);
+                blocked[j] = packets[j].count == 1 ? occluded_rays<1>(scene, packets[j].rays, nullptr, masks[j], c)
+                                                   : occluded_rays<kPacket>(scene, packets[j].rays, nullptr, masks[j], c);
             }
         }
         for (int j = 0; j < m; ++j) {
