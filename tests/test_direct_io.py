@@ -136,8 +136,8 @@ def test_a_failed_write_raises_the_systems_error(tmp_path: Path) -> None:
     import errno
 
     before = len(os.listdir("/proc/self/fd"))
-    for size in (3 << 20, 10):  # a buffer's flush, the tail
-        with pytest.raises(OSError) as raised, DirectFile(full, durable=False, buffer=1 << 20) as f:
+    for size in (BUFFER + 10, 10):  # a buffer's flush, the tail
+        with pytest.raises(OSError) as raised, DirectFile(full) as f:
             f.write(b"x" * size)
         assert raised.value.errno == errno.ENOSPC
     assert len(os.listdir("/proc/self/fd")) == before

@@ -8,7 +8,7 @@ pages: bench/results/firsttouch.md) that can cost more than the disk. On the 2-c
 machine of bench/results the 10^8 build's write phase took 4.7-4.9 s this way against
 19.7 s through the page cache (bench/results/build-1e8-direct.md).
 
-`DirectFile` gathers what it is given in a page-aligned buffer (8 MiB by default) and
+`DirectFile` gathers what it is given in an 8 MiB page-aligned buffer and
 writes whole buffers at aligned offsets; the tail goes out padded to 4 KiB and the file
 is then cut to its size. Where the file system refuses O_DIRECT, at open or at the
 first write (older tmpfs, some FUSE and network file systems), the same writes go
@@ -28,15 +28,10 @@ _O_DIRECT = getattr(os, "O_DIRECT", 0)
 
 
 class DirectFile:
-    """A new file written front to back. `close()` makes it durable (fsync; not for
-    scratch files, `durable=False`) and returns its size; on an error the caller removes
-    the file."""
+    """A new file written front to back. `close()` makes it durable (fsync) and returns
+    its size; on an error the caller removes the file."""
 
-    def __init__(self, path: str | os.PathLike[str], durable: bool = True, buffer: int = _BUFFER) -> None:
-        if buffer <= 0 or buffer % _ALIGN:
-            raise ValueError(f"the buffer must be a positive multiple of {_ALIGN} bytes, got {buffer}")
-        self.durable = durable
-        self._size = buffer
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
         self.direct = False
         if _O_DIRECT:
@@ -48,10 +43,10 @@ class DirectFile:
                     raise
         if not self.direct:
             self._fd = os.open(path, flags, 0o644)
-        self._buffer = mmap.mmap(-1, buffer)  # page-aligned, as O_DIRECT wants
+        self._buffer = mmap.mmap(-1, _BUFFER)  # page-aligned, as O_DIRECT wants
         self._view = memoryview(self._buffer)
         self._fill = 0  # bytes of the buffer in use
-        self._offset = 0  # where the buffer goes in the file (a multiple of its size)
+        self._offset = 0  # where the buffer goes in the file (a multiple of _BUFFER)
         self._closed = False
 
     @property
@@ -62,11 +57,11 @@ class DirectFile:
         src = memoryview(data).cast("B")
         done = 0
         while done < len(src):
-            n = min(len(src) - done, self._size - self._fill)
+            n = min(len(src) - done, _BUFFER - self._fill)
             self._view[self._fill : self._fill + n] = src[done : done + n]
             self._fill += n
             done += n
-            if self._fill == self._size:
+            if self._fill == _BUFFER:
                 self._flush_buffer()
         return done
 
@@ -74,14 +69,14 @@ class DirectFile:
         """Appends `size` bytes at `offset` of the open file `fd`, read straight into the
         buffer."""
         while size > 0:
-            want = min(size, self._size - self._fill)
+            want = min(size, _BUFFER - self._fill)
             n = os.preadv(fd, [self._view[self._fill : self._fill + want]], offset)
             if n == 0:
                 raise RuntimeError(f"the file to copy ends {size} bytes early (at byte {offset})")
             self._fill += n
             offset += n
             size -= n
-            if self._fill == self._size:
+            if self._fill == _BUFFER:
                 self._flush_buffer()
 
     def close(self) -> int:
@@ -95,8 +90,7 @@ class DirectFile:
                 self._view[self._fill : padded] = bytes(padded - self._fill)
                 self._write_at(self._view[:padded], self._offset)
                 os.ftruncate(self._fd, size)
-            if self.durable:
-                os.fsync(self._fd)
+            os.fsync(self._fd)
             return size
         finally:
             self._release()
@@ -128,7 +122,7 @@ class DirectFile:
 
     def _flush_buffer(self) -> None:
         self._write_at(self._view, self._offset)
-        self._offset += self._size
+        self._offset += _BUFFER
         self._fill = 0
 
     def _write_at(self, data: memoryview, offset: int) -> None:
