@@ -1,0 +1,291 @@
+"""Two builds of vastray side by side: the working tree against a git revision, on the
+same rays, alternating, for a change to the kernels that should not change an answer.
+
+Each build runs in a child process of its own (two builds of the native module cannot
+share one process), started once: it builds every model's scene and makes its rays,
+then waits. The parent then asks the two children in turn, round after round, the
+order swapped every round, so that a busy machine slows both alike; each child reports
+its time and a checksum of its answers, and the run stops if the answers differ.
+
+Workloads, one thread each:
+
+* `batch`: closest hits of the primary rays (1024x768) through `Scene.intersect`;
+* `ao`: 8 AO rays per facing primary hit, 0.2 x the diagonal, through `Scene.occluded`
+  (as bench/rays.py makes them);
+* `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
+* `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
+  with `--ooc`, complete, its own clock.
+
+Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
+
+    python bench/ab.py --baseline HEAD --models stanford-bunny,plant --sizes 1e6
+    python bench/ab.py --baseline HEAD --models plant --sizes 1e7 --ooc plant-1e7.vast
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import (
+    RESULTS_DIR,
+    camera_rays,
+    format_count,
+    geometric_mean,
+    machine_info,
+    markdown_table,
+    models_dir,
+    parse_count,
+)
+
+from build import build_baseline, snapshot_vastray, use_snapshot
+
+WORKLOADS = ("batch", "ao", "frame", "ooc")
+PROCEDURAL = ("plant", "mandelbulb")
+
+
+# ----------------------------------------------------------------------------- child
+
+
+class Child:
+    """A build's side of the run: its scenes, rays and built models, and the workloads."""
+
+    def __init__(self) -> None:
+        from vastray import native
+
+        self.native = native
+        self.scenes: dict[str, Any] = {}
+        self.cache: Any = None
+        self.ooc: dict[str, Any] = {}
+
+    def load(self, label: str, npz: str) -> dict[str, Any]:
+        from common import ao_rays_from_hits
+
+        from vastray.camera import frame_bounds
+
+        data = np.load(npz)
+        vertices, faces = data["vertices"], data["faces"]
+        scene = self.native.Scene(vertices, faces, threads=0)
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in scene.bounds)
+        camera = frame_bounds(lo, hi, fov=45.0, width=1024, height=768)
+        o, d = camera_rays(camera.eye, camera.target, camera.up, camera.fov, camera.width, camera.height)
+        hits = scene.intersect(o, d, threads=0)
+        # Input ids are the face indices here: the npz holds what ingest kept.
+        ao_o, ao_d, ao_tmax = ao_rays_from_hits(
+            vertices, faces, d, hits, 8, np.random.default_rng(1), float(np.linalg.norm(hi - lo))
+        )
+        self.scenes[label] = (scene, camera, o, d, ao_o, ao_d, ao_tmax)
+        return {"rays": len(o), "ao_rays": len(ao_o)}
+
+    def open_model(self, path: str) -> dict[str, Any]:
+        from vastray.camera import frame_bounds
+        from vastray.outofcore import OutOfCoreModel, make_cache
+
+        if self.cache is None:
+            self.cache = make_cache(4 << 30, fetchers=2)
+        model = OutOfCoreModel(path, self.cache)
+        camera = frame_bounds(*model.bounds, width=1280, height=720)
+        self.ooc[path] = (model, camera)
+        return {"triangles": int(model.triangle_count)}
+
+    def run(self, workload: str, label: str, reps: int, poe: float) -> dict[str, Any]:
+        from vastray.renderer import trace
+
+        best, check = float("inf"), 0
+        for _ in range(reps):
+            if workload == "ooc":
+                model, camera = self.ooc[label]
+                frame = model.render_complete(camera, pixels_of_error=poe, shading="headlight", threads=1)
+                seconds = float(frame.stats.milliseconds) / 1e3
+                check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
+            else:
+                scene, camera, o, d, ao_o, ao_d, ao_tmax = self.scenes[label]
+                if workload == "batch":
+                    start = time.perf_counter()
+                    hits = scene.intersect(o, d, threads=1)
+                    seconds = time.perf_counter() - start
+                    check = int(np.asarray(hits["prim"], dtype=np.int64).sum())
+                elif workload == "ao":
+                    start = time.perf_counter()
+                    blocked = scene.occluded(ao_o, ao_d, 0.0, ao_tmax, threads=1)
+                    seconds = time.perf_counter() - start
+                    check = int(np.count_nonzero(blocked))
+                else:
+                    frame = trace(scene, camera, shading="normal", threads=1)
+                    seconds = float(frame.stats.milliseconds) / 1e3
+                    check = int(frame.prim.astype(np.int64).sum())
+            best = min(best, seconds)
+        return {"seconds": best, "check": check}
+
+
+def child_main(snapshot: str) -> int:
+    use_snapshot(snapshot)
+    from vastray import native
+
+    child = Child()
+    print(json.dumps({"isa": native.isa()}), flush=True)
+    for line in sys.stdin:
+        request = json.loads(line)
+        op = request.pop("op")
+        reply = getattr(child, op)(**request)
+        print(json.dumps(reply), flush=True)
+    return 0
+
+
+# ----------------------------------------------------------------------------- parent
+
+
+class Build:
+    def __init__(self, name: str, snapshot: Path, description: str) -> None:
+        self.name, self.description = name, description
+        here = str(Path(__file__).resolve())
+        self.proc = subprocess.Popen(
+            [sys.executable, here, "--child", str(snapshot)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        self.isa = self._read()["isa"]
+
+    def _read(self) -> dict[str, Any]:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise SystemExit(f"the {self.name} child died (exit {self.proc.wait()})")
+        return json.loads(line)
+
+    def ask(self, op: str, **args: Any) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(json.dumps({"op": op, **args}) + "\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def close(self) -> None:
+        if self.proc.stdin:
+            self.proc.stdin.close()
+        self.proc.wait()
+
+
+def model_meshes(names: list[str], sizes: list[int], folder: Path) -> list[tuple[str, Path]]:
+    """Each model's vertices and faces, made once by the working tree's vastray, in an npz
+    that both builds read (so both trace the same triangles)."""
+    from vastray.ingest import load_mesh
+    from vastray.scenes import to_mesh
+
+    out = []
+    for name in names:
+        if name in PROCEDURAL:
+            made = [(f"{name}-{format_count(n)}", lambda n=n, g=name: to_mesh(g, n, 1)) for n in sizes]
+        else:
+            matches = sorted(p for p in models_dir().glob(f"{name}.*"))
+            if not matches:
+                raise SystemExit(f"no mesh {name!r} in {models_dir()}")
+            made = [(name, lambda p=matches[0]: load_mesh(p))]
+        for label, make in made:
+            mesh = make()
+            path = folder / f"{label}.npz"
+            np.savez(
+                path,
+                vertices=np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                faces=np.ascontiguousarray(mesh.faces, dtype=np.uint32),
+            )
+            out.append((label, path))
+            print(f"{label}: {len(mesh.faces):,} triangles", flush=True)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    workloads = [w for w in args.workloads.split(",") if w]
+    unknown = set(workloads) - set(WORKLOADS)
+    if unknown:
+        raise SystemExit(f"unknown workloads {sorted(unknown)} (known: {', '.join(WORKLOADS)})")
+    sizes = [parse_count(s) for s in args.sizes.split(",") if s]
+    names = [m for m in args.models.split(",") if m]
+    ooc = [str(Path(p).resolve()) for p in args.ooc]
+    with tempfile.TemporaryDirectory(prefix="vastray-ab-") as tmp:
+        meshes = model_meshes(names, sizes, Path(tmp))
+        now_pkg, now_desc = snapshot_vastray()
+        base_pkg, base_desc = build_baseline(args.baseline)
+        builds = [Build("now", now_pkg, now_desc), Build("baseline", base_pkg, base_desc)]
+        try:
+            for b in builds:  # one after the other: their scene builds would compete
+                for label, path in meshes:
+                    b.ask("load", label=label, npz=str(path))
+                for path in ooc:
+                    b.ask("open_model", path=path)
+            jobs = [(w, label) for w in workloads if w != "ooc" for label, _ in meshes]
+            jobs += [("ooc", path) for path in ooc] if "ooc" in workloads else []
+            best: dict[tuple[str, str, str], float] = {}
+            for r in range(args.rounds):
+                order = builds if r % 2 == 0 else builds[::-1]
+                for workload, label in jobs:
+                    checks = {}
+                    for b in order:
+                        reply = b.ask("run", workload=workload, label=label, reps=args.reps, poe=args.poe)
+                        key = (workload, label, b.name)
+                        best[key] = min(best.get(key, float("inf")), reply["seconds"])
+                        checks[b.name] = reply["check"]
+                    if len(set(checks.values())) != 1:
+                        raise SystemExit(f"{workload} {label}: the builds' answers differ ({checks})")
+                print(f"round {r + 1}/{args.rounds} done", flush=True)
+        finally:
+            for b in builds:
+                b.close()
+    rows, ratios = [], []
+    for workload, label in jobs:
+        now, base = best[(workload, label, "now")], best[(workload, label, "baseline")]
+        ratios.append(base / now)
+        name = Path(label).name if workload == "ooc" else label
+        rows.append([workload, name, f"{base * 1e3:.1f}", f"{now * 1e3:.1f}", f"{base / now:.3f}x"])
+    info = machine_info({"now": now_desc, "baseline": base_desc, "ISA path (both)": builds[0].isa})
+    lines = [
+        "# Two builds side by side",
+        "",
+        f"`{' '.join(['python', 'bench/ab.py', *sys.argv[1:]])}`",
+        "",
+        *(f"- {k}: {v}" for k, v in info.items()),
+        "",
+        f"Best of {args.rounds} rounds x {args.reps} runs per build, alternating; one thread; "
+        "the answers of both builds were equal in every run.",
+        "",
+        markdown_table(["workload", "model", "baseline ms", "now ms", "baseline / now"], rows),
+        "",
+        f"Geometric mean: {geometric_mean(ratios):.3f}x",
+    ]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.md").write_text(text)
+    return 0
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--baseline", default="HEAD", help="git revision to compare with (default HEAD)")
+    ap.add_argument("--models", default="stanford-bunny,plant", help="mesh stems, plant, mandelbulb")
+    ap.add_argument("--sizes", default="1e6", help="procedural triangle counts (default 1e6)")
+    ap.add_argument("--workloads", default="batch,ao,frame,ooc", help=f"of {', '.join(WORKLOADS)}")
+    ap.add_argument("--ooc", action="append", default=[], help="a built model (.vast) for 'ooc' (repeatable)")
+    ap.add_argument("--poe", type=float, default=2.0, help="pixels of error of the out-of-core frames")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--reps", type=int, default=2, help="runs per build per round (the best is kept)")
+    ap.add_argument("--out", type=Path, default=RESULTS_DIR)
+    ap.add_argument("--name", default="ab")
+    return ap.parse_args(argv)
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--child":
+        sys.exit(child_main(sys.argv[2]))
+    sys.exit(main())
