@@ -8,6 +8,8 @@ trace the same rays through the same tree both ways, alternating within each rou
 that a busy machine slows both alike:
 
 * the renderer's primary rays (1024x768, 4x4 packets, shading='normal', its own clock);
+* the renderer's AO frame (the same view, shading='ao', 8 samples: a block's AO queries
+  go to the backend 16 at a time, occluded_group), its own clock;
 * AO rays (8 per facing primary hit, 0.2 x the diagonal, as bench/rays.py makes them)
   through `Scene.occluded` (wall time).
 
@@ -63,12 +65,16 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
             for mode, size in MODES.items():
                 os.environ["VASTRAY_INTERLEAVE_BYTES"] = size
                 frame = trace(scene, cam, shading="normal", threads=1)
+                ao_frame = trace(scene, cam, shading="ao", ao_samples=8, threads=1)
                 t = time.perf_counter()
                 blocked = np.asarray(scene.occluded(ao_o, ao_d, 0, ao_tmax, threads=1), dtype=bool)
                 ao_s = time.perf_counter() - t
                 best[mode, "render"] = min(best.get((mode, "render"), np.inf), frame.stats.milliseconds / 1e3)
                 best[mode, "ao"] = min(best.get((mode, "ao"), np.inf), ao_s)
-                answers[mode] = (np.asarray(frame.prim), blocked)
+                best[mode, "ao_frame"] = min(
+                    best.get((mode, "ao_frame"), np.inf), ao_frame.stats.milliseconds / 1e3
+                )
+                answers[mode] = (np.asarray(frame.prim), blocked, np.asarray(ao_frame.image))
     finally:
         os.environ.pop("VASTRAY_INTERLEAVE_BYTES", None)
     a, b = answers.values()
@@ -77,9 +83,10 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
         "triangles": len(faces),
         "tree_mib": scene.build_stats["memory_bytes"] / 2**20,
         "default": "in flight" if scene.build_stats["memory_bytes"] >= 128 << 20 else "one at a time",
-        "equal": bool(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])),
+        "equal": all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)),
     }
-    for k, n in (("render", len(o)), ("ao", len(ao_o))):
+    ao_frame_rays = int(ao_frame.stats.rays)
+    for k, n in (("render", len(o)), ("ao", len(ao_o)), ("ao_frame", ao_frame_rays)):
         alone, flight = best["one at a time", k], best["in flight", k]
         row[f"{k}_alone"] = n / alone / 1e6
         row[f"{k}_flight"] = n / flight / 1e6
@@ -87,7 +94,8 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
     print(
         f"   tree {row['tree_mib']:.0f} MiB | render {row['render_alone']:.2f} -> {row['render_flight']:.2f} "
         f"Mrays/s ({row['render_x']:.2f}x), AO {row['ao_alone']:.2f} -> {row['ao_flight']:.2f} "
-        f"({row['ao_x']:.2f}x), answers equal: {row['equal']}",
+        f"({row['ao_x']:.2f}x), AO frame {row['ao_frame_alone']:.2f} -> {row['ao_frame_flight']:.2f} "
+        f"({row['ao_frame_x']:.2f}x), answers equal: {row['equal']}",
         flush=True,
     )
     return row
@@ -121,6 +129,9 @@ def report(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
                     "AO Mrays/s, one at a time",
                     "in flight",
                     "AO x",
+                    "AO frame Mrays/s, one at a time",
+                    "in flight",
+                    "AO frame x",
                     "answers equal",
                 ],
                 [
@@ -135,6 +146,9 @@ def report(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
                         f"{r['ao_alone']:.2f}",
                         f"{r['ao_flight']:.2f}",
                         f"{r['ao_x']:.2f}x",
+                        f"{r['ao_frame_alone']:.2f}",
+                        f"{r['ao_frame_flight']:.2f}",
+                        f"{r['ao_frame_x']:.2f}x",
                         "yes" if r["equal"] else "**no**",
                     ]
                     for r in rows

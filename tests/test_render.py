@@ -270,8 +270,9 @@ def test_ray_packets_change_speed_not_answers() -> None:
 def test_packets_in_flight_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
     """On a large tree the in-core renderer keeps several 4x4 packets in flight, each
     stopping where its next node, leaf list or vertices would miss the caches
-    (traverse_packets). VASTRAY_INTERLEAVE_BYTES=0 turns that on for any tree: every
-    shading mode must give the frame of packets traced one at a time, and of single rays."""
+    (traverse_packets), and a block's AO queries in flight (occluded_group).
+    VASTRAY_INTERLEAVE_BYTES=0 turns that on for any tree: every shading mode must give
+    the frame of packets traced one at a time, and of single rays."""
     from vastray import scenes
     from vastray.camera import frame_bounds
 
@@ -279,12 +280,13 @@ def test_packets_in_flight_change_speed_not_answers(monkeypatch: pytest.MonkeyPa
     scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colours)
     cam = frame_bounds(*scene.bounds, width=320, height=240)
     args = (list(cam.eye), list(cam.target), list(cam.up), cam.fov, cam.width, cam.height)
-    for shading in ("normal", "sun", "ao"):
+    # (12 AO samples: two queries of a pixel, one of them partly filled.)
+    for shading, samples in (("normal", 4), ("sun", 4), ("ao", 4), ("ao", 12)):
         monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", str(2**62))
-        alone = render_view(scene, *args, packets=16, shading=shading, ao_samples=4)
-        single = render_view(scene, *args, packets=1, shading=shading, ao_samples=4)
+        alone = render_view(scene, *args, packets=16, shading=shading, ao_samples=samples)
+        single = render_view(scene, *args, packets=1, shading=shading, ao_samples=samples)
         monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
-        together = render_view(scene, *args, packets=16, shading=shading, ao_samples=4)
+        together = render_view(scene, *args, packets=16, shading=shading, ao_samples=samples)
         for frame in (together, single):
             np.testing.assert_array_equal(frame.prim, alone.prim)
             np.testing.assert_array_equal(frame.depth, alone.depth)

@@ -216,6 +216,13 @@ public:
         }
     }
 
+    // Several occlusion queries, one after the other.
+    template <int N>
+    void occluded_group(Lane& lane, const Secondary* const* rays, const std::uint32_t* mask, std::uint32_t* blocked,
+                        int count, RayGroup group) const {
+        for (int j = 0; j < count; ++j) blocked[j] = mask[j] ? occluded<N>(lane, rays[j], mask[j], group) : 0u;
+    }
+
     void trace_secondary(Lane& lane, const Secondary& s, Hit& hit) const {
         lod_traverse<false>(lane, root_, s.ray, hit, s.skip);
     }

@@ -23,6 +23,10 @@
 //   template <int N> std::uint32_t occluded(Lane&, const Secondary* rays, std::uint32_t mask,
 //                                           RayGroup group) const;
 //       // any hit of the rays selected by mask (N = 1, 4, 8 or 16): the bits of those blocked
+//   template <int N> void occluded_group(Lane&, const Secondary* const* rays, const std::uint32_t* mask,
+//                                        std::uint32_t* blocked, int count, RayGroup group) const;
+//       // count such queries (a mask may be 0: nothing blocked), which the backend may keep
+//       // in flight together; blocked[j] as occluded would return for query j
 //   void trace_secondary(Lane&, const Secondary&, Hit&) const;       // closest hit (diffuse)
 //   float ao_distance() const;
 //
@@ -381,8 +385,9 @@ private:
                 return;
             }
             case Shading::AmbientOcclusion:
+                ambient_occlusion(b, lane, rays, light);
                 for (int i = 0; i < P; ++i) {
-                    if (b.lit >> i & 1u) store(b, i, b.colour[i] * ambient_occlusion(b, i, lane, rays));
+                    if (b.lit >> i & 1u) store(b, i, b.colour[i] * light[i]);
                 }
                 return;
             case Shading::Indirect:
@@ -440,30 +445,54 @@ private:
         return facing & ~occluded<P>(lane, shadow, query, RayGroup::SharedDirection);
     }
 
+    // The ambient light of the block's lit pixels (light[i]): `ao_samples` rays each, in
+    // queries of 8 that share an origin, handed to the backend 16 at a time so that it
+    // can keep several in flight (occluded_group).
     template <int P>
-    float ambient_occlusion(const Block<P>& b, int i, Lane& lane, LaneRays& rays) const {
-        constexpr int kGroup = 8;  // AO rays of one pixel per occlusion query
+    void ambient_occlusion(const Block<P>& b, Lane& lane, LaneRays& rays, float* light) const {
+        constexpr int kGroup = 8;     // AO rays of one pixel per occlusion query
+        constexpr int kQueries = 16;  // queries per occluded_group call
         const int samples = std::max(1, params_.ao_samples);
-        const shading::Basis basis(b.n[i]);
         const int first = params_.sample_index * samples;
-        int open = 0;
-        for (int k0 = 0; k0 < samples; k0 += kGroup) {
-            Secondary probe[kGroup];
-            const int count = std::min(kGroup, samples - k0);
-            for (int k = 0; k < count; ++k) {
-                const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], first + k0 + k);
-                probe[k] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, backend_.ao_distance(),
+        Secondary probe[kQueries][kGroup];
+        const Secondary* query[kQueries];
+        std::uint32_t mask[kQueries], blocked[kQueries];
+        int pixel_of[kQueries];
+        int open[P] = {};
+        int q = 0;
+        auto flush = [&]() {
+            backend_.template occluded_group<kGroup>(lane, query, mask, blocked, q, RayGroup::SharedOrigin);
+            for (int j = 0; j < q; ++j) open[pixel_of[j]] -= __builtin_popcount(blocked[j]);
+            q = 0;
+        };
+        for (int i = 0; i < P; ++i) {
+            if (!(b.lit >> i & 1u)) continue;
+            open[i] = samples;  // less the blocked rays (a ray cut away by a section is open)
+            const shading::Basis basis(b.n[i]);
+            for (int k0 = 0; k0 < samples; k0 += kGroup) {
+                Secondary* p = probe[q];
+                const int count = std::min(kGroup, samples - k0);
+                for (int k = 0; k < count; ++k) {
+                    const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], first + k0 + k);
+                    p[k] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, backend_.ao_distance(),
                                                   SecondaryRay::AmbientOcclusion);
+                }
+                for (int k = count; k < kGroup; ++k) p[k] = p[0];
+                std::uint32_t m = (1u << count) - 1;
+                for (int k = 0; k < count; ++k) {
+                    if (!clip_secondary(p[k])) m &= ~(1u << k);  // cut away: open
+                }
+                query[q] = p;
+                mask[q] = m;
+                pixel_of[q] = i;
+                if (++q == kQueries) flush();
             }
-            for (int k = count; k < kGroup; ++k) probe[k] = probe[0];
-            std::uint32_t mask = (1u << count) - 1;
-            for (int k = 0; k < count; ++k) {
-                if (!clip_secondary(probe[k])) mask &= ~(1u << k);  // cut away: open
-            }
-            open += count - __builtin_popcount(occluded<kGroup>(lane, probe, mask, RayGroup::SharedOrigin));
+            rays.secondary += static_cast<std::uint64_t>(samples);
         }
-        rays.secondary += static_cast<std::uint64_t>(samples);
-        return shading::ambient(open, samples);
+        if (q > 0) flush();
+        for (int i = 0; i < P; ++i) {
+            if (b.lit >> i & 1u) light[i] = shading::ambient(open[i], samples);
+        }
     }
 
     // Sun with shadows, plus one bounce: kDiffuseRays cosine-weighted rays per pixel
