@@ -13,6 +13,7 @@ Workloads, one thread each:
 * `ao`: 8 AO rays per facing primary hit, 0.2 x the diagonal, through `Scene.occluded`
   (as bench/rays.py makes them);
 * `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
+* `sun`: the same frame with shading='sun' (a shadow ray per lit pixel facing the sun);
 * `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
   with `--ooc`, complete, its own clock.
 
@@ -50,7 +51,7 @@ from common import (
 
 from build import build_baseline, snapshot_vastray, use_snapshot
 
-WORKLOADS = ("batch", "ao", "frame", "ooc")
+WORKLOADS = ("batch", "ao", "frame", "sun", "ooc")
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -121,9 +122,10 @@ class Child:
                     seconds = time.perf_counter() - start
                     check = int(np.count_nonzero(blocked))
                 else:
-                    frame = trace(scene, camera, shading="normal", threads=1)
+                    shading = "sun" if workload == "sun" else "normal"
+                    frame = trace(scene, camera, shading=shading, threads=1)
                     seconds = float(frame.stats.milliseconds) / 1e3
-                    check = int(frame.prim.astype(np.int64).sum())
+                    check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
             best = min(best, seconds)
         return {"seconds": best, "check": check}
 

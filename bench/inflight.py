@@ -10,6 +10,8 @@ that a busy machine slows both alike:
 * the renderer's primary rays (1024x768, 4x4 packets, shading='normal', its own clock);
 * the renderer's AO frame (the same view, shading='ao', 8 samples: a block's AO queries
   go to the backend 16 at a time, occluded_group), its own clock;
+* the renderer's sun frame (shading='sun': its primary packets in flight; a block's
+  shadow rays are one packet, traced as it is shaded), its own clock;
 * AO rays (8 per facing primary hit, 0.2 x the diagonal, as bench/rays.py makes them)
   through `Scene.occluded` (wall time).
 
@@ -66,15 +68,16 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
                 os.environ["VASTRAY_INTERLEAVE_BYTES"] = size
                 frame = trace(scene, cam, shading="normal", threads=1)
                 ao_frame = trace(scene, cam, shading="ao", ao_samples=8, threads=1)
+                sun_frame = trace(scene, cam, shading="sun", threads=1)
                 t = time.perf_counter()
                 blocked = np.asarray(scene.occluded(ao_o, ao_d, 0, ao_tmax, threads=1), dtype=bool)
                 ao_s = time.perf_counter() - t
                 best[mode, "render"] = min(best.get((mode, "render"), np.inf), frame.stats.milliseconds / 1e3)
                 best[mode, "ao"] = min(best.get((mode, "ao"), np.inf), ao_s)
-                best[mode, "ao_frame"] = min(
-                    best.get((mode, "ao_frame"), np.inf), ao_frame.stats.milliseconds / 1e3
-                )
-                answers[mode] = (np.asarray(frame.prim), blocked, np.asarray(ao_frame.image))
+                for kind, f in (("ao_frame", ao_frame), ("sun_frame", sun_frame)):
+                    best[mode, kind] = min(best.get((mode, kind), np.inf), f.stats.milliseconds / 1e3)
+                images = (np.asarray(ao_frame.image), np.asarray(sun_frame.image))
+                answers[mode] = (np.asarray(frame.prim), blocked, *images)
     finally:
         os.environ.pop("VASTRAY_INTERLEAVE_BYTES", None)
     a, b = answers.values()
@@ -85,8 +88,9 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
         "default": "in flight" if scene.build_stats["memory_bytes"] >= 128 << 20 else "one at a time",
         "equal": all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)),
     }
-    ao_frame_rays = int(ao_frame.stats.rays)
-    for k, n in (("render", len(o)), ("ao", len(ao_o)), ("ao_frame", ao_frame_rays)):
+    kinds = (("render", len(o)), ("ao", len(ao_o)))
+    kinds += (("ao_frame", int(ao_frame.stats.rays)), ("sun_frame", int(sun_frame.stats.rays)))
+    for k, n in kinds:
         alone, flight = best["one at a time", k], best["in flight", k]
         row[f"{k}_alone"] = n / alone / 1e6
         row[f"{k}_flight"] = n / flight / 1e6
@@ -95,7 +99,7 @@ def bench_model(spec: Any, rounds: int) -> dict[str, Any]:
         f"   tree {row['tree_mib']:.0f} MiB | render {row['render_alone']:.2f} -> {row['render_flight']:.2f} "
         f"Mrays/s ({row['render_x']:.2f}x), AO {row['ao_alone']:.2f} -> {row['ao_flight']:.2f} "
         f"({row['ao_x']:.2f}x), AO frame {row['ao_frame_alone']:.2f} -> {row['ao_frame_flight']:.2f} "
-        f"({row['ao_frame_x']:.2f}x), answers equal: {row['equal']}",
+        f"({row['ao_frame_x']:.2f}x), sun frame {row['sun_frame_x']:.2f}x, answers equal: {row['equal']}",
         flush=True,
     )
     return row
@@ -132,6 +136,9 @@ def report(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
                     "AO frame Mrays/s, one at a time",
                     "in flight",
                     "AO frame x",
+                    "sun frame Mrays/s, one at a time",
+                    "in flight",
+                    "sun frame x",
                     "answers equal",
                 ],
                 [
@@ -149,6 +156,9 @@ def report(rows: list[dict[str, Any]], info: dict[str, str]) -> str:
                         f"{r['ao_frame_alone']:.2f}",
                         f"{r['ao_frame_flight']:.2f}",
                         f"{r['ao_frame_x']:.2f}x",
+                        f"{r['sun_frame_alone']:.2f}",
+                        f"{r['sun_frame_flight']:.2f}",
+                        f"{r['sun_frame_x']:.2f}x",
                         "yes" if r["equal"] else "**no**",
                     ]
                     for r in rows
