@@ -68,6 +68,18 @@ std::uint32_t occluded_rays(const Scene& scene, const Ray* rays, const std::uint
     }
 }
 
+// N secondary rays gathered into lane order (rays r, skip ids) for a packet; lanes
+// outside `mask` copy a live ray (with no live ray, lane 0's).
+template <int N>
+void to_lanes(const SceneSecondary* rays, std::uint32_t mask, Ray* r, std::uint32_t* skip) {
+    const int any = mask ? __builtin_ctz(mask) : 0;
+    for (int i = 0; i < N; ++i) {
+        const SceneSecondary& s = rays[(mask >> i & 1u) ? i : any];
+        r[i] = s.ray;
+        skip[i] = s.skip;
+    }
+}
+
 // The renderer's secondary rays, gathered into lane order for occluded_rays.
 template <int N>
 std::uint32_t scene_occluded(const Scene& scene, const SceneSecondary* rays, std::uint32_t mask,
@@ -77,12 +89,7 @@ std::uint32_t scene_occluded(const Scene& scene, const SceneSecondary* rays, std
     } else {
         Ray r[N];
         std::uint32_t skip[N];
-        const int any = __builtin_ctz(mask);  // lanes outside the mask copy a live ray
-        for (int i = 0; i < N; ++i) {
-            const SceneSecondary& s = rays[(mask >> i & 1u) ? i : any];
-            r[i] = s.ray;
-            skip[i] = s.skip;
-        }
+        to_lanes<N>(rays, mask, r, skip);
         return occluded_rays<N>(scene, r, skip, mask, counters);
     }
 }
@@ -187,23 +194,14 @@ public:
                     std::uint32_t skip[kMaxGroup][N];
                     const Ray* r_of[kMaxGroup];
                     const std::uint32_t* skip_of[kMaxGroup];
-                    std::uint32_t live[kMaxGroup];
                     for (int j = 0; j < m; ++j) {
-                        // Lanes outside the mask copy a live ray (as scene_occluded's do); a
-                        // query with none has no packet (its walk never starts).
-                        const std::uint32_t bits = mask[j0 + j];
-                        const int any = bits ? __builtin_ctz(bits) : 0;
-                        for (int i = 0; i < N; ++i) {
-                            const SceneSecondary& s = rays[j0 + j][(bits >> i & 1u) ? i : any];
-                            r[j][i] = s.ray;
-                            skip[j][i] = s.skip;
-                        }
+                        // (A query with no live ray has no packet: its walk never starts.)
+                        to_lanes<N>(rays[j0 + j], mask[j0 + j], r[j], skip[j]);
                         r_of[j] = r[j];
                         skip_of[j] = skip[j];
-                        live[j] = bits;
                     }
-                    occluded_packets<N, kOcclusionInFlight>(scene_.tree(), scene_.tri_vertices(), r_of, skip_of, live,
-                                                           blocked + j0, m, lane);
+                    occluded_packets<N, kOcclusionInFlight>(scene_.tree(), scene_.tri_vertices(), r_of, skip_of,
+                                                           mask + j0, blocked + j0, m, lane);
                 }
                 return;
             }
