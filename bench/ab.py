@@ -15,7 +15,7 @@ Workloads, one thread each:
 * `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
 * `sun`: the same frame with shading='sun' (a shadow ray per lit pixel facing the sun);
 * `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
-  with `--ooc`, complete, its own clock.
+  with `--ooc`, complete, its own clock; `ooc-sun`: the same with shadow rays.
 
 Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
 
@@ -51,7 +51,8 @@ from common import (
 
 from build import build_baseline, snapshot_vastray, use_snapshot
 
-WORKLOADS = ("batch", "ao", "frame", "sun", "ooc")
+WORKLOADS = ("batch", "ao", "frame", "sun", "ooc", "ooc-sun")
+OOC_WORKLOADS = ("ooc", "ooc-sun")
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -104,9 +105,10 @@ class Child:
 
         best, check = float("inf"), 0
         for _ in range(reps):
-            if workload == "ooc":
+            if workload in OOC_WORKLOADS:
                 model, camera = self.ooc[label]
-                frame = model.render_complete(camera, pixels_of_error=poe, shading="headlight", threads=1)
+                shading = "sun" if workload == "ooc-sun" else "headlight"
+                frame = model.render_complete(camera, pixels_of_error=poe, shading=shading, threads=1)
                 seconds = float(frame.stats.milliseconds) / 1e3
                 check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
             else:
@@ -226,8 +228,8 @@ def main(argv: list[str] | None = None) -> int:
                     b.ask("load", label=label, npz=str(path))
                 for path in ooc:
                     b.ask("open_model", path=path)
-            jobs = [(w, label) for w in workloads if w != "ooc" for label, _ in meshes]
-            jobs += [("ooc", path) for path in ooc] if "ooc" in workloads else []
+            jobs = [(w, label) for w in workloads if w not in OOC_WORKLOADS for label, _ in meshes]
+            jobs += [(w, path) for w in workloads if w in OOC_WORKLOADS for path in ooc]
             best: dict[tuple[str, str, str], float] = {}
             for r in range(args.rounds):
                 order = builds if r % 2 == 0 else builds[::-1]
@@ -248,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     for workload, label in jobs:
         now, base = best[(workload, label, "now")], best[(workload, label, "baseline")]
         ratios.append(base / now)
-        name = Path(label).name if workload == "ooc" else label
+        name = Path(label).name if workload in OOC_WORKLOADS else label
         rows.append([workload, name, f"{base * 1e3:.1f}", f"{now * 1e3:.1f}", f"{base / now:.3f}x"])
     info = machine_info({"now": now_desc, "baseline": base_desc, "ISA path (both)": builds[0].isa})
     lines = [

@@ -25,7 +25,6 @@
 #include "vastray/isa.h"
 #include "vastray/lod_traverse.h"
 #include "vastray/packet.h"
-#include "vastray/scratch.h"
 
 VASTRAY_KERNEL_BEGIN
 
@@ -61,8 +60,7 @@ inline int equal_lanes(const std::uint32_t* ids, std::uint32_t id) {
 
 namespace lod_detail {
 
-// lod_packet_walk for a full-precision (Quantized = false) or quantized model: only the
-// rays that part from the packet (Walker) need to know which at compile time.
+// lod_packet_walk for a full-precision (Quantized = false) or quantized model.
 
 // GCC cannot see that an entry is popped only after it was pushed (top counts them),
 // and calls the stack maybe-uninitialised; it is left uninitialised on purpose (a
@@ -168,54 +166,6 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
         }
         live[v] = andnot(vm::from_bits(static_cast<unsigned>(which)), live[v]);
     };
-    // Rays that parted from the packet finish alone, as walkers that run side by side
-    // once the packet is done, so that their waits for memory (they are at the bottom of
-    // the tree, where each reaches data its neighbours do not) overlap.
-    using Tail = Walker<AnyHit, Quantized, true>;
-    Uninitialised<Tail, N> tail_store;
-    Tail* tails = tail_store.data();
-    int tail_ray[N];
-    int tail_count = 0;
-    // The one active lane of `act` leaves the packet: it walks the subtree at `at`, then
-    // the far children the packet kept for it, as lod_walk would have.
-    auto hand_off = [&](const NodeRef& at, const Voxel& last, const vm* act) {
-        for (int v = 0; v < K; ++v) {
-            const int bits = act[v].bits();
-            if (!bits) continue;
-            const int k = __builtin_ctz(static_cast<unsigned>(bits));
-            const int i = W * v + k;
-            alignas(64) float t0v[W], t1v[W], axv[W];
-            tmin[v].store(t0v);
-            tmax[v].store(t1v);
-            axis_in[v].store(axv);
-            Tail& tail = *new (tails + tail_count) Tail;
-            tail_ray[tail_count++] = i;
-            tail.start(rays[i], sheared[i], at, t0v[k], t1v[k], static_cast<int>(axv[k]), last, hits[i],
-                       skip ? skip[i] : kNoHit);
-            for (int e = 0; e < top; ++e) {
-                const Entry& en = stack[e];
-                en.tmin[v].store(t0v);
-                en.tmax[v].store(t1v);
-                en.axis[v].store(axv);
-                if (t0v[k] <= t1v[k]) tail.push(en.node, t0v[k], t1v[k], static_cast<int>(axv[k]), en.voxel);
-            }
-            live[v] = andnot(vm::from_bits(1u << k), live[v]);
-            return;
-        }
-    };
-    // Runs the parted rays to the end, in turns, and adds the any-hit ones that hit.
-    auto finish = [&]() {
-        std::uint32_t running = tail_count == 32 ? ~0u : (1u << tail_count) - 1;
-        while (running) {
-            for (std::uint32_t r = running; r; r &= r - 1) {
-                const int t = __builtin_ctz(r);
-                if (tails[t].run(lane) != Tail::Stop::Done) continue;
-                running &= ~(1u << t);
-                if (AnyHit && hits[tail_ray[t]].prim != kNoHit) occluded |= 1u << tail_ray[t];
-            }
-        }
-        return occluded;
-    };
     auto nearest_of = [&](const vm* act) {
         vf nearest = v_inf;
         for (int v = 0; v < K; ++v) nearest = min(select(act[v], tmin[v] + cone_t0[v], v_inf), nearest);
@@ -230,20 +180,12 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
         bool leaf = false;
         vm active[K];
         for (;;) {
-            int any = 0, count = 0;
+            int any = 0;
             for (int v = 0; v < K; ++v) {
                 active[v] = live[v] & (tmin[v] <= tmax[v]);
-                const int bits = active[v].bits();
-                any |= bits;
-                count += __builtin_popcount(static_cast<unsigned>(bits));
+                any |= active[v].bits();
             }
             if (!any) break;
-            if (count == 1) {
-                // The rays have parted: the last one walks this subtree alone, which costs
-                // it a scalar step per node instead of a packet's K vectors.
-                hand_off(node, voxel, active);
-                break;
-            }
             const std::uint32_t w = load<std::uint32_t>(node.block + node.off);
             if (!is_inner(w)) {
                 leaf = true;
@@ -279,7 +221,7 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
             // and the one it puts aside are written).
             const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
             std::uint32_t l_off, r_off;
-            if (!lod_detail::child_offsets<Quantized>(w, node.off, l_off, r_off)) return finish();  // damaged
+            if (!lod_detail::child_offsets<Quantized>(w, node.off, l_off, r_off)) return occluded;  // damaged
             // The packet's near child: the origin's side (shared origin), else the side
             // the directions leave.
             bool near_is_left, may_flip = true;
@@ -405,7 +347,7 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
         for (;;) {
             int live_bits = 0;
             for (int v = 0; v < K; ++v) live_bits |= live[v].bits();
-            if (top == 0 || !live_bits) return finish();
+            if (top == 0 || !live_bits) return occluded;
             const Entry& e = stack[--top];
             int any = 0;
             for (int v = 0; v < K; ++v) {
