@@ -729,12 +729,17 @@ def test_full_detail_equals_in_core(built: Callable[[str], Built], name: str, sh
 
 
 @pytest.mark.parametrize("name", ["plant", "out-of-core"])
-def test_interleaved_walks_answer_like_one_ray_at_a_time(built: Callable[[str], Built], name: str) -> None:
-    """Single-ray frames keep several walks in flight per thread, and packets finish the
-    rays that part from them as walks run side by side; both stop where a walk would wait
-    for memory and pick up another. The hits must be those of the batch query, which
-    walks each ray from the root to its end before the next: the same triangle at the
-    same distance for every pixel."""
+@pytest.mark.parametrize("interleave_from", ["", "0"])
+def test_interleaved_walks_answer_like_one_ray_at_a_time(
+    built: Callable[[str], Built], name: str, interleave_from: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Single-ray frames keep several walks in flight per thread, and on a large model
+    (forced here: VASTRAY_INTERLEAVE_BYTES=0) so do 2x2 and 4x4 packets: each stops where
+    it would wait for memory and another goes on. The hits must be those of the batch
+    query, which walks each ray from the root to its end before the next: the same
+    triangle at the same distance for every pixel. With level of detail (voxels in the
+    image) every packet size gives the single rays' frame."""
+    monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", interleave_from)
     model_built = built(name)
     camera = model_built.camera(direction=(1.0, 0.7, 1.3))
     origins, directions = camera.primary_rays()
@@ -743,13 +748,18 @@ def test_interleaved_walks_answer_like_one_ray_at_a_time(built: Callable[[str], 
         assert hits.complete.all()
         expected_prim = hits.prim.reshape(camera.height, camera.width)
         assert (expected_prim >= 0).mean() > 0.1
-        for packets in (1, 16):
+        for packets in (1, 4, 16):
             frame = model.render_complete(camera, pixels_of_error=0.0, packets=packets)
             np.testing.assert_array_equal(frame.prim, expected_prim)
             hit = expected_prim >= 0
             # pick measures t along the unit direction in double; the frame's depth is the
             # renderer's float t along the same ray.
             np.testing.assert_allclose(frame.depth[hit], hits.t.reshape(frame.depth.shape)[hit], rtol=1e-6)
+        lod = [model.render_complete(camera, pixels_of_error=4.0, packets=p) for p in (1, 4, 16)]
+        assert lod[0].stats.voxel_hits > 0
+        for frame in lod[1:]:
+            np.testing.assert_array_equal(frame.prim, lod[0].prim)
+            np.testing.assert_array_equal(frame.image, lod[0].image)
 
 
 @pytest.mark.parametrize("name", ["plant", "bunny"])

@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "vastray/frame_renderer.h"
+#include "vastray/interleave.h"
 #include "vastray/kernels.h"
 #include "vastray/lod_render.h"
 #include "vastray/lod_traverse_packet.h"
@@ -107,7 +108,11 @@ public:
     using Secondary = ModelSecondary;
 
     ModelBackend(const ModelIndex& index, const Camera& camera, const RenderParams& params)
-        : index_(index), camera_(camera), centre_(index.centre()), root_(index.root_cell()) {
+        : index_(index),
+          camera_(camera),
+          centre_(index.centre()),
+          root_(index.root_cell()),
+          interleave_(interleaves(index.file_size())) {
         const Vec3f diag = root_.hi - root_.lo;
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance) : 0.2f * length(diag);
         // Projected diameter 2R / (t * pixel_angle) <= PoE  <=>  R <= t * PoE * pixel_angle / 2.
@@ -137,9 +142,14 @@ public:
         return true;
     }
 
-    // (One packet after another: the packet walk does not stop for memory.)
+    // On a large model (interleave.h) several packets in flight, so that their waits for
+    // memory overlap; else one after the other.
     template <int Side>
     void trace_packets(Lane& lane, const Ray* const* rays, Hit* const* hits, bool* traced, int count) const {
+        if (interleave_) {
+            lod_trace_packets<Side * Side>(lane, root_, rays, hits, traced, count);
+            return;
+        }
         for (int j = 0; j < count; ++j) traced[j] = trace_packet<Side>(lane, rays[j], hits[j]);
     }
 
@@ -216,7 +226,8 @@ public:
         }
     }
 
-    // Several occlusion queries, one after the other.
+    // Several occlusion queries, one after the other: their packets in flight measured
+    // 0.85-1.0x at 10^7 and 10^8 (AO frames), where primary packets gain.
     template <int N>
     void occluded_group(Lane& lane, const Secondary* const* rays, const std::uint32_t* mask, std::uint32_t* blocked,
                         int count, RayGroup group) const {
@@ -247,6 +258,7 @@ private:
     shading::CameraRays camera_;
     Vec3d centre_;
     Box3f root_;
+    bool interleave_;
     float ao_distance_ = 1, primary_cone_ = 0, ao_cone_ = 0;
 };
 

@@ -1,16 +1,12 @@
 // The in-core renderer and batch queries, one build per ISA (isa.h): a Scene as a
 // frame-loop backend (frame_renderer.h), and closest/any-hit queries of world rays.
 #include <algorithm>
-#include <cctype>
-#include <cerrno>
 #include <cmath>
-#include <cstdlib>
 #include <limits>
-#include <stdexcept>
-#include <string>
 #include <vector>
 
 #include "vastray/frame_renderer.h"
+#include "vastray/interleave.h"
 #include "vastray/kernels.h"
 #include "vastray/thread_pool.h"
 #include "vastray/traverse_packet.h"
@@ -18,29 +14,6 @@
 VASTRAY_KERNEL_BEGIN
 
 namespace {
-
-// Packets of a tree at least this large go several in flight (traverse_packets,
-// occluded_packets): their node and triangle loads then miss the caches, and overlapping
-// the misses pays (plant 3*10^6, a 175 MiB tree: 1.06x; 10^7: 1.18-1.21x). Below it the
-// pauses cost more than they save (10^6, 60 MiB: 0.95x). VASTRAY_INTERLEAVE_BYTES sets
-// another size (0: every tree), for tests and studies.
-constexpr std::size_t kInterleaveBytes = std::size_t{128} << 20;
-
-bool interleaves(const Scene& scene) {
-    std::size_t from = kInterleaveBytes;
-    const char* env = std::getenv("VASTRAY_INTERLEAVE_BYTES");
-    if (env != nullptr && *env != '\0') {
-        char* end = nullptr;
-        errno = 0;
-        const unsigned long long bytes = std::strtoull(env, &end, 10);
-        if (*end != '\0' || errno != 0 || !std::isdigit(static_cast<unsigned char>(env[0]))) {
-            throw std::invalid_argument("VASTRAY_INTERLEAVE_BYTES must be a number of bytes (got '" +
-                                        std::string(env) + "')");
-        }
-        from = static_cast<std::size_t>(bytes);
-    }
-    return scene.tree().memory_bytes() >= from;
-}
 
 // AO packets in flight on a large tree: 8 measured 1.32x one at a time, 4 1.27x (10^7 plant).
 constexpr int kOcclusionInFlight = 8;
@@ -103,7 +76,7 @@ public:
     using Secondary = SceneSecondary;
 
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
-        : scene_(scene), camera_(camera), interleave_(interleaves(scene)) {
+        : scene_(scene), camera_(camera), interleave_(interleaves(scene.tree().memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
@@ -310,7 +283,7 @@ std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origi
     // large tree a batch's packets go several in flight (occluded_packets).
     constexpr int kPacket = 8;
     std::vector<std::uint8_t> out(n, 0);
-    const bool interleave = interleaves(scene);
+    const bool interleave = interleaves(scene.tree().memory_bytes());
     ThreadPool& pool = ThreadPool::global();
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
         TraversalCounters c;

@@ -359,6 +359,79 @@ private:
 
 namespace lod_detail {
 
+// A leaf's triangles asked for from memory, one wait at a time, by a walk that stops
+// for memory and runs other walks meanwhile (Walker, PacketWalker).
+struct LeafPrefetch {
+    const std::uint8_t* block = nullptr;
+    int stage = 0;  // 1-3: a leaf waits for its block's header, records, vertices
+
+    // Asks for the triangle block header and the list entries of the leaf at `node`;
+    // false when the block is not cached (the leaf's walk requests it and moves on).
+    bool start(const LodLane& lane, const std::uint8_t* node) {
+        if (format::leaf_count(load<std::uint32_t>(node)) == 0) return false;  // reads no block
+        const auto [id, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(node + 4));
+        if (id >= end) return false;
+        const std::int32_t slot = lane.model->slot(static_cast<std::uint32_t>(id));
+        if (slot < 0) return false;
+        block = lane.cache->slot_data(slot);
+        const std::size_t first = format::leaf_first(load<std::uint32_t>(node));
+        __builtin_prefetch(block);
+        if (lane.compact_triangles) {
+            // A compact leaf's record is at byte `first`; its triangles' group headers and
+            // vertices are found only by decoding it, so this is the one wait.
+            __builtin_prefetch(block + first);
+            stage = 3;
+        } else {
+            __builtin_prefetch(block + 16 + 2 * first);
+            stage = 1;
+        }
+        return true;
+    }
+
+    // The next two waits of a leaf: with its list entries at hand, asks for the lines of
+    // its triangle records (a leaf's triangles were stored together, so they span few
+    // lines); with those, for its vertices'.
+    void next(const LodLane& lane, const std::uint8_t* node) {
+        const std::uint8_t* tb = block;
+        const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
+        ++stage;
+        if (layout.end > format::kBlockSize) return;  // a damaged header: LeafTriangles says so
+        const std::uint32_t w = load<std::uint32_t>(node);
+        const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
+        const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
+        std::uint32_t t_lo = ~0u, t_hi = 0;
+        for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
+            const std::uint32_t t = load<std::uint16_t>(tb + layout.list + 2 * std::size_t{e});
+            if (t >= tris) continue;
+            t_lo = std::min(t_lo, t);
+            t_hi = std::max(t_hi, t);
+        }
+        if (t_lo > t_hi) return;
+        if (stage == 2) {
+            prefetch_range(tb + layout.triangles + 6 * std::size_t{t_lo}, 6 * std::size_t{t_hi - t_lo + 1});
+            return;
+        }
+        const std::uint32_t verts = load<std::uint32_t>(tb + 8);
+        std::uint32_t v_lo = ~0u, v_hi = 0;
+        for (std::uint32_t t : {t_lo, t_hi}) {
+            for (int k = 0; k < 3; ++k) {
+                const std::uint32_t v = load<std::uint16_t>(tb + layout.triangles + 6 * std::size_t{t} + 2 * k);
+                if (v >= verts) continue;
+                v_lo = std::min(v_lo, v);
+                v_hi = std::max(v_hi, v);
+            }
+        }
+        if (v_lo > v_hi) return;
+        const std::size_t base = layout.vertices + (layout.packed ? 12 : 0);
+        prefetch_range(tb + base + layout.record * v_lo, layout.record * (v_hi - v_lo + 1));
+    }
+
+    static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
+        bytes = std::min<std::size_t>(bytes, 6 * 64);
+        for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
+    }
+};
+
 // The walk of one ray below a node (lod_walk), for a model whose basic nodes carry their
 // split in word 1 (Quantized = false) or as a step of their cell (true). Only a
 // quantized model's walk carries cells: its splits and LOD radii derive from them. The
@@ -400,7 +473,7 @@ public:
         entry_axis_ = entry_axis;
         voxel_ = voxel;
         top_ = 0;
-        leaf_stage_ = 0;
+        leaf_.stage = 0;
     }
 
     // Queues a subtree to walk after the start node's, as if the walk had put it aside
@@ -447,20 +520,20 @@ public:
         Voxel stand_in{nullptr, 0.0f};  // the voxel a finished ray hits, at tmin
 
         if constexpr (Yield) {
-            if (leaf_stage_ == 1 || leaf_stage_ == 2) {
-                prefetch_leaf_data(lane, block + off);
+            if (leaf_.stage == 1 || leaf_.stage == 2) {
+                leaf_.next(lane, block + off);
                 return Stop::Leaf;
             }
         }
-        bool leaf = leaf_stage_ != 0;
-        leaf_stage_ = 0;
+        bool leaf = leaf_.stage != 0;
+        leaf_.stage = 0;
         for (;;) {
             while (!leaf) {
                 const std::uint32_t w = load<std::uint32_t>(block + off);
                 if (!is_inner(w)) {
                     leaf = true;
                     if constexpr (Yield) {
-                        if (prefetch_leaf(lane, block + off)) {
+                        if (leaf_.start(lane, block + off)) {
                             why = Stop::Leaf;
                             goto yield;
                         }
@@ -648,72 +721,6 @@ public:
     bool finished() const { return finished_; }
 
 private:
-    // Asks for the triangle block header and the list entries of the leaf at `node`;
-    // false when the block is not cached (the leaf's walk requests it and moves on).
-    bool prefetch_leaf(const LodLane& lane, const std::uint8_t* node) {
-        if (format::leaf_count(load<std::uint32_t>(node)) == 0) return false;  // reads no block
-        const auto [id, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(node + 4));
-        if (id >= end) return false;
-        const std::int32_t slot = lane.model->slot(static_cast<std::uint32_t>(id));
-        if (slot < 0) return false;
-        leaf_block_ = lane.cache->slot_data(slot);
-        const std::size_t first = format::leaf_first(load<std::uint32_t>(node));
-        __builtin_prefetch(leaf_block_);
-        if (lane.compact_triangles) {
-            // A compact leaf's record is at byte `first`; its triangles' group headers and
-            // vertices are found only by decoding it, so this is the one wait.
-            __builtin_prefetch(leaf_block_ + first);
-            leaf_stage_ = 3;
-        } else {
-            __builtin_prefetch(leaf_block_ + 16 + 2 * first);
-            leaf_stage_ = 1;
-        }
-        return true;
-    }
-
-    // The next two waits of a leaf: with its list entries at hand, asks for the lines of
-    // its triangle records (a leaf's triangles were stored together, so they span few
-    // lines); with those, for its vertices'.
-    void prefetch_leaf_data(const LodLane& lane, const std::uint8_t* node) {
-        const std::uint8_t* tb = leaf_block_;
-        const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
-        ++leaf_stage_;
-        if (layout.end > format::kBlockSize) return;  // a damaged header: LeafTriangles says so
-        const std::uint32_t w = load<std::uint32_t>(node);
-        const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
-        const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
-        std::uint32_t t_lo = ~0u, t_hi = 0;
-        for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
-            const std::uint32_t t = load<std::uint16_t>(tb + layout.list + 2 * std::size_t{e});
-            if (t >= tris) continue;
-            t_lo = std::min(t_lo, t);
-            t_hi = std::max(t_hi, t);
-        }
-        if (t_lo > t_hi) return;
-        if (leaf_stage_ == 2) {
-            prefetch_range(tb + layout.triangles + 6 * std::size_t{t_lo}, 6 * std::size_t{t_hi - t_lo + 1});
-            return;
-        }
-        const std::uint32_t verts = load<std::uint32_t>(tb + 8);
-        std::uint32_t v_lo = ~0u, v_hi = 0;
-        for (std::uint32_t t : {t_lo, t_hi}) {
-            for (int k = 0; k < 3; ++k) {
-                const std::uint32_t v = load<std::uint16_t>(tb + layout.triangles + 6 * std::size_t{t} + 2 * k);
-                if (v >= verts) continue;
-                v_lo = std::min(v_lo, v);
-                v_hi = std::max(v_hi, v);
-            }
-        }
-        if (v_lo > v_hi) return;
-        const std::size_t base = layout.vertices + (layout.packed ? 12 : 0);
-        prefetch_range(tb + base + layout.record * v_lo, layout.record * (v_hi - v_lo + 1));
-    }
-
-    static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
-        bytes = std::min<std::size_t>(bytes, 6 * 64);
-        for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
-    }
-
     static constexpr int kStack = 64;
     struct Entry {
         const std::uint8_t* block;
@@ -736,8 +743,7 @@ private:
     int entry_axis_ = 0;
     Voxel voxel_{nullptr, 0.0f};
     int top_ = 0;
-    int leaf_stage_ = 0;  // 1-3: a leaf waits for its block's header, records, vertices
-    const std::uint8_t* leaf_block_ = nullptr;
+    LeafPrefetch leaf_;
     bool finished_ = false;
     Entry stack_[kStack];
     float cells_[Quantized ? kStack : 1][6];  // the entries' cells (quantized models only)
