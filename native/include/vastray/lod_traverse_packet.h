@@ -135,7 +135,6 @@ public:
             live[v] = vm::from_bits(clipped >> (W * v));
         }
         for (int a = 0; a < 3; ++a) sign_negative[a] = std::signbit(rays[0].ray.dir[a]);
-        for (int a = 0; a < 3; ++a) sign_negative[a] = std::signbit(rays[0].ray.dir[a]);
         top = 0;
         node = lod_detail::root_ref(root, root_cell);
         voxel = Voxel{nullptr, 0.0f};
@@ -432,7 +431,6 @@ private:
 };
 #pragma GCC diagnostic pop
 
-
 template <int N, bool AnyHit, LodPacketOrder Order, bool Quantized>
 inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
                                  const std::uint32_t* skip, std::uint32_t mask) {
@@ -442,9 +440,9 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
     return walker.occluded_rays();
 }
 
-// A pixel block's primary packet as in lod_traverse_packet, walked with Yield: it keeps
-// its rays and hits in lane order and hands the hits back in row order when done.
-template <int N, bool Quantized>
+// A pixel block's primary packet (lod_traverse_packet, lod_trace_packets): it keeps its
+// rays and hits in lane order and hands the hits back in row order when done.
+template <int N, bool Quantized, bool Yield>
 class PrimaryPacket {
     static constexpr int W = packet_width<N>();
 
@@ -469,13 +467,19 @@ private:
     LodRay rays_[N];
     LodHit hits_[N];
     LodHit* hits_out_ = nullptr;
-    PacketWalker<N, false, LodPacketOrder::SharedOrigin, Quantized, true> walker_;
+    PacketWalker<N, false, LodPacketOrder::SharedOrigin, Quantized, Yield> walker_;
 };
+
+template <int N, bool Quantized>
+inline void traverse_packet(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits) {
+    PrimaryPacket<N, Quantized, false> packet;
+    if (packet.start(lane, root_cell, rays, hits)) packet.run(lane);
+}
 
 template <int N, bool Quantized, int G>
 inline void trace_packets(LodLane& lane, const Box3f& root_cell, const LodRay* const* rays, LodHit* const* hits,
                           bool* traced, int count) {
-    PrimaryPacket<N, Quantized> walkers[G];
+    PrimaryPacket<N, Quantized, true> walkers[G];
     int next = 0;
     walks_in_flight<G>(
         [&](int g) {
@@ -507,14 +511,12 @@ inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, cons
 // Closest hits of N coherent primary rays given in row order (lod_packet_is_coherent);
 // hits_out[i] gets ray i's result.
 template <int N>
-inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const LodRay* rays_in, LodHit* hits_out) {
-    constexpr int W = packet_width<N>();
-    LodRay rays[N];
-    for (int i = 0; i < N; ++i) rays[packet_lane<N, W>(i)] = rays_in[i];
-    LodHit hits[N];
-    lod_packet_walk<N, false, LodPacketOrder::SharedOrigin>(lane, root_cell, rays, hits, nullptr,
-                                                            N == 32 ? ~0u : (1u << N) - 1);
-    for (int i = 0; i < N; ++i) hits_out[i] = hits[packet_lane<N, W>(i)];
+inline void lod_traverse_packet(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits) {
+    if (lane.quantized_splits) {
+        lod_detail::traverse_packet<N, true>(lane, root_cell, rays, hits);
+    } else {
+        lod_detail::traverse_packet<N, false>(lane, root_cell, rays, hits);
+    }
 }
 
 // The primary packets of `count` pixel blocks (rays[j], hits[j] as in
