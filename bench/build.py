@@ -279,7 +279,12 @@ def child_main(spec_text: str) -> int:
             state["phase"], state["printed"] = p.phase, now
             print(f"      {label}: {p.phase}{done} at {p.elapsed:.1f} s", file=sys.stderr, flush=True)
 
-    options = BuildOptions(memory=int(spec["memory"]), threads=int(spec["threads"]), overwrite=True)
+    options = BuildOptions(
+        memory=int(spec["memory"]),
+        threads=int(spec["threads"]),
+        overwrite=True,
+        compact_triangles=bool(spec.get("compact_triangles", False)),
+    )
     # CPU of this (main) thread against the whole process's: the main thread runs all the
     # Python (reading, splitting) and its share of the native work, so
     # total / main bounds the speedup more threads could give, however busy the machine.
@@ -507,6 +512,10 @@ def budget_text(nbytes: int) -> str:
     return f"{nbytes / MiB:.0f}M"
 
 
+# --compact-triangles: every build of the run writes compact triangle blocks (set by main).
+COMPACT_TRIANGLES = [False]
+
+
 def ooc_budget(triangles: int, fraction: float, min_budget: int) -> int:
     """A budget of `fraction` of the triangle soup, rounded up to a MiB, at least the minimum."""
     want = max(min_budget, int(triangles * SOUP_BYTES_PER_TRIANGLE * fraction))
@@ -531,6 +540,7 @@ def one_build(
         "threads": threads,
         "snapshot": snapshot,
         "label": model.label,
+        "compact_triangles": COMPACT_TRIANGLES[0],
     }
     row: dict[str, Any] = {
         "model": model.label,
@@ -1317,6 +1327,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(built for the run; the before/after table)",
     )
     ap.add_argument("--reps", type=int, default=1, help="builds per setting; the fastest is kept (default 1)")
+    ap.add_argument(
+        "--compact-triangles",
+        action="store_true",
+        help="build with compact triangle blocks (docs/FORMAT.md §11a)",
+    )
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument(
         "--cache", type=Path, default=DEFAULT_CACHE, help="generated inputs (default bench/.cache)"
@@ -1342,6 +1357,7 @@ def main(argv: list[str] | None = None) -> int:
     from vastray.build import INCORE_BYTES_PER_TRIANGLE, MIN_INCORE_TRIANGLES
 
     args = parse_args(argv)
+    COMPACT_TRIANGLES[0] = args.compact_triangles
     args.baseline_package = ""
     if args.baseline:
         package, desc = build_baseline(args.baseline)
