@@ -360,13 +360,22 @@ private:
 namespace lod_detail {
 
 // A leaf's triangles asked for from memory, one wait at a time, by a walk that stops
-// for memory and runs other walks meanwhile (Walker, PacketWalker).
+// for memory and runs other walks meanwhile (Walker, PacketWalker). Each wait asks for
+// what the previous one's lines tell where to find: in a plain block the list entries,
+// the triangle records, the vertices; in a compact one the leaf record, the group
+// headers, the groups' corner fields, the vertices (one wait more, as a compact
+// triangle's corners are found through its group's header).
 struct LeafPrefetch {
     const std::uint8_t* block = nullptr;
-    int stage = 0;  // 1-3: a leaf waits for its block's header, records, vertices
+    int stage = 0;  // 0: no leaf; 1 .. last - 1: waiting for the stage's lines; last: all asked
+    int last = 0;
 
-    // Asks for the triangle block header and the list entries of the leaf at `node`;
-    // false when the block is not cached (the leaf's walk requests it and moves on).
+    // Whether the walk should wait once more (and call next() when it is back).
+    bool waiting() const { return stage > 0 && stage < last; }
+
+    // Asks for the triangle block header and the list entries (a compact block: the
+    // leaf record) of the leaf at `node`; false when the block is not cached (the
+    // leaf's walk requests it and moves on).
     bool start(const LodLane& lane, const std::uint8_t* node) {
         if (format::leaf_count(load<std::uint32_t>(node)) == 0) return false;  // reads no block
         const auto [id, end] = referenced_stream(lane, lane.tri_level, load<std::uint32_t>(node + 4));
@@ -377,21 +386,22 @@ struct LeafPrefetch {
         const std::size_t first = format::leaf_first(load<std::uint32_t>(node));
         __builtin_prefetch(block);
         if (lane.compact_triangles) {
-            // A compact leaf's record is at byte `first`; its triangles' group headers and
-            // vertices are found only by decoding it, so this is the one wait.
             __builtin_prefetch(block + first);
-            stage = 3;
+            last = 4;
         } else {
             __builtin_prefetch(block + 16 + 2 * first);
-            stage = 1;
+            last = 3;
         }
+        stage = 1;
         return true;
     }
 
-    // The next two waits of a leaf: with its list entries at hand, asks for the lines of
-    // its triangle records (a leaf's triangles were stored together, so they span few
-    // lines); with those, for its vertices'.
+    // The next wait of a leaf: with the lines of the last one at hand, asks for the next.
     void next(const LodLane& lane, const std::uint8_t* node) {
+        if (lane.compact_triangles) {
+            next_compact(lane, node);
+            return;
+        }
         const std::uint8_t* tb = block;
         const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
         ++stage;
@@ -426,10 +436,93 @@ struct LeafPrefetch {
         prefetch_range(tb + base + layout.record * v_lo, layout.record * (v_hi - v_lo + 1));
     }
 
+private:
+    // A compact block's waits. The triangles a leaf brings in are numbered together, and
+    // its older ones are mostly a few places back, so the first and last of its first
+    // entries bound the group headers, corner fields and vertices it reads. Whatever is
+    // damaged asks for nothing more: LeafTriangles finds it and says so.
+    void next_compact(const LodLane& lane, const std::uint8_t* node) {
+        const int wait = stage++;
+        format::CompactTriangleBlock b;
+        if (!format::CompactTriangleBlock::parse(block, format::kBlockSize, lane.has_colours,
+                                                 lane.quantized_vertices, b)) {
+            stage = last;
+            return;
+        }
+        if (wait == 1) {
+            // The record is here: the range of the leaf's triangles, and their group headers.
+            const std::uint32_t w = load<std::uint32_t>(node);
+            format::CompactLeafRecord record;
+            if (!record.open(b, format::leaf_first(w), format::leaf_count(w))) {
+                stage = last;
+                return;
+            }
+            std::uint32_t lo = ~0u, hi = 0;
+            const std::uint32_t n = std::min<std::uint32_t>(record.count(), 32);
+            for (std::uint32_t e = 0; e < n; ++e) {
+                std::uint32_t t;
+                if (!record.next(t)) break;
+                lo = std::min(lo, t);
+                hi = std::max(hi, t);
+            }
+            if (lo > hi) {
+                stage = last;
+                return;
+            }
+            t_lo_ = lo;
+            t_hi_ = hi;
+            const std::size_t from = std::size_t{lo / format::compact::kGroup} * b.header_bits / 8;
+            const std::size_t to = (std::size_t{hi / format::compact::kGroup} + 1) * b.header_bits / 8 + 8;
+            prefetch_range(block + b.groups + from, to - from);
+            return;
+        }
+        if (wait == 2) {
+            // The group headers are here: the corner fields of the first and last triangle.
+            std::size_t lo = ~std::size_t{0}, hi = 0;
+            for (std::uint32_t t : {t_lo_, t_hi_}) {
+                format::CompactTriangleBlock::Group g;
+                if (!b.group(t / format::compact::kGroup, g)) continue;
+                const std::size_t at = static_cast<std::size_t>(g.at - block) +
+                                       std::size_t{3} * g.cw * (t - g.first) / 8;
+                lo = std::min(lo, at);
+                hi = std::max(hi, at + 8);
+            }
+            if (lo > hi) {
+                stage = last;
+                return;
+            }
+            prefetch_range(block + lo, hi - lo);
+            return;
+        }
+        // The corner fields are here: the vertices of the first and last triangle.
+        std::uint32_t v_lo = ~0u, v_hi = 0;
+        for (std::uint32_t t : {t_lo_, t_hi_}) {
+            std::uint32_t v[3];
+            if (!b.corners(t, v)) continue;
+            for (std::uint32_t i : v) {
+                if (i >= b.verts) continue;
+                v_lo = std::min(v_lo, i);
+                v_hi = std::max(v_hi, i);
+            }
+        }
+        if (v_lo > v_hi) return;
+        if (b.packed) {
+            const std::size_t bit = std::size_t{v_lo} * b.record_bits;
+            const std::size_t bytes = (std::size_t{v_hi - v_lo + 1} * b.record_bits + 7) / 8 + 8;
+            prefetch_range(block + b.vertices + 12 + bit / 8, bytes);
+        } else {
+            prefetch_range(block + b.vertices + 12 * std::size_t{v_lo}, 12 * std::size_t{v_hi - v_lo + 1});
+        }
+    }
+
+public:
     static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
         bytes = std::min<std::size_t>(bytes, 6 * 64);
         for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
     }
+
+private:
+    std::uint32_t t_lo_ = 0, t_hi_ = 0;  // a compact leaf's first and last triangle (of its first entries)
 };
 
 // The walk of one ray below a node (lod_walk), for a model whose basic nodes carry their
@@ -520,7 +613,7 @@ public:
         Voxel stand_in{nullptr, 0.0f};  // the voxel a finished ray hits, at tmin
 
         if constexpr (Yield) {
-            if (leaf_.stage == 1 || leaf_.stage == 2) {
+            if (leaf_.waiting()) {
                 leaf_.next(lane, block + off);
                 return Stop::Leaf;
             }

@@ -188,7 +188,7 @@ public:
             vm active[K];
             if (Yield && stage == Stage::Leaf) {
                 // Back at the leaf it stopped at: the next wait, or its triangles.
-                if (leaf_.stage == 1 || leaf_.stage == 2) {
+                if (leaf_.waiting()) {
                     leaf_.next(lane, node.block + node.off);
                     return false;
                 }
