@@ -128,6 +128,17 @@ public:
         r.cone = primary_cone_;
         return r;
     }
+    void primary_rays4(int x0, int y, Ray* out) const {
+        Vec3d dirs[4];
+        camera_.directions4(x0, y, dirs);
+        const Vec3f org(camera_.eye - centre_);
+        for (int k = 0; k < 4; ++k) {
+            out[k] = LodRay{};
+            out[k].ray.org = org;
+            out[k].ray.dir = Vec3f(dirs[k]);
+            out[k].cone = primary_cone_;
+        }
+    }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const { lod_traverse<false>(lane, root_, ray, hit); }
     void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {

@@ -88,6 +88,16 @@ public:
         wr.dir = camera_.direction(x, y);
         return scene_.to_local(wr);
     }
+    void primary_rays4(int x0, int y, Ray* out) const {
+        Vec3d dirs[4];
+        camera_.directions4(x0, y, dirs);
+        for (int k = 0; k < 4; ++k) {
+            WorldRay wr;
+            wr.org = camera_.eye;
+            wr.dir = dirs[k];
+            out[k] = scene_.to_local(wr);
+        }
+    }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const {
         traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);

@@ -7,6 +7,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include <immintrin.h>
+
 #include "vastray/isa.h"
 #include "vastray/render.h"
 #include "vastray/thread_pool.h"
@@ -75,6 +77,37 @@ struct CameraRays {
         const double sx = 2.0 * (x + 0.5) / width - 1.0;
         const double sy = 1.0 - 2.0 * (y + 0.5) / height;
         return normalize(forward + right * sx + up * sy);
+    }
+
+    // direction() of the pixels (x0 + k, y), k < 4, four lanes at a time: the same double
+    // operations in the same order, so the same bits. Per pixel, direction() divides five
+    // times and takes a square root, which the 4x4 packets' pixel blocks paid one pixel
+    // after another (about 3 % of a 720p frame of the 10^8 plant at PoE 2).
+    void directions4(int x0, int y, Vec3d out[4]) const {
+#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX
+        typedef double lanes __attribute__((vector_size(32)));
+        constexpr int W = 4;
+#else
+        typedef double lanes __attribute__((vector_size(16)));
+        constexpr int W = 2;
+#endif
+        const double sy = 1.0 - 2.0 * (y + 0.5) / height;
+        for (int h = 0; h < 4; h += W) {
+            lanes px;
+            for (int k = 0; k < W; ++k) px[k] = static_cast<double>(x0 + h + k);
+            const lanes sx = 2.0 * (px + 0.5) / static_cast<double>(width) - 1.0;
+            const lanes dx = forward.x + right.x * sx + up.x * sy;
+            const lanes dy = forward.y + right.y * sx + up.y * sy;
+            const lanes dz = forward.z + right.z * sx + up.z * sy;
+            const lanes squared = dx * dx + dy * dy + dz * dz;
+#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX
+            const lanes len = reinterpret_cast<lanes>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(squared)));
+#else
+            const lanes len = reinterpret_cast<lanes>(_mm_sqrt_pd(reinterpret_cast<__m128d>(squared)));
+#endif
+            const lanes nx = dx / len, ny = dy / len, nz = dz / len;
+            for (int k = 0; k < W; ++k) out[h + k] = Vec3d(nx[k], ny[k], nz[k]);
+        }
     }
 };
 
