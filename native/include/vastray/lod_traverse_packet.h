@@ -93,26 +93,25 @@ public:
         hits = hits_out;
         skip = skip_in;
         occluded = 0;
-        alignas(32) float lo[N], hi[N], axis0[N], d[3][N], o[3][N], t0[N];
-        std::uint32_t clipped = 0, negative[3] = {0, 0, 0};
+        alignas(32) float d[3][N], o[3][N], t0[N], ray_t0[N], ray_t1[N];
+        std::uint32_t negative[3] = {0, 0, 0};
         for (int i = 0; i < N; ++i) {
             const Ray& r = rays[i].ray;
             hits[i].t = r.tmax;
             hits[i].prim = kNoHit;
-            int axis = 0;
-            if ((mask >> i & 1u) && lod_detail::clip_with_axis(r, root_cell, lo[i], hi[i], axis)) {
-                clipped |= 1u << i;
-            } else {
-                lo[i] = kInf;
-                hi[i] = -kInf;
-            }
-            axis0[i] = static_cast<float>(axis);
             for (int a = 0; a < 3; ++a) {
                 d[a][i] = r.dir[a];
                 o[a][i] = r.org[a];
                 negative[a] |= (std::signbit(r.dir[a]) ? 1u : 0u) << i;
             }
             t0[i] = rays[i].cone_t0;
+            ray_t0[i] = r.tmin;
+            ray_t1[i] = r.tmax;
+        }
+        std::uint32_t clipped = 0;
+        for (int v = 0; v < K; ++v) {
+            const std::uint32_t lanes = mask >> (W * v) & ((W == 32 ? 0u : 1u << W) - 1u);
+            clipped |= static_cast<std::uint32_t>(clip_root(root_cell, o, d, ray_t0, ray_t1, v, lanes)) << (W * v);
         }
         if (!clipped) return false;
         const std::uint8_t* root = lane.lookup(lane.level_first[0], 0.0f);
@@ -128,9 +127,6 @@ public:
                 dir_neg[a][v] = vm::from_bits(negative[a] >> (W * v));
             }
             cone_t0[v] = vf::load(t0 + W * v);
-            tmin[v] = vf::load(lo + W * v);
-            tmax[v] = vf::load(hi + W * v);
-            axis_in[v] = vf::load(axis0 + W * v);
             hit_t[v] = HitV<W>::load(hits + W * v).t;
             live[v] = vm::from_bits(clipped >> (W * v));
         }
@@ -404,6 +400,45 @@ public:
     std::uint32_t occluded_rays() const { return occluded; }
 
 private:
+    // clip_with_axis for the W rays of vector v (the `lanes` of it that are traced), all
+    // at once: the same float operations on each lane, so the same segments and entry
+    // axes; the per-ray calls were 4 % of a 10^8 overview. Sets tmin, tmax (an empty
+    // segment for a lane that misses the cell or is not traced) and axis_in of vector v;
+    // returns the lanes that enter the cell. Monotone clipping makes the one test at the
+    // end equal to the scalar test after every axis.
+    int clip_root(const Box3f& cell, const float (*o)[N], const float (*d)[N], const float* ray_t0,
+                  const float* ray_t1, int v, std::uint32_t lanes) {
+        const vf slack = vf::broadcast(kSplitSlack), one = vf::broadcast(1.0f), zero = vf::broadcast(0.0f);
+        vf t0 = vf::load(ray_t0 + W * v), t1 = vf::load(ray_t1 + W * v);
+        vf best = vf::broadcast(-kInf), axis = zero;
+        vm in = vm::from_bits(lanes);
+        for (int a = 0; a < 3; ++a) {
+            const vf dv = vf::load(d[a] + W * v), ov = vf::load(o[a] + W * v);
+            const vf lo = vf::broadcast(cell.lo[a]), hi = vf::broadcast(cell.hi[a]);
+            const vm flat = dv == zero;
+            // A zero component: the origin must lie in the slab, and the axis clips nothing.
+            in = andnot(flat & ((ov < lo) | (ov > hi)), in);
+            const vf recip = one / dv;
+            vf tn = (lo - ov) * recip, tf = (hi - ov) * recip;
+            const vm swap = tn > tf;
+            const vf near = select(swap, tf, tn), far = select(swap, tn, tf);
+            tn = near - abs(near) * slack;
+            tf = far + abs(far) * slack;
+            t0 = select(flat, t0, select(tn > t0, tn, t0));
+            t1 = select(flat, t1, select(tf < t1, tf, t1));
+            // The entry axis: the plane the ray enters through last.
+            const vf enter = (select(dv > zero, lo, hi) - ov) / dv;
+            const vm later = andnot(flat, enter > best);
+            best = select(later, enter, best);
+            axis = select(later, vf::broadcast(static_cast<float>(a)), axis);
+        }
+        in = andnot(t0 > t1, in);
+        tmin[v] = select(in, t0, vf::broadcast(kInf));
+        tmax[v] = select(in, t1, vf::broadcast(-kInf));
+        axis_in[v] = select(in, axis, zero);
+        return in.bits();
+    }
+
     using NodeRef = lod_detail::NodeRef;
     using Voxel = lod_detail::Voxel;
     enum class Stage : std::uint8_t { Descend, Leaf };
