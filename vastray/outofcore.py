@@ -216,8 +216,7 @@ class OutOfCoreModel:
             # needed 548 MiB of a 5 GiB cache), which the timeout bounds.
             progressed = self._wait_for_queue(max(0.05, 3 * stats.milliseconds / 1000.0), start + timeout)
             stalled = 0 if progressed or stats.blocks_loaded else stalled + 1
-            totals = self.cache.totals()
-            if stalled >= 3 and totals["free_slots"] == 0:
+            if stalled >= 3 and (totals := self.cache.totals())["free_slots"] == 0:
                 raise CacheTooSmallError(
                     f"{self.name}: this view needs more blocks than the cache holds "
                     f"({totals['slot_count']} slots of 64 KiB, {stats.working_set_blocks} in use); "

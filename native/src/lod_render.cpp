@@ -120,24 +120,11 @@ public:
         ao_cone_ = static_cast<float>(solid_angle_cone(params, camera_.pixel_angle));  // 0 at PoE 0
     }
 
-    Ray primary_ray(int x, int y) const {
-        LodRay r;
-        // Local float frame: the centre is subtracted in double, as the in-core scene does.
-        r.ray.org = Vec3f(camera_.eye - centre_);
-        r.ray.dir = Vec3f(camera_.direction(x, y));
-        r.cone = primary_cone_;
-        return r;
-    }
+    Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
     void primary_rays4(int x0, int y, Ray* out) const {
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);
-        const Vec3f org(camera_.eye - centre_);
-        for (int k = 0; k < 4; ++k) {
-            out[k] = LodRay{};
-            out[k].ray.org = org;
-            out[k].ray.dir = Vec3f(dirs[k]);
-            out[k].cone = primary_cone_;
-        }
+        for (int k = 0; k < 4; ++k) out[k] = primary_along(dirs[k]);
     }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const { lod_traverse<false>(lane, root_, ray, hit); }
@@ -263,6 +250,15 @@ private:
         }
         const auto l = triangle_layout(hit.tri_block, true);
         return load<std::uint32_t>(hit.tri_block + l.colours + 4 * std::size_t{hit.local});
+    }
+    // The primary ray from the eye along world direction `dir`, in the local float frame
+    // (the centre is subtracted in double, as the in-core scene does).
+    Ray primary_along(const Vec3d& dir) const {
+        LodRay r;
+        r.ray.org = Vec3f(camera_.eye - centre_);
+        r.ray.dir = Vec3f(dir);
+        r.cone = primary_cone_;
+        return r;
     }
 
     const ModelIndex& index_;

@@ -82,21 +82,11 @@ public:
                                               : 0.2f * static_cast<float>(length(diag));
     }
 
-    Ray primary_ray(int x, int y) const {
-        WorldRay wr;
-        wr.org = camera_.eye;
-        wr.dir = camera_.direction(x, y);
-        return scene_.to_local(wr);
-    }
+    Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
     void primary_rays4(int x0, int y, Ray* out) const {
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);
-        for (int k = 0; k < 4; ++k) {
-            WorldRay wr;
-            wr.org = camera_.eye;
-            wr.dir = dirs[k];
-            out[k] = scene_.to_local(wr);
-        }
+        for (int k = 0; k < 4; ++k) out[k] = primary_along(dirs[k]);
     }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const {
@@ -205,6 +195,14 @@ private:
     // frames 1.28x one packet at a time in two series (4 in flight from groups of 4:
     // 1.19-1.24x; 6 from 16: 1.24-1.27x; 8 from 8: 1.28x).
     static constexpr int kInFlight = 8;
+
+    // The primary ray from the eye along world direction `dir`, in the scene's frame.
+    Ray primary_along(const Vec3d& dir) const {
+        WorldRay wr;
+        wr.org = camera_.eye;
+        wr.dir = dir;
+        return scene_.to_local(wr);
+    }
 
     const Scene& scene_;
     shading::CameraRays camera_;

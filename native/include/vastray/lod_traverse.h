@@ -515,13 +515,11 @@ private:
         }
     }
 
-public:
     static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
         bytes = std::min<std::size_t>(bytes, 6 * 64);
         for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
     }
 
-private:
     std::uint32_t t_lo_ = 0, t_hi_ = 0;  // a compact leaf's first and last triangle (of its first entries)
 };
 
