@@ -116,6 +116,30 @@ def test_same_scene_and_frames(models: dict[Key, Path], name: str) -> None:
                 )
 
 
+@pytest.mark.parametrize("name", ["plant", "bunny"])
+def test_walks_in_flight_read_compact_leaves_alike(
+    models: dict[Key, Path], name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Walks in flight (single rays always; packets on large models, forced here with
+    VASTRAY_INTERLEAVE_BYTES=0) stop before each of a compact leaf's record, group headers,
+    corner fields and vertices, decoding what has arrived to ask for the next: every packet
+    size gives the plain model's frame, at full detail and with voxels."""
+    monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
+    for kind in KINDS:
+        cache = make_cache(256 << 20, 1)
+        with OutOfCoreModel(models[name, kind, False], cache) as plain, \
+                OutOfCoreModel(models[name, kind, True], cache) as compact:  # fmt: skip
+            seen = 0.0
+            for camera in model_views(models[name, kind, False]):
+                for poe in (0.0, 2.0):
+                    expected = plain.render_complete(camera, pixels_of_error=poe, packets=1)
+                    seen = max(seen, float((expected.prim >= 0).mean()))
+                    for packets in (1, 4, 16):
+                        frame = compact.render_complete(camera, pixels_of_error=poe, packets=packets)
+                        assert_same_frame(frame, expected)
+            assert seen > 0.05
+
+
 def leaves(path: Path) -> list:
     with ModelFile(path) as model:
         return [node for node in walk(model) if node.kind == "leaf"]
@@ -352,7 +376,9 @@ def damaged_blocks(raw: bytes, has_colours: bool) -> list[tuple[str, bytes, str,
     return out
 
 
-def test_damaged_blocks_are_reported_and_read_safely(models: dict[Key, Path], tmp_path: Path) -> None:
+def test_damaged_blocks_are_reported_and_read_safely(
+    models: dict[Key, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Bad counts, widths and offsets in a compact block (under a valid checksum): the
     native decoder names the block and what is wrong, the walker refuses it, and the
     out-of-core traversal draws the view without reading outside the block (a record or
@@ -378,9 +404,14 @@ def test_damaged_blocks_are_reported_and_read_safely(models: dict[Key, Path], tm
                 model.to_scene()
             with pytest.raises(WalkError, match=walker_says):
                 list(Walker(model).walk())
-        with OutOfCoreModel(path, make_cache(64 << 20, 1)) as ooc:
-            frame = ooc.render_complete(model_views(source)[0], pixels_of_error=0.0, timeout=60)
-        hits = frame.prim >= 0
-        assert (frame.prim[hits] < input_triangles).all(), what
-        assert hits.sum() + (frame.prim == PRIM_VOXEL).sum() > 0.5 * (good.prim >= 0).sum(), what
+        # Packets one at a time, and (forced) in flight, whose leaf waits decode the block too.
+        for interleave_from, packets in (("", 16), ("0", 16), ("0", 1)):
+            monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", interleave_from)
+            with OutOfCoreModel(path, make_cache(64 << 20, 1)) as ooc:
+                frame = ooc.render_complete(
+                    model_views(source)[0], pixels_of_error=0.0, packets=packets, timeout=60
+                )
+            hits = frame.prim >= 0
+            assert (frame.prim[hits] < input_triangles).all(), what
+            assert hits.sum() + (frame.prim == PRIM_VOXEL).sum() > 0.5 * (good.prim >= 0).sum(), what
     assert GROUP == 8
