@@ -139,10 +139,31 @@ struct ShearedRayV {
     }
 };
 
-// The watertight test of triangle.h on W rays at once; `active` marks the lanes to
-// test. Returns the lanes whose hit changed.
+// The lanes `edge` of intersect_triangle_v, whose rays pass exactly through an edge in
+// float: decided in double, lane by lane (rare; out of line, so the test stays small).
 template <int W, typename RayT>
-inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays, const ShearedRay* sheared, const Vec3f& p0,
+[[gnu::noinline]] int intersect_triangle_edges(const RayT* rays, const ShearedRay* sheared, const Vec3f& p0,
+                                               const Vec3f& p1, const Vec3f& p2, std::uint32_t id, int edge,
+                                               HitV<W>& hit) {
+    int changed = 0;
+    Hit lanes[W];
+    hit.store(lanes);
+    for (int k = 0; k < W; ++k) {
+        if ((edge >> k & 1) && intersect_triangle(ray_of(rays[k]), sheared[k], p0, p1, p2, lanes[k])) {
+            lanes[k].prim = id;
+            changed |= 1 << k;
+        }
+    }
+    hit = HitV<W>::load(lanes);
+    return changed;
+}
+
+// The watertight test of triangle.h on W rays at once; `active` marks the lanes to
+// test. Returns the lanes whose hit changed. Always inlined: the walks call it for every
+// triangle of a leaf, and a call from their AVX loops costs a vzeroupper and the
+// spilling of every vector they keep in registers.
+template <int W, typename RayT>
+[[gnu::always_inline]] inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays, const ShearedRay* sheared, const Vec3f& p0,
                                 const Vec3f& p1, const Vec3f& p2, std::uint32_t id, simd::vmask<W> active,
                                 HitV<W>& hit) {
     using vf = simd::vfloat<W>;
@@ -181,16 +202,7 @@ inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays, const
         }
     }
     if (const int edge = on_edge.bits(); edge != 0) {
-        // Rare: the ray passes exactly through an edge in float. Decide in double, lane by lane.
-        Hit lanes[W];
-        hit.store(lanes);
-        for (int k = 0; k < W; ++k) {
-            if ((edge >> k & 1) && intersect_triangle(ray_of(rays[k]), sheared[k], p0, p1, p2, lanes[k])) {
-                lanes[k].prim = id;
-                changed |= 1 << k;
-            }
-        }
-        hit = HitV<W>::load(lanes);
+        changed |= intersect_triangle_edges<W>(rays, sheared, p0, p1, p2, id, edge, hit);
     }
     return changed;
 }
