@@ -40,18 +40,4 @@ std::size_t Scene::memory_bytes() const {
     return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + 4 * input_ids_.size() + tree_.memory_bytes();
 }
 
-Ray Scene::to_local(const WorldRay& r) const {
-    Ray ray;
-    ray.org = Vec3f(r.org - centre_);
-    ray.dir = Vec3f(r.dir);
-    ray.tmin = static_cast<float>(r.tmin);
-    ray.tmax = static_cast<float>(r.tmax);
-    return ray;
-}
-
-Vec3f Scene::normal(std::uint32_t prim) const {
-    const Vec3f* v = tri_vertices_.data() + 3 * static_cast<std::size_t>(prim);
-    return cross(v[1] - v[0], v[2] - v[0]);
-}
-
 }  // namespace vastray
