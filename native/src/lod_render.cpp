@@ -111,6 +111,7 @@ public:
         : index_(index),
           camera_(camera),
           centre_(index.centre()),
+          eye_(camera_.eye - centre_),
           root_(index.root_cell()),
           interleave_(interleaves(index.file_size())) {
         const Vec3f diag = root_.hi - root_.lo;
@@ -251,11 +252,10 @@ private:
         const auto l = triangle_layout(hit.tri_block, true);
         return load<std::uint32_t>(hit.tri_block + l.colours + 4 * std::size_t{hit.local});
     }
-    // The primary ray from the eye along world direction `dir`, in the local float frame
-    // (the centre is subtracted in double, as the in-core scene does).
+    // The primary ray from the eye along world direction `dir`, in the local float frame.
     Ray primary_along(const Vec3d& dir) const {
         LodRay r;
-        r.ray.org = Vec3f(camera_.eye - centre_);
+        r.ray.org = eye_;
         r.ray.dir = Vec3f(dir);
         r.cone = primary_cone_;
         return r;
@@ -264,6 +264,7 @@ private:
     const ModelIndex& index_;
     shading::CameraRays camera_;
     Vec3d centre_;
+    Vec3f eye_;  // the eye in the local float frame (the centre subtracted in double, as the in-core scene does)
     Box3f root_;
     bool interleave_;
     float ao_distance_ = 1, primary_cone_ = 0, ao_cone_ = 0;

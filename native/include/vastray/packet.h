@@ -163,9 +163,10 @@ template <int W, typename RayT>
 // triangle of a leaf, and a call from their AVX loops costs a vzeroupper and the
 // spilling of every vector they keep in registers.
 template <int W, typename RayT>
-[[gnu::always_inline]] inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays, const ShearedRay* sheared, const Vec3f& p0,
-                                const Vec3f& p1, const Vec3f& p2, std::uint32_t id, simd::vmask<W> active,
-                                HitV<W>& hit) {
+[[gnu::always_inline]] inline int intersect_triangle_v(const ShearedRayV<W>& r, const RayT* rays,
+                                                       const ShearedRay* sheared, const Vec3f& p0, const Vec3f& p1,
+                                                       const Vec3f& p2, std::uint32_t id, simd::vmask<W> active,
+                                                       HitV<W>& hit) {
     using vf = simd::vfloat<W>;
     using vm = simd::vmask<W>;
     const vf zero = vf::broadcast(0.0f);
