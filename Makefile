@@ -12,8 +12,9 @@ SOURCES := pyproject.toml CMakeLists.txt README.md \
            $(shell find native vastray server client -type f -not -name '*.pyc' -not -path '*/__pycache__/*' 2>/dev/null)
 
 # Debian packages: Chromium for the browser tests (Playwright drives it; no browser
-# download), liblz4 and libdeflate for the native block codecs.
-APT_PACKAGES := chromium nginx openssl liblz4-dev libdeflate-dev pkg-config
+# download), liblz4 and libdeflate for the native block codecs, QEMU's user-mode
+# emulator to run the module on CPUs without AVX (tests/test_isa_emulated.py).
+APT_PACKAGES := chromium nginx openssl liblz4-dev libdeflate-dev pkg-config qemu-user
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 .PHONY: run test test-fast install dev bench lint clean tsan system-deps

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from views import render_camera
+from views import DIGEST_SCRIPT, render_camera
 
 from vastray import native
 from vastray.build import build_model
@@ -82,21 +82,7 @@ def test_paths_are_listed_and_can_be_forced() -> None:
     )
 
 
-_FRAMES = r"""
-import hashlib, json, sys
-import numpy as np
-from vastray import native
-from vastray.camera import Camera, frame_bounds
-from vastray.modelfile import ModelFile
-from vastray.outofcore import OutOfCoreModel, make_cache
-from vastray.renderer import trace
-
-def digest(*arrays):
-    h = hashlib.sha256()
-    for a in arrays:
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()[:16]
-
+_FRAMES = DIGEST_SCRIPT + r"""
 path = sys.argv[1]
 out = {"isa": native.isa()}
 with ModelFile(path) as f:

@@ -2,7 +2,9 @@
 in: `render_view(scene, eye, target, up, fov, width, height, shading=..., sun=...)`,
 positional or by name, for a native.Scene or a native.CachedModel. `sun` is short for
 sun_direction. Returns a vastray.renderer.Frame. `model_views(path)`: two cameras that
-frame a built model from two sides, the views the layout tests compare frames in."""
+frame a built model from two sides, the views the layout tests compare frames in.
+`DIGEST_SCRIPT`: the head of the scripts that tests run in other processes (another ISA
+path, an emulated CPU) to compare answers by digest."""
 
 from __future__ import annotations
 
@@ -13,6 +15,23 @@ from vastray import native
 from vastray.camera import Camera, frame_bounds
 from vastray.modelfile import ModelFile
 from vastray.renderer import Frame, trace
+
+DIGEST_SCRIPT = r"""
+import hashlib, json, sys
+import numpy as np
+from vastray import native
+from vastray.build import build_model
+from vastray.camera import Camera, frame_bounds
+from vastray.modelfile import ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.renderer import trace
+
+def digest(*arrays):
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+"""
 
 CAMERA_FIELDS = ("eye", "target", "up", "fov", "width", "height")
 
