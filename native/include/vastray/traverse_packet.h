@@ -78,6 +78,14 @@ inline void load_ray_vectors(const float (&o)[3][N], const float (&d)[3][N], int
     }
 }
 
+// Whether a walk stepping from node `from` to `to` will find it in cache: the next node in
+// memory (a left child, whose line the hardware has most likely brought along), or any
+// node on the same 64-byte line (near the leaves a right child often is). Only other
+// steps are worth a pause for their load.
+inline bool near_in_memory(const KdNode* from, const KdNode* to) {
+    return to == from + 1 || reinterpret_cast<std::uintptr_t>(from) >> 6 == reinterpret_cast<std::uintptr_t>(to) >> 6;
+}
+
 namespace kd_detail {
 
 // The closest-hit walk of one packet as an object. With Yield it stops where its next
@@ -208,7 +216,7 @@ public:
                     }
                     node = nodes + index;
                     if constexpr (Yield) {
-                        if (index != from + 1) {  // (the left child shares its parent's line)
+                        if (!near_in_memory(nodes + from, node)) {
                             __builtin_prefetch(node);
                             return pause(Stage::Descend);
                         }
@@ -394,7 +402,7 @@ public:
         for (int v = 0; v < K; ++v) sheared_v_[v] = ShearedRayV<W>(rays + W * v, sheared_ + W * v);
         top_ = 0;
         index_ = 0;
-        at_leaf_ = false;
+        leaf_stage_ = LeafStage::None;
         return true;
     }
 
@@ -414,22 +422,22 @@ public:
         }
         std::uint32_t index = index_;
         int top = top_;
-        bool at_leaf = at_leaf_;
-        auto pause = [&](bool leaf_next) {
+        LeafStage leaf_stage = leaf_stage_;
+        auto pause = [&](LeafStage next) {
             for (int v = 0; v < K; ++v) {
                 tmin_[v] = tmin[v];
                 tmax_[v] = tmax[v];
             }
             index_ = index;
             top_ = top;
-            at_leaf_ = leaf_next;
+            leaf_stage_ = next;
             return false;
         };
         for (;;) {
             const KdNode* node = nodes + index;
             vm active[K];
             bool leaf = true;
-            if (!at_leaf) {
+            if (leaf_stage == LeafStage::None) {
                 for (;;) {
                     int any = 0;
                     for (int v = 0; v < K; ++v) {
@@ -480,34 +488,37 @@ public:
                     index = any_near ? near_child : far_child;
                     node = nodes + index;
                     if constexpr (Yield) {
-                        if (index != from + 1) {  // (the left child shares its parent's line)
+                        if (!near_in_memory(nodes + from, node)) {
                             __builtin_prefetch(node);
-                            return pause(false);
+                            return pause(LeafStage::None);
                         }
                     }
                 }
                 if (leaf) {
                     if constexpr (Yield) {
                         __builtin_prefetch(tree.tri_ids.data() + node->first());
-                        return pause(true);
+                        return pause(LeafStage::Ids);
                     }
                 }
             } else {
-                at_leaf = false;
                 for (int v = 0; v < K; ++v) active[v] = live_[v] & (tmin[v] <= tmax[v]);
-            }
-            if (leaf) {
-                const std::uint32_t count = node->count();
-                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-                if constexpr (Yield) {
-                    const std::uint32_t ahead = std::min<std::uint32_t>(count, kPrefetchTriangles);
+                if (leaf_stage == LeafStage::Ids) {
+                    // The ids are in; ask for the first triangles' vertices and wait again.
+                    const std::uint32_t* ids = tree.tri_ids.data() + node->first();
+                    const std::uint32_t ahead = std::min<std::uint32_t>(node->count(), kPrefetchTriangles);
                     for (std::uint32_t t = 0; t < ahead; ++t) {
                         const char* p =
                             reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[t]));
                         __builtin_prefetch(p);
                         __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
                     }
+                    return pause(LeafStage::Vertices);
                 }
+                leaf_stage = LeafStage::None;
+            }
+            if (leaf) {
+                const std::uint32_t count = node->count();
+                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
                 int act[K];
                 for (int v = 0; v < K; ++v) act[v] = active[v].bits();
                 for (std::uint32_t t = 0; t < count; ++t) {
@@ -570,7 +581,8 @@ private:
     std::uint32_t occluded_ = 0;
     std::uint32_t index_ = 0;
     int top_ = 0;
-    bool at_leaf_ = false;
+    enum class LeafStage : std::uint8_t { None, Ids, Vertices };  // what a paused walk waits for
+    LeafStage leaf_stage_ = LeafStage::None;
     Entry stack_[kStack];
 };
 
