@@ -49,23 +49,14 @@ _SCRIPT = DIGEST_SCRIPT + r"""
 model, inputs, mesh, built = sys.argv[1:5]
 data = np.load(inputs)
 out = {"isa": native.isa(), "supported": native.supported_isas()}
-cameras = [
-    Camera(eye=tuple(map(float, e)), target=tuple(map(float, t)), width=64, height=48)
-    for e, t in zip(data["eyes"], data["targets"])
-]
+cameras = {
+    str(view): Camera(eye=tuple(map(float, e)), target=tuple(map(float, t)), width=64, height=48)
+    for view, (e, t) in enumerate(zip(data["eyes"], data["targets"]))
+}
 with ModelFile(model) as f:
     scene = f.to_scene()
 with OutOfCoreModel(model, make_cache(64 << 20)) as ooc:
-    for view, camera in enumerate(cameras):
-        for shading in ("normal", "headlight", "sun", "ao", "indirect"):
-            for packets in (1, 16):
-                kw = dict(shading=shading, packets=packets, ao_samples=4)
-                f = trace(scene, camera.to_native(), **kw)
-                out[f"in-core {view} {shading} {packets}"] = digest(f.image, f.depth, f.prim)
-                for poe in (0.0, 2.0):
-                    f = ooc.render_complete(camera, pixels_of_error=poe, **kw)
-                    key = f"out-of-core {view} {shading} {packets} PoE {poe:g}"
-                    out[key] = digest(f.image, f.depth, f.prim)
+    out.update(frame_digests(scene, ooc, cameras, (1, 16), 4))
     o, d = data["origins"], data["directions"]
     hits = scene.intersect(o, d)
     out["intersect"] = digest(hits["t"], hits["prim"], hits["u"], hits["v"])

@@ -91,16 +91,7 @@ with OutOfCoreModel(path, make_cache(64 << 20)) as model:
     overview = frame_bounds(*model.bounds, width=96, height=64)
     e, t = np.asarray(overview.eye), np.asarray(overview.target)
     close = Camera(eye=tuple(t + (e - t) * 0.3), target=overview.target, width=96, height=64)
-    for view, cam in (("overview", overview), ("close", close)):
-        for shading in ("normal", "headlight", "sun", "ao", "indirect"):
-            for packets in (1, 4, 16):
-                kw = dict(shading=shading, packets=packets, ao_samples=6)
-                f = trace(scene, cam.to_native(), **kw)
-                out[f"in-core {view} {shading} {packets}"] = digest(f.image, f.depth, f.prim)
-                for poe in (0.0, 2.0):
-                    f = model.render_complete(cam, pixels_of_error=poe, **kw)
-                    key = f"out-of-core {view} {shading} {packets} PoE {poe:g}"
-                    out[key] = digest(f.image, f.depth, f.prim)
+    out.update(frame_digests(scene, model, {"overview": overview, "close": close}, (1, 4, 16), 6))
     origins, directions = overview.primary_rays()
     hits = scene.intersect(origins, directions)
     ok = hits["prim"] >= 0

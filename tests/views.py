@@ -31,6 +31,22 @@ def digest(*arrays):
     for a in arrays:
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()[:16]
+
+# Digests of every shading mode's frame, in core and out of core at PoE 0 and 2, for each
+# named camera and packet size.
+def frame_digests(scene, model, cameras, packet_sizes, ao_samples):
+    out = {}
+    for view, cam in cameras.items():
+        for shading in ("normal", "headlight", "sun", "ao", "indirect"):
+            for packets in packet_sizes:
+                kw = dict(shading=shading, packets=packets, ao_samples=ao_samples)
+                f = trace(scene, cam.to_native(), **kw)
+                out[f"in-core {view} {shading} {packets}"] = digest(f.image, f.depth, f.prim)
+                for poe in (0.0, 2.0):
+                    f = model.render_complete(cam, pixels_of_error=poe, **kw)
+                    key = f"out-of-core {view} {shading} {packets} PoE {poe:g}"
+                    out[key] = digest(f.image, f.depth, f.prim)
+    return out
 """
 
 CAMERA_FIELDS = ("eye", "target", "up", "fov", "width", "height")

@@ -86,6 +86,19 @@ inline bool near_in_memory(const KdNode* from, const KdNode* to) {
     return to == from + 1 || reinterpret_cast<std::uintptr_t>(from) >> 6 == reinterpret_cast<std::uintptr_t>(to) >> 6;
 }
 
+// Asks for the vertices of a leaf's first triangles (leaves hold a few), whose ids are
+// at hand: what a walk in flight does before it pauses for a leaf's tests.
+inline void prefetch_leaf_vertices(const KdTree& tree, const Vec3f* tri_vertices, const KdNode& leaf) {
+    constexpr std::uint32_t kPrefetchTriangles = 8;
+    const std::uint32_t* ids = tree.tri_ids.data() + leaf.first();
+    const std::uint32_t count = std::min<std::uint32_t>(leaf.count(), kPrefetchTriangles);
+    for (std::uint32_t i = 0; i < count; ++i) {
+        const char* p = reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[i]));
+        __builtin_prefetch(p);
+        __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
+    }
+}
+
 namespace kd_detail {
 
 // The closest-hit walk of one packet as an object. With Yield it stops where its next
@@ -230,14 +243,7 @@ public:
                     stage_ = Stage::LeafTest;
                 }
             } else if (stage_ == Stage::LeafIds) {
-                const KdNode* node = nodes + index;
-                const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-                const std::uint32_t count = std::min<std::uint32_t>(node->count(), kPrefetchTriangles);
-                for (std::uint32_t i = 0; i < count; ++i) {
-                    const char* p = reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[i]));
-                    __builtin_prefetch(p);
-                    __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
-                }
+                prefetch_leaf_vertices(tree, tri_vertices, nodes[index]);
                 // And wait for them: tests right after the prefetch stalled on these loads
                 // (a fifth of a 10^7 mandelbulb frame, at the first vertex's load).
                 if constexpr (Yield) return pause(Stage::LeafTest);
@@ -296,8 +302,6 @@ private:
         std::uint32_t node;
     };
     static constexpr int kStack = 64;
-    // A leaf's vertices prefetched before its tests; leaves hold a few triangles.
-    static constexpr std::uint32_t kPrefetchTriangles = 8;
 
     void finish() {
         for (int i = 0; i < N; ++i) hits_out_[i] = hits_[packet_lane<N, W>(i)];
@@ -507,14 +511,7 @@ public:
                 for (int v = 0; v < K; ++v) active[v] = live_[v] & (tmin[v] <= tmax[v]);
                 if (leaf_stage == LeafStage::Ids) {
                     // The ids are in; ask for the first triangles' vertices and wait again.
-                    const std::uint32_t* ids = tree.tri_ids.data() + node->first();
-                    const std::uint32_t ahead = std::min<std::uint32_t>(node->count(), kPrefetchTriangles);
-                    for (std::uint32_t t = 0; t < ahead; ++t) {
-                        const char* p =
-                            reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[t]));
-                        __builtin_prefetch(p);
-                        __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
-                    }
+                    prefetch_leaf_vertices(tree, tri_vertices, *node);
                     return pause(LeafStage::Vertices);
                 }
                 leaf_stage = LeafStage::None;
@@ -573,7 +570,6 @@ private:
         std::uint32_t node;
     };
     static constexpr int kStack = 64;
-    static constexpr std::uint32_t kPrefetchTriangles = 8;
 
     const Ray* rays_ = nullptr;
     const std::uint32_t* skip_ = nullptr;
