@@ -32,6 +32,7 @@ temporary output are removed.
 
 from __future__ import annotations
 
+import mmap
 import numbers
 import os
 import queue
@@ -795,8 +796,8 @@ class _Builder:
             recs, node.records = node.records, None
         else:
             assert node.path is not None
-            recs = np.fromfile(node.path, dtype=np.uint8).reshape(-1, self.dtype.itemsize)
-            node.path.unlink()
+            recs = _map_records(node.path, self.dtype.itemsize)
+            node.path.unlink()  # its pages stay until the map goes
         self.part_base = self.built
         self.part_refs0 = self.refs_seen
         self.part_count = node.count
@@ -1017,6 +1018,21 @@ def peak_rss_bytes() -> int:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _map_records(path: Path, itemsize: int) -> np.ndarray:
+    """A part's scratch file as (n, itemsize) records, mapped rather than read: a read
+    copied the 10^8 plant's parts (600 MiB each) into fresh memory that the kernel had to
+    clear first, about a second a part with the other core idle. The map holds the page
+    cache's own pages; the build reads all of them, so they count in the resident set
+    much as the copy did, and go with the array."""
+    with open(path, "rb") as f:
+        if os.fstat(f.fileno()).st_size == 0:
+            return np.empty((0, itemsize), np.uint8)
+        # MAP_POPULATE: map every page now, in one call, not at a fault each.
+        flags = mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0)
+        mapped = mmap.mmap(f.fileno(), 0, flags=flags, prot=mmap.PROT_READ)
+    return np.frombuffer(mapped, dtype=np.uint8).reshape(-1, itemsize)
 
 
 def _read_records(path: Path, dtype: np.dtype, chunk: int) -> Iterator[np.ndarray]:
