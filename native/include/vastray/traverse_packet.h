@@ -508,12 +508,12 @@ public:
                     }
                 }
             } else {
-                for (int v = 0; v < K; ++v) active[v] = live_[v] & (tmin[v] <= tmax[v]);
                 if (leaf_stage == LeafStage::Ids) {
                     // The ids are in; ask for the first triangles' vertices and wait again.
                     prefetch_leaf_vertices(tree, tri_vertices, *node);
                     return pause(LeafStage::Vertices);
                 }
+                for (int v = 0; v < K; ++v) active[v] = live_[v] & (tmin[v] <= tmax[v]);
                 leaf_stage = LeafStage::None;
             }
             if (leaf) {
