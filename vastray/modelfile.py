@@ -489,7 +489,9 @@ class ModelFile:
             out.append(ModelPart(i, name, lo, hi, int(r["triangles"])))  # type: ignore[arg-type]
         self._parts = out
         self._run_firsts = firsts
-        self._run_parts = np.where(run_parts == NO_PART, -1, run_parts).astype(np.int32)
+        # -1 for no part; written without np.where(uint32, -1, ...), which NumPy 2.5 refuses.
+        self._run_parts = run_parts.astype(np.int32)
+        self._run_parts[run_parts == NO_PART] = -1
         return offset
 
     # -- parts -----------------------------------------------------------------------------

@@ -781,7 +781,9 @@ class PlySource(TriangleSource):
             # A restart is -1, which an unsigned index type writes as its largest value.
             kind = next(p[2] for p in e.props if p[0] == "list" and p[3] == e.list_name())
             if kind.startswith("u"):
-                values = np.where(values == np.iinfo(_PLY_TYPES[kind]).max, -1, values)
+                restart = values == np.iinfo(_PLY_TYPES[kind]).max
+                values = values.astype(np.int64)
+                values[restart] = -1
             tris, row, _ = native.triangulate("strip", counts, values)
         elif len(counts) and (counts == 3).all():
             tris, row = values.reshape(-1, 3), np.arange(len(counts), dtype=np.uint64)
