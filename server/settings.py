@@ -3,6 +3,7 @@ or the defaults, which work with no configuration at all."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -19,6 +20,23 @@ def _split(value: object) -> object:
     return value
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (a container's or taskset's CPU set, not the host's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def default_render_workers() -> int:
+    """Frames in flight at once: 2 up to 5 cores (one frame encodes while the next
+    renders), half the cores beyond. A frame's tile loop uses every core, but its encode
+    and its serial work do not; with many viewers on many cores two in flight leave cores
+    idle (16 viewers on 16 cores: 18.9 Mpixel/s with 2, 31.1 with 8;
+    bench/results/stream-16-workers.md)."""
+    return max(2, min(64, usable_cores() // 2))
+
+
 class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="VASTRAY_", extra="ignore")
 
@@ -30,7 +48,12 @@ class Settings(BaseSettings):
     cache: int = Field(1 << 30, description="block cache budget in bytes (e.g. 1G)")
     render_threads: int = Field(0, ge=0, description="threads per frame; 0: every core")
     fetchers: int = Field(2, ge=1, le=64, description="block fetcher threads")
-    render_workers: int = Field(2, ge=1, le=64, description="frames rendered or encoded at once")
+    render_workers: int = Field(
+        default_factory=default_render_workers,
+        ge=1,
+        le=64,
+        description="frames rendered or encoded at once (default: 2, or half the cores beyond 5)",
+    )
 
     api_keys: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="keys for write endpoints"

@@ -19,6 +19,9 @@ icosphere and a cube, every triangle with its own random colour. What is checked
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -331,3 +334,34 @@ def test_a_large_in_core_tree_lies_on_huge_pages() -> None:
     # stay small; most of the tree (about 40 MiB here) must not.
     assert tree_mib > 16
     assert grown_mib >= tree_mib / 2, (grown_mib, tree_mib)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs Linux CPU affinity")
+def test_every_core_means_the_cores_the_process_may_use() -> None:
+    """threads=0 ('every core') counts the CPUs of the process's affinity mask (a
+    container's cpuset, a taskset), not the host's: a frame rendered by a process pinned
+    to one CPU uses one lane. VASTRAY_THREADS still decides when set."""
+    cpu = min(os.sched_getaffinity(0))
+    code = (
+        "import os\n"
+        f"os.sched_setaffinity(0, {{{cpu}}})\n"
+        "from vastray import native\n"
+        "from vastray.scenes import to_mesh\n"
+        "m = to_mesh('spheres', 2000, 1)\n"
+        "scene = native.Scene(m.vertices, m.faces)\n"
+        "from vastray.camera import Camera\n"
+        "from vastray.renderer import trace\n"
+        "frame = trace(scene, Camera(eye=(0, 0, 5), target=(0, 0, 0), width=32, height=24), threads=0)\n"
+        "print(native.hardware_threads(), frame.stats.threads)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "VASTRAY_THREADS"}
+    pinned = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert pinned.stdout.split() == ["1", "1"]
+    forced = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**env, "VASTRAY_THREADS": "3"},
+        check=True,
+    )
+    assert forced.stdout.split() == ["3", "3"]

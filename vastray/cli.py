@@ -352,7 +352,8 @@ def _add_serve(sub: Any) -> None:
     v.add_argument("--cache", help="block cache budget shared by every model and viewer (default 1G)")
     v.add_argument("--render-threads", type=int, help="threads per frame (default 0: every core)")
     v.add_argument("--fetchers", type=int, help="block fetcher threads (default 2)")
-    v.add_argument("--render-workers", type=int, help="frames rendered or encoded at once (default 2)")
+    v.add_argument("--render-workers", type=int, help="frames rendered or encoded at once "
+                   "(default 2; half the cores on machines of 6 or more)")  # fmt: skip
     v.add_argument("--api-key", action="append", help="API key for write endpoints (repeatable; default: "
                    "a random key printed at start)")  # fmt: skip
     v.add_argument("--cors-origin", action="append", help="an origin allowed to call the API from a browser")

@@ -4,6 +4,10 @@
 #include <string>
 #include <utility>
 
+#if defined(__linux__)
+#include <sched.h>
+#endif
+
 namespace vastray {
 
 unsigned hardware_threads() {
@@ -11,6 +15,16 @@ unsigned hardware_threads() {
         const long n = std::strtol(env, nullptr, 10);
         if (n > 0) return static_cast<unsigned>(n);
     }
+#if defined(__linux__)
+    // The CPUs this process may run on: a container's cpuset or a taskset, where
+    // hardware_concurrency() counts every CPU of the host and the pool would oversubscribe.
+    cpu_set_t set;
+    CPU_ZERO(&set);
+    if (sched_getaffinity(0, sizeof(set), &set) == 0) {
+        const int n = CPU_COUNT(&set);
+        if (n > 0) return static_cast<unsigned>(n);
+    }
+#endif
     const unsigned n = std::thread::hardware_concurrency();
     return n == 0 ? 1 : n;
 }
