@@ -6,6 +6,7 @@ newer release refused."""
 from __future__ import annotations
 
 import signal
+import socket
 import sqlite3
 import subprocess
 import threading
@@ -17,6 +18,8 @@ import httpx
 import pytest
 from serverproc import VASTRAY, ServerProcess, wait_for_job
 from test_jobs import SLOW_SOURCE, wait_for_phase
+
+from vastray.server.main import listening_socket
 
 
 @pytest.mark.slow
@@ -247,3 +250,25 @@ def test_port_in_use_is_a_clear_error(server: ServerProcess) -> None:
         timeout=60,
     )
     assert out.returncode == 2 and "cannot listen" in out.stderr
+
+
+def test_connections_to_the_server_send_without_delay() -> None:
+    """Connections accepted from the server's socket have TCP_NODELAY (inherited from
+    the listening socket; uvloop does not set it): with Nagle's algorithm on, a frame's
+    stats event waited for the client's delayed ACK, and a reader that waits for a
+    frame and its stats briefly fell behind (test_stream's fast reader)."""
+    server = listening_socket("127.0.0.1", 0)
+    server.listen()
+    with server, socket.create_connection(server.getsockname()) as client:
+        accepted, _ = server.accept()
+        with accepted:
+            assert accepted.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
+    assert client.fileno() == -1  # closed by the with block
+
+
+def test_a_port_in_use_is_refused() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        with pytest.raises(OSError):
+            listening_socket("127.0.0.1", taken.getsockname()[1])
