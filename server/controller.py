@@ -8,6 +8,11 @@ whole ratio (when eight viewers start together, or the budget shrinks because mo
 move, damped steps would spend seconds on frames far over budget); a frame under it
 raises the scale by damped, bounded steps (a frame time is noisy on a shared machine, and
 a picture that grows slowly is better than one that jumps back and forth).
+
+The budget itself is the view's share of its target interval times a gain, which the
+view's measured frame rate moves: frames of several views in flight overlap, so the
+share alone would hold each frame's wall time to what leaves the view at a multiple of
+its target rate, at a lower resolution than the machine affords.
 """
 
 from __future__ import annotations
@@ -20,12 +25,19 @@ DAMPING = 0.6  # how much of the measured correction one frame applies (in log s
 HEADROOM = 0.85  # aim a little under the budget: frames vary
 POE_STEP = 1.5
 SCALE_QUANTUM = 1 / 64  # scales are rounded, so near-equal frames have equal sizes
+RATE_DAMPING = 0.3  # how much of a measured rate error one frame moves the budget gain
 
 
 @dataclass
 class QualityController:
     scale: float = 1.0
     poe_boost: float = 1.0  # the moving PoE is the chosen PoE (at least 1) times this
+    # The budget's multiple of the view's share of the interval. Frames of several views
+    # in flight overlap, so a frame's wall time spans the others' turns: with the share
+    # alone, each of two moving views got twice its target rate at half the resolution.
+    # The gain grows while the view's measured rate is over its target and shrinks when
+    # under, between 1 (the share) and the frames in flight.
+    gain: float = 1.0
 
     def moving_settings(self, base_poe: float, min_scale: float, max_poe: float) -> tuple[float, float]:
         """(resolution scale, pixels of error) for the next moving frame."""
@@ -60,3 +72,12 @@ class QualityController:
             else:
                 self.scale = min(1.0, self.scale * step)
         self.scale = max(SCALE_QUANTUM, round(self.scale / SCALE_QUANTUM) * SCALE_QUANTUM)
+
+    def observe_rate(self, interval_seconds: float, target_fps: float, max_gain: float) -> None:
+        """Update the budget gain from the time between two moving frames of the view."""
+        if interval_seconds <= 0 or target_fps <= 0:
+            return
+        # Aim a little over the target rate, as frame times aim a little under their budget.
+        ratio = (HEADROOM / target_fps) / interval_seconds  # above 1: faster than the aim
+        step = math.exp(RATE_DAMPING * math.log(min(MAX_STEP, max(1 / MAX_STEP, ratio))))
+        self.gain = min(max(1.0, max_gain), max(1.0, self.gain * step))

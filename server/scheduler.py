@@ -6,8 +6,9 @@
   the render time, and a light view's frames come between the heavy one's. A view that
   joins starts at the smallest virtual time of the others, so it gets no burst.
 - **Budgets.** A moving view's frames are held to a frame-time budget, its target frame
-  rate's interval divided among the views moving at once; its quality controller trades
-  resolution (then accuracy) to keep within it.
+  rate's interval divided among the views moving at once, times a gain that grows (up to
+  the frames in flight, whose wall times overlap) while the view's measured rate is over
+  its target; its quality controller trades resolution (then accuracy) to keep within it.
 - **Only useful work.** A view renders when it has something to show (a new camera,
   a refinement pass, blocks that arrived for an incomplete pass) and one of its
   subscribers can take a frame (backpressure); a still, finished view costs nothing.
@@ -139,12 +140,16 @@ class Scheduler:
         waiting_for_data = False
         candidates: list[tuple[float, View, RenderJob]] = []
         moving = max(1, self.moving)
+        # Frames in flight overlap: a view's budget may grow up to this many shares of the
+        # interval while its measured rate stays over its target (QualityController.gain).
+        in_flight = min(self.workers, moving)
         for view in self.views:
             if view.waiting_for_data and view.phase != "idle":
                 waiting_for_data = True
             if view.busy or not view.wants_frame():
                 continue
-            budget = 1.0 / (view.quality.target_fps * moving)
+            view.max_gain = in_flight
+            budget = min(view.controller.gain, in_flight) / (view.quality.target_fps * moving)
             job = view.next_job(now, arrivals, budget)
             if isinstance(job, float):
                 next_wake = job if next_wake is None else min(next_wake, job)

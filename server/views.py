@@ -151,6 +151,8 @@ class View:
         self.data_epoch = 0  # the scheduler's block-arrival count when the last frame began
         self.stalls = 0
         self.controller = QualityController()
+        self.max_gain = 1.0  # the scheduler's frames in flight for the moving views
+        self.last_moving_finish: float | None = None
         self.sections: list[SectionPlane] = []
         self.highlight: list[int] = []
         self.parts = parts if parts is not None else PartTable.empty()
@@ -335,9 +337,15 @@ class View:
             self.controller.observe(
                 seconds, job.budget_seconds, q.min_scale, q.max_moving_poe, q.pixels_of_error
             )
+            if self.last_moving_finish is not None:
+                self.controller.observe_rate(
+                    result.finished_at - self.last_moving_finish, q.target_fps, self.max_gain
+                )
+            self.last_moving_finish = result.finished_at
             if job.version == self.version:
                 self.rendered_version = job.version
             return result, None
+        self.last_moving_finish = None  # the next moving frame starts a new run of them
         if job.version != self.version:
             return None, None  # a refinement of a view that has changed: a new frame follows
         self.rendered_version = job.version
