@@ -734,7 +734,8 @@ def test_cli_on_a_damaged_block(damaged: Path, tmp_path: Path) -> None:
 _MEMORY_CHILD = """
 import json, resource, sys
 from vastray.build import BuildOptions, build_model
-report = build_model(sys.argv[1], sys.argv[2], BuildOptions(memory=int(sys.argv[3])))
+threads = int(sys.argv[4]) if len(sys.argv) > 4 else 0
+report = build_model(sys.argv[1], sys.argv[2], BuildOptions(memory=int(sys.argv[3]), threads=threads))
 with open("/proc/self/status") as f:
     hwm = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmHWM:"))
 print(json.dumps({"peak": hwm, "ru_maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
@@ -766,6 +767,32 @@ def test_build_stays_within_its_memory_budget(tmp_path: Path) -> None:
     with ModelFile(out) as model:
         assert model.header["triangle_count"] == triangles
     assert sorted(os.listdir(tmp_path)) == ["grid.f32", "grid.vast"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_build_on_many_threads_stays_within_its_memory_budget(tmp_path: Path) -> None:
+    """The kd build's helper threads copy the references they take, so an in-core part
+    needs more memory per triangle on more threads; parts are sized for the thread count.
+    Here 16 threads (oversubscribed where there are fewer cores: the memory is the same)
+    on 3.4M triangles and a 512 MiB budget, which one part sized for 2 threads would
+    have passed by over 200 MiB (874 MiB against 640)."""
+    budget = parse_bytes("512M")
+    soup = tmp_path / "grid.f32"
+    triangles = write_grid_soup(soup, 1300)  # 3.38M triangles: one part for 2 threads
+    out = tmp_path / "grid.vast"
+    child = subprocess.run(
+        [sys.executable, "-c", _MEMORY_CHILD, str(soup), str(out), str(budget), "16"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert child.returncode == 0, child.stderr
+    result = json.loads(child.stdout)
+    assert result["report"]["triangles"] == triangles
+    assert result["report"]["incore_parts"] > 1
+    assert result["peak"] <= budget + STATED_OVERHEAD_BYTES, (
+        f"peak RSS {result['peak'] / 2**20:.0f} MiB > budget {budget >> 20} MiB "
+        f"+ {STATED_OVERHEAD_BYTES >> 20} MiB overhead"
+    )
 
 
 _BIG_PARENT = """

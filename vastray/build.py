@@ -32,6 +32,7 @@ temporary output are removed.
 
 from __future__ import annotations
 
+import math
 import mmap
 import numbers
 import os
@@ -61,6 +62,11 @@ from vastray.triangle_readers import TriangleChunk, VertexTable
 # deepest point of the build), nodes and leaf lists, facets, the writer's pending
 # treelets and buffered job blocks. Parts are sized with it.
 INCORE_BYTES_PER_TRIANGLE = 150
+# The kd build's helper threads each copy the references of the subtree they take, so the
+# peak grows with the thread count: 10^7-triangle single-part builds peaked at 99, 131,
+# 162, 193, 224 and 255 bytes per triangle on 1, 2, 4, 8, 16 and 32 threads (about 31
+# more per doubling; 2.27 GB against the 2 GB budget at 16). Parts are sized for that.
+INCORE_BYTES_PER_THREAD_DOUBLING = 32
 # The budget covers the builder's working set: streaming chunks and in-core parts. On
 # top of it comes a fixed overhead that does not grow with the model: the interpreter,
 # numpy, lz4 and the native module (90 MiB measured) plus allocator slack.
@@ -86,6 +92,13 @@ class BuildProgress:
     unit: str  # what done/total count: triangles or bytes
     elapsed: float  # seconds since the build started
     message: str = ""
+
+
+def incore_bytes_per_triangle(threads: int) -> int:
+    """Peak bytes per triangle of an in-core part built on `threads` threads (the 2-thread
+    measure for 2 or fewer)."""
+    doublings = max(0.0, math.log2(max(1, threads)) - 1.0)
+    return INCORE_BYTES_PER_TRIANGLE + round(INCORE_BYTES_PER_THREAD_DOUBLING * doublings)
 
 
 @dataclass
@@ -156,7 +169,8 @@ class BuildOptions:
             raise ValueError(f"empty_space_ratio must be in [0, 1), got {self.empty_space_ratio!r}")
 
     def incore_limit(self) -> int:
-        return max(MIN_INCORE_TRIANGLES, self.memory // INCORE_BYTES_PER_TRIANGLE)
+        threads = self.threads or native.hardware_threads()
+        return max(MIN_INCORE_TRIANGLES, self.memory // incore_bytes_per_triangle(threads))
 
     def chunk(self) -> int:
         """Triangles per streaming chunk: a quarter of the budget at most."""
