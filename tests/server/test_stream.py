@@ -98,8 +98,9 @@ class Viewer:
             image = np.asarray(Image.open(io.BytesIO(m[HEADER_SIZE:])).convert("RGB"))
             assert image.shape == (h.height, h.width, 3)
             self.frames.append((h, image))
-            # Every frame is followed by its stats event (docs/PROTOCOL.md).
-            stats = json.loads(await asyncio.wait_for(self.ws.recv(), timeout))
+            # Every frame is followed by its stats event (docs/PROTOCOL.md). It is owed now:
+            # a caller's short poll must not drop the frame (and its ack) on a busy machine.
+            stats = json.loads(await asyncio.wait_for(self.ws.recv(), max(timeout, 10.0)))
             assert stats["type"] == "stats" and stats["frame"] == h.frame, stats
             self.events.append(stats)
             if ack:
