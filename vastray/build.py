@@ -65,7 +65,9 @@ INCORE_BYTES_PER_TRIANGLE = 150
 # The kd build's helper threads each copy the references of the subtree they take, so the
 # peak grows with the thread count: 10^7-triangle single-part builds peaked at 99, 131,
 # 162, 193, 224 and 255 bytes per triangle on 1, 2, 4, 8, 16 and 32 threads (about 31
-# more per doubling; 2.27 GB against the 2 GB budget at 16). Parts are sized for that.
+# more per doubling; 2.27 GB against the 2 GB budget at 16). Parts are sized for 2
+# threads, so that the model does not depend on the thread count; the writer runs on as
+# many threads as the largest part leaves room for.
 INCORE_BYTES_PER_THREAD_DOUBLING = 32
 # The budget covers the builder's working set: streaming chunks and in-core parts. On
 # top of it comes a fixed overhead that does not grow with the model: the interpreter,
@@ -169,8 +171,15 @@ class BuildOptions:
             raise ValueError(f"empty_space_ratio must be in [0, 1), got {self.empty_space_ratio!r}")
 
     def incore_limit(self) -> int:
+        return max(MIN_INCORE_TRIANGLES, self.memory // INCORE_BYTES_PER_TRIANGLE)
+
+    def writer_threads(self, largest_part: int) -> int:
+        """The threads asked for (every core for 0), fewer where the largest in-core part
+        would pass the budget on them; never fewer than 2, which the part sizes allow."""
         threads = self.threads or native.hardware_threads()
-        return max(MIN_INCORE_TRIANGLES, self.memory // incore_bytes_per_triangle(threads))
+        while threads > 2 and incore_bytes_per_triangle(threads) * largest_part > self.memory:
+            threads -= 1
+        return threads
 
     def chunk(self) -> int:
         """Triangles per streaming chunk: a quarter of the budget at most."""
@@ -870,6 +879,7 @@ class _Builder:
         blocks_dir = scratch / "blocks"
         blocks_dir.mkdir()
         steps = native.vertex_grid_steps(lo.tolist(), hi.tolist()) if self.opt.quantized_vertices else None
+        self.threads_used = self.opt.writer_threads(max((p.count for p in parts), default=0))
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
             scratch_dir=str(blocks_dir),
@@ -879,7 +889,7 @@ class _Builder:
             intersection_cost=self.opt.intersection_cost,
             empty_space_ratio=self.opt.empty_space_ratio,
             voxel_rays=self.opt.voxel_rays,
-            threads=self.opt.threads,
+            threads=self.threads_used,
             quantized_splits=self.opt.quantized_splits,
             vertex_steps=steps,
             tier_width=self.opt.tier_width,
@@ -963,6 +973,7 @@ class _Builder:
             "incore_parts": len(parts),
             "out_of_core_levels": _depth(tree),
             "incore_limit": limit,
+            "writer_threads": self.threads_used,
             "seconds": time.perf_counter() - self.start,
             "phase_seconds": dict(self.phase_seconds),
             "triangles_per_second": count / max(1e-9, time.perf_counter() - self.start),
