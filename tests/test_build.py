@@ -734,13 +734,29 @@ def test_cli_on_a_damaged_block(damaged: Path, tmp_path: Path) -> None:
 _MEMORY_CHILD = """
 import json, resource, sys
 from vastray.build import BuildOptions, build_model
-threads = int(sys.argv[4]) if len(sys.argv) > 4 else 0
+threads = int(sys.argv[4]) if len(sys.argv) > 4 else 0  # 0: every core
 report = build_model(sys.argv[1], sys.argv[2], BuildOptions(memory=int(sys.argv[3]), threads=threads))
 with open("/proc/self/status") as f:
     hwm = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmHWM:"))
 print(json.dumps({"peak": hwm, "ru_maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
                   "report": report}))
 """
+
+
+def build_within_budget(source: Path, out: Path, budget: int, threads: int = 0) -> dict[str, Any]:
+    """Builds `source` in a child process of its own and checks that its peak RSS stayed
+    within `budget` plus the stated overhead; the build report."""
+    child = subprocess.run(
+        [sys.executable, "-c", _MEMORY_CHILD, str(source), str(out), str(budget), str(threads)],
+        cwd=out.parent, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert child.returncode == 0, child.stderr
+    result = json.loads(child.stdout)
+    assert result["peak"] <= budget + STATED_OVERHEAD_BYTES, (
+        f"peak RSS {result['peak'] / 2**20:.0f} MiB > budget {budget >> 20} MiB "
+        f"+ {STATED_OVERHEAD_BYTES >> 20} MiB overhead"
+    )
+    return result["report"]
 
 
 @pytest.mark.slow
@@ -751,19 +767,9 @@ def test_build_stays_within_its_memory_budget(tmp_path: Path) -> None:
     triangles = write_grid_soup(soup, 1200)  # 2.88M triangles, 99 MiB
     assert soup.stat().st_size >= 3 * budget
     out = tmp_path / "grid.vast"
-    child = subprocess.run(
-        [sys.executable, "-c", _MEMORY_CHILD, str(soup), str(out), str(budget)],
-        cwd=tmp_path, capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
-    assert child.returncode == 0, child.stderr
-    result = json.loads(child.stdout)
-    report = result["report"]
+    report = build_within_budget(soup, out, budget)
     assert report["triangles"] == triangles
     assert report["incore_parts"] > 1 and report["out_of_core_levels"] >= 1
-    assert result["peak"] <= budget + STATED_OVERHEAD_BYTES, (
-        f"peak RSS {result['peak'] / 2**20:.0f} MiB > budget {budget >> 20} MiB "
-        f"+ {STATED_OVERHEAD_BYTES >> 20} MiB overhead"
-    )
     with ModelFile(out) as model:
         assert model.header["triangle_count"] == triangles
     assert sorted(os.listdir(tmp_path)) == ["grid.f32", "grid.vast"]
@@ -781,21 +787,10 @@ def test_a_build_on_many_threads_stays_within_its_memory_budget(tmp_path: Path) 
     budget = parse_bytes("512M")
     soup = tmp_path / "grid.f32"
     triangles = write_grid_soup(soup, 1300)  # 3.38M triangles: one part
-    out = tmp_path / "grid.vast"
-    child = subprocess.run(
-        [sys.executable, "-c", _MEMORY_CHILD, str(soup), str(out), str(budget), "16"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
-    assert child.returncode == 0, child.stderr
-    result = json.loads(child.stdout)
-    report = result["report"]
+    report = build_within_budget(soup, tmp_path / "grid.vast", budget, threads=16)
     assert report["triangles"] == triangles
     assert report["incore_parts"] == 1
     assert 2 <= report["writer_threads"] < 16
-    assert result["peak"] <= budget + STATED_OVERHEAD_BYTES, (
-        f"peak RSS {result['peak'] / 2**20:.0f} MiB > budget {budget >> 20} MiB "
-        f"+ {STATED_OVERHEAD_BYTES >> 20} MiB overhead"
-    )
 
 
 _BIG_PARENT = """
