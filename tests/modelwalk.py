@@ -299,16 +299,27 @@ class CompactBlock:
         count = r(16) if partial else remaining
         if width > 16 or not 1 <= count <= remaining:
             raise WalkError(f"leaf record at byte {at} has width {width} and count {count} of {remaining}")
-        local = np.empty(count, np.int64)
-        for i in range(count):
-            if r(1):
-                local[i] = nxt
+        # The entries' bits as one string, bit i at index i (past the block's end: zeros,
+        # as `bits` reads), sliced per entry: a leaf holds up to thousands of entries.
+        most = count * (1 + width)
+        first = r.pos
+        value = int.from_bytes(self.raw[first >> 3 : (first + most + 7) >> 3], "little") >> (first & 7)
+        stream = format(value, f"0{most}b")[::-1][:most]
+        entries: list[int] = []
+        at_bit = 0
+        for _ in range(count):
+            if stream[at_bit] == "1":
+                entries.append(nxt)
                 nxt += 1
+                at_bit += 1
             else:
-                d = r(width)
+                d = int(stream[at_bit + width : at_bit : -1], 2) if width else 0
                 if d >= nxt:
                     raise WalkError(f"leaf record at byte {at} reaches back before the first triangle")
-                local[i] = nxt - 1 - d
+                entries.append(nxt - 1 - d)
+                at_bit += 1 + width
+        r.pos = first + at_bit
+        local = np.array(entries, np.int64)
         if r.pos > 8 * self.records_end:
             raise WalkError(f"leaf record at byte {at} runs past the records")
         if (local >= len(self.ids)).any():
