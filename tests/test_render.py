@@ -336,6 +336,37 @@ def test_a_large_in_core_tree_lies_on_huge_pages() -> None:
     assert grown_mib >= tree_mib / 2, (grown_mib, tree_mib)
 
 
+def test_the_tree_does_not_depend_on_the_thread_count() -> None:
+    """Near the root, where the build's threads have no subtree of their own yet, all
+    lanes bin and partition the same node (kdtree_build.cpp, `partition_wide`); the tree
+    is still the one a single thread builds: the same nodes, leaf references and hits."""
+    if native.hardware_threads() < 2:
+        pytest.skip("needs two cores")
+    from vastray.scenes import to_mesh
+
+    mesh = to_mesh("plant", 300_000, 1)
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
+    one = native.Scene(vertices, faces, threads=1)
+    two = native.Scene(vertices, faces, threads=2)
+    assert one.build_stats["wide_nodes"] == 0
+    assert two.build_stats["wide_nodes"] >= 1  # the root at least: 300,000 references
+    for key in ("nodes", "leaves", "empty_leaves", "references", "max_depth", "degenerate"):
+        assert one.build_stats[key] == two.build_stats[key], key
+    # Summed per subtree, in another order where a helper built one.
+    assert two.build_stats["sah_cost"] == pytest.approx(one.build_stats["sah_cost"], rel=1e-9)
+    rng = np.random.default_rng(7)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    targets = lo + rng.random((20_000, 3)) * (hi - lo)
+    outward = rng.normal(size=(20_000, 3))
+    origins = targets + outward / np.linalg.norm(outward, axis=1, keepdims=True) * np.linalg.norm(hi - lo)
+    directions = targets - origins
+    a, b = one.intersect(origins, directions), two.intersect(origins, directions)
+    assert (a["prim"] >= 0).mean() > 0.2
+    np.testing.assert_array_equal(a["prim"], b["prim"])
+    np.testing.assert_array_equal(a["t"], b["t"])
+
+
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs Linux CPU affinity")
 def test_every_core_means_the_cores_the_process_may_use() -> None:
     """threads=0 ('every core') counts the CPUs of the process's affinity mask (a

@@ -81,6 +81,7 @@ py::dict build_stats(const Scene& s) {
     d["empty_leaves"] = st.empty_leaves;
     d["references"] = st.references;
     d["degenerate"] = st.degenerate;
+    d["wide_nodes"] = st.wide_nodes;
     d["max_depth"] = st.max_depth;
     d["sah_cost"] = st.sah_cost;
     d["build_ms"] = st.build_ms;

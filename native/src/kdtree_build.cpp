@@ -18,6 +18,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <new>
+#include <stdexcept>
 #include <type_traits>
 #include <thread>
 #include <utility>
@@ -326,15 +327,48 @@ private:
     bool over_ = false;
 };
 
+// The used boxes of a partition's two children, accumulated as `partition` does (the
+// first of equal values stays, so chunks folded in order give the serial result).
+struct UsedBoxes {
+    __m128 llo = _mm_set1_ps(std::numeric_limits<float>::infinity());
+    __m128 lhi = _mm_set1_ps(-std::numeric_limits<float>::infinity());
+    __m128 rlo = llo, rhi = lhi;
+    void fold(const UsedBoxes& later) {
+        llo = _mm_min_ps(later.llo, llo);
+        lhi = _mm_max_ps(later.lhi, lhi);
+        rlo = _mm_min_ps(later.rlo, rlo);
+        rhi = _mm_max_ps(later.rhi, rhi);
+    }
+};
+
+// Which children a reference goes to. A reference in the plane goes to both (it has no
+// area there to clip); one that straddles it goes to both, clipped.
+inline bool goes_left(float lo, float hi, float split) { return lo < split || (lo == split && hi == split); }
+inline bool goes_right(float lo, float hi, float split) { return hi > split || (lo == split && hi == split); }
+
+// Chunks of a wide node's references, in order: enough for the lanes to balance.
+struct Chunks {
+    Chunks(std::size_t items, unsigned lanes)
+        : n(items), count(std::max<std::size_t>(1, std::min<std::size_t>(8 * std::size_t{lanes}, items >> 14))) {}
+    std::size_t begin(std::size_t c) const { return n * c / count; }
+    std::size_t end(std::size_t c) const { return n * (c + 1) / count; }
+    std::size_t n, count;
+};
+
 class Builder {
 public:
-    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, bool parallel)
-        : soup_(soup), p_(params), max_depth_(max_depth), parallel_(parallel) {}
+    // threads: the lanes a wide node's binning and partition may use (1: never).
+    Builder(const TriangleSoup& soup, const KdBuildParams& params, int max_depth, bool parallel, unsigned threads)
+        : soup_(soup), p_(params), max_depth_(max_depth), parallel_(parallel), threads_(threads) {}
 
     // A helper thread: builds offered subtrees until the build is over.
     void help() {
         RefStack rs;
-        while (Task* t = tasks_.take()) run(t, rs);
+        while (Task* t = tasks_.take()) {
+            building_.fetch_add(1, std::memory_order_relaxed);
+            run(t, rs);
+            building_.fetch_sub(1, std::memory_order_relaxed);
+        }
     }
     // Builds a task taken from another thread (or from an outer frame of this one) on `rs`,
     // a stack that nothing else is using meanwhile.
@@ -376,11 +410,27 @@ private:
     // Returns the children: the right one at [first, first + nr), the left one after it.
     std::pair<Side, Side> partition(RefStack& rs, std::size_t first, std::size_t n, int axis, float split,
                                     const Box3f& lcell, const Box3f& rcell) const;
+    // The same children in the same order, the references routed by every lane.
+    std::pair<Side, Side> partition_wide(RefStack& rs, std::size_t first, std::size_t n, int axis, float split,
+                                         const Box3f& lcell, const Box3f& rcell) const;
+    // Routes in[0, n) to the children: the left's to left[nl...], the right's to
+    // right[nr...]. `right` may be `in` itself: a reference read gives at most one to the
+    // right, so writes never overtake reads.
+    void route(const PrimRef* in, std::size_t n, int axis, float split, const Box3f& lcell, const Box3f& rcell,
+               PrimRef* left, std::size_t& nl, PrimRef* right, std::size_t& nr, UsedBoxes& used) const;
+    // A node near the root, while threads have no subtree of their own to build: its
+    // passes over the references are worth splitting between them.
+    bool wide(std::size_t n) const {
+        constexpr std::size_t kWideNode = std::size_t{1} << 18;
+        return threads_ > 1 && n >= kWideNode && building_.load(std::memory_order_relaxed) < threads_;
+    }
 
     const TriangleSoup& soup_;
     const KdBuildParams& p_;
     const int max_depth_;
     const bool parallel_;
+    const unsigned threads_;
+    std::atomic<unsigned> building_{1};  // threads building a subtree: the caller and busy helpers
     Tasks tasks_;
 };
 
@@ -421,34 +471,29 @@ void Builder::emit_leaf(const PrimRef* refs, std::size_t n, const Box3f& cell, i
                         static_cast<double>(kept);
 }
 
-std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::size_t first, std::size_t n, int axis,
-                                                          float split, const Box3f& lcell, const Box3f& rcell) const {
-    const std::size_t top = first + n;
-    rs.reserve(top + n);  // the left child holds at most n
-    PrimRef* const refs = rs.data();
-    PrimRef* const left = refs + top;
-    std::size_t nl = 0, nr = 0;
+void Builder::route(const PrimRef* in, std::size_t n, int axis, float split, const Box3f& lcell, const Box3f& rcell,
+                    PrimRef* left, std::size_t& nl, PrimRef* right, std::size_t& nr, UsedBoxes& used) const {
     // Boxes in SSE registers (lane 3 unused): Box3f::intersection and extend are
     // std::max / std::min per component, which _mm_max_ps / _mm_min_ps compute exactly
     // with the operands swapped (std::max(a, b) == maxps(b, a), also for -0 and +0).
     const __m128 lcell_lo = load_lo(lcell), lcell_hi = load_hi(lcell), rcell_lo = load_lo(rcell), rcell_hi = load_hi(rcell);
-    const __m128 inf = _mm_set1_ps(std::numeric_limits<float>::infinity());
-    __m128 lused_lo = inf, lused_hi = _mm_sub_ps(_mm_setzero_ps(), inf), rused_lo = inf, rused_hi = lused_hi;
+    __m128 lused_lo = used.llo, lused_hi = used.lhi, rused_lo = used.rlo, rused_hi = used.rhi;
+    std::size_t l = nl, r = nr;  // in registers: the counts are stored once, at the end
     auto put = [](PrimRef& out, __m128 lo, __m128 hi, std::uint32_t id) {
         _mm_storeu_ps(&out.box.lo.x, lo);  // its lane 3 lands on hi.x, written next
         _mm_storeu_ps(&out.box.hi.x, hi);  // its lane 3 lands on the id, written next
         out.id = id;
     };
-    for (std::size_t i = first; i < top; ++i) {
+    for (std::size_t i = 0; i < n; ++i) {
         // The reference goes straight into registers: a copy on the stack, written as two
         // overlapping 16-byte stores, made each read of it wait for a failed store forward.
         // All of it is read before the writes below, which may reuse its slot.
-        const __m128 blo = _mm_loadu_ps(&refs[i].box.lo.x), bhi = _mm_loadu_ps(&refs[i].box.hi.x);
-        const float lo = refs[i].box.lo[axis], hi = refs[i].box.hi[axis];
-        const std::uint32_t id = refs[i].id;
+        const __m128 blo = _mm_loadu_ps(&in[i].box.lo.x), bhi = _mm_loadu_ps(&in[i].box.hi.x);
+        const float lo = in[i].box.lo[axis], hi = in[i].box.hi[axis];
+        const std::uint32_t id = in[i].id;
         const bool planar = lo == split && hi == split;
-        const bool in_left = lo < split || planar;
-        const bool in_right = hi > split || planar;
+        const bool in_left = goes_left(lo, hi, split);
+        const bool in_right = goes_right(lo, hi, split);
         if (in_left && in_right && !planar) {
             // Straddles: clip the triangle to each side for tight child boxes.
             const Box3f box = to_box(blo, bhi);
@@ -464,11 +509,11 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
                 if (side == 0) {
                     lused_lo = _mm_min_ps(clo, lused_lo);
                     lused_hi = _mm_max_ps(chi, lused_hi);
-                    put(left[nl++], clo, chi, id);
+                    put(left[l++], clo, chi, id);
                 } else {
                     rused_lo = _mm_min_ps(clo, rused_lo);
                     rused_hi = _mm_max_ps(chi, rused_hi);
-                    put(refs[first + nr++], clo, chi, id);
+                    put(right[r++], clo, chi, id);
                 }
             }
         } else {
@@ -476,19 +521,88 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
                 const __m128 clo = _mm_max_ps(lcell_lo, blo), chi = _mm_min_ps(lcell_hi, bhi);
                 lused_lo = _mm_min_ps(clo, lused_lo);
                 lused_hi = _mm_max_ps(chi, lused_hi);
-                put(left[nl++], clo, chi, id);
+                put(left[l++], clo, chi, id);
             }
             if (in_right) {
                 const __m128 clo = _mm_max_ps(rcell_lo, blo), chi = _mm_min_ps(rcell_hi, bhi);
                 rused_lo = _mm_min_ps(clo, rused_lo);
                 rused_hi = _mm_max_ps(chi, rused_hi);
-                put(refs[first + nr++], clo, chi, id);
+                put(right[r++], clo, chi, id);
             }
         }
     }
-    const Box3f lused = to_box(lused_lo, lused_hi), rused = to_box(rused_lo, rused_hi);
+    nl = l;
+    nr = r;
+    used.llo = lused_lo;
+    used.lhi = lused_hi;
+    used.rlo = rused_lo;
+    used.rhi = rused_hi;
+}
+
+std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::size_t first, std::size_t n, int axis,
+                                                          float split, const Box3f& lcell, const Box3f& rcell) const {
+    const std::size_t top = first + n;
+    rs.reserve(top + n);  // the left child holds at most n
+    PrimRef* const refs = rs.data();
+    PrimRef* const left = refs + top;
+    std::size_t nl = 0, nr = 0;
+    UsedBoxes used;
+    route(refs + first, n, axis, split, lcell, rcell, left, nl, refs + first, nr, used);
     std::memmove(refs + first + nr, left, nl * sizeof(PrimRef));
-    return {Side{first + nr, nl, lcell, lused}, Side{first, nr, rcell, rused}};
+    return {Side{first + nr, nl, lcell, to_box(used.llo, used.lhi)}, Side{first, nr, rcell, to_box(used.rlo, used.rhi)}};
+}
+
+std::pair<Builder::Side, Builder::Side> Builder::partition_wide(RefStack& rs, std::size_t first, std::size_t n,
+                                                               int axis, float split, const Box3f& lcell,
+                                                               const Box3f& rcell) const {
+    // Two passes: each chunk counts what it sends to each side, which places its output
+    // (prefix sums, in chunk order), then routes its references there. Both children are
+    // written above the node's references and copied down behind them, so the result is
+    // the serial partition's, reference for reference.
+    ThreadPool& pool = ThreadPool::global();
+    const Chunks chunks(n, threads_);
+    std::vector<std::size_t> at_left(chunks.count + 1, 0), at_right(chunks.count + 1, 0);
+    {
+        const PrimRef* const refs = rs.data() + first;
+        pool.parallel_for(chunks.count, [&](std::size_t c, unsigned) {
+            std::size_t l = 0, r = 0;
+            for (std::size_t i = chunks.begin(c); i < chunks.end(c); ++i) {
+                const float lo = refs[i].box.lo[axis], hi = refs[i].box.hi[axis];
+                l += goes_left(lo, hi, split) ? 1 : 0;
+                r += goes_right(lo, hi, split) ? 1 : 0;
+            }
+            at_left[c + 1] = l;
+            at_right[c + 1] = r;
+        }, threads_);
+    }
+    for (std::size_t c = 0; c < chunks.count; ++c) {
+        at_left[c + 1] += at_left[c];
+        at_right[c + 1] += at_right[c];
+    }
+    const std::size_t nl = at_left[chunks.count], nr = at_right[chunks.count];
+    const std::size_t out = std::max(first + n, first + nr + nl);  // above both the input and the result
+    rs.reserve(out + nr + nl);
+    PrimRef* const refs = rs.data();
+    PrimRef* const right = refs + out;
+    PrimRef* const left = right + nr;
+    std::vector<UsedBoxes> used(chunks.count);
+    pool.parallel_for(chunks.count, [&](std::size_t c, unsigned) {
+        std::size_t l = at_left[c], r = at_right[c];
+        route(refs + first + chunks.begin(c), chunks.end(c) - chunks.begin(c), axis, split, lcell, rcell, left, l,
+              right, r, used[c]);
+        // A chunk routed otherwise than it counted has written over its neighbour's output:
+        // fail the build rather than go on with it.
+        if (l != at_left[c + 1] || r != at_right[c + 1]) throw std::logic_error("a wide partition miscounted a chunk");
+    }, threads_);
+    for (std::size_t c = 1; c < chunks.count; ++c) used[0].fold(used[c]);
+    const Chunks copies(nr + nl, threads_);
+    pool.parallel_for(copies.count, [&](std::size_t c, unsigned) {
+        // right, then left, are contiguous from `out`: one copy down to `first`.
+        std::memcpy(static_cast<void*>(refs + first + copies.begin(c)), right + copies.begin(c),
+                    (copies.end(c) - copies.begin(c)) * sizeof(PrimRef));
+    }, threads_);
+    const UsedBoxes& u = used[0];
+    return {Side{first + nr, nl, lcell, to_box(u.llo, u.lhi)}, Side{first, nr, rcell, to_box(u.rlo, u.rhi)}};
 }
 
 void Builder::build_children(RefStack& rs, const Side& left, const Side& right, int depth, int bad, int axis,
@@ -556,6 +670,7 @@ void Builder::build_children(RefStack& rs, const Side& left, const Side& right, 
     out.stats.leaves += right_out.stats.leaves;
     out.stats.empty_leaves += right_out.stats.empty_leaves;
     out.stats.references += right_out.stats.references;
+    out.stats.wide_nodes += right_out.stats.wide_nodes;
     out.stats.max_depth = std::max(out.stats.max_depth, right_out.stats.max_depth);
     out.sah_area_sum += right_out.sah_area_sum;
 }
@@ -634,6 +749,29 @@ void bin_references(const PrimRef* refs, std::size_t n, const Binner& binner, st
     }
 }
 
+// bin_references over chunks on every lane, each into counters of its own, then summed:
+// the same counts.
+void bin_wide(const PrimRef* refs, std::size_t n, const Binner& binner, unsigned lanes, std::uint32_t* starts,
+              std::uint32_t* ends) {
+    const std::size_t per_set = 3 * static_cast<std::size_t>(binner.bins());
+    ThreadPool& pool = ThreadPool::global();
+    // Per lane: starts, ends and bin_references' spare pair.
+    std::vector<std::uint32_t> counters(static_cast<std::size_t>(pool.lanes()) * 4 * per_set, 0u);
+    const Chunks chunks(n, lanes);
+    pool.parallel_for(chunks.count, [&](std::size_t c, unsigned lane) {
+        std::uint32_t* mine = counters.data() + static_cast<std::size_t>(lane) * 4 * per_set;
+        bin_references(refs + chunks.begin(c), chunks.end(c) - chunks.begin(c), binner, mine, mine + per_set,
+                       mine + 2 * per_set);
+    }, lanes);
+    for (unsigned lane = 0; lane < pool.lanes(); ++lane) {
+        const std::uint32_t* mine = counters.data() + static_cast<std::size_t>(lane) * 4 * per_set;
+        for (std::size_t k = 0; k < per_set; ++k) {
+            starts[k] += mine[k];
+            ends[k] += mine[per_set + k];
+        }
+    }
+}
+
 // SAH costs of the candidate planes 1 ... bins - 1 of one axis, four at a time: the
 // child areas in float and the cost in double, each operation the one the scalar
 //   Ct + ci * (double(wl * perimeter + cap) * nl + double(wr * perimeter + cap) * nr)
@@ -709,7 +847,13 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     }
     std::uint32_t* counts_right = counts_left + nb + 4;
     std::fill(counts_left, counts_left + 2 * (nb + 4), 0u);
-    bin_references(refs, n, Binner(cell, bins), starts, ends, starts + 2 * 3 * nb);
+    const bool wide_node = wide(n);
+    if (wide_node) {
+        out.stats.wide_nodes++;
+        bin_wide(refs, n, Binner(cell, bins), threads_, starts, ends);
+    } else {
+        bin_references(refs, n, Binner(cell, bins), starts, ends, starts + 2 * 3 * nb);
+    }
     for (int a = 0; a < 3; ++a) {
         const float lo = cell.lo[a], ext = cell.hi[a] - cell.lo[a];
         if (!(ext > 0) || area <= 0) continue;
@@ -777,7 +921,8 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
     Box3f lcell = cell, rcell = cell;
     lcell.hi[best_axis] = best_split;
     rcell.lo[best_axis] = best_split;
-    const auto [left, right] = partition(rs, first, n, best_axis, best_split, lcell, rcell);
+    const auto [left, right] = wide_node ? partition_wide(rs, first, n, best_axis, best_split, lcell, rcell)
+                                         : partition(rs, first, n, best_axis, best_split, lcell, rcell);
     out.sah_area_sum += static_cast<double>(p_.traversal_cost) * area;
     build_children(rs, left, right, depth, bad + (duplicating ? 1 : 0), best_axis, best_split, out);
 }
@@ -798,17 +943,20 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     const std::size_t chunk = 1 << 16;
     const std::size_t chunks = (soup.count + chunk - 1) / chunk;
     std::vector<Box3f> chunk_bounds(chunks);
+    std::vector<std::size_t> chunk_dropped(chunks, 0), chunk_kept(chunks, 0);
     // Zero-area triangles (collinear in the stored float coordinates) cover no surface
     // and are left out: the sheared 2D test could otherwise give them a sliver of area.
     constexpr std::uint32_t kDropped = 0xffffffffu, kOutside = 0xfffffffeu;
     pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
         Box3f bounds;
+        std::size_t dropped = 0, kept = 0;
         const std::size_t end = std::min(soup.count, (c + 1) * chunk);
         for (std::size_t i = c * chunk; i < end; ++i) {
             const Vec3d a(soup.v(i, 0)), b(soup.v(i, 1)), cc(soup.v(i, 2));
             const Vec3d n = cross(b - a, cc - a);
             if (n.x == 0 && n.y == 0 && n.z == 0) {
                 refs[i] = {Box3f{}, kDropped};
+                ++dropped;
                 continue;
             }
             Box3f box;
@@ -831,13 +979,21 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
             }
             refs[i] = {box, static_cast<std::uint32_t>(i)};
             bounds.extend(box);
+            ++kept;
         }
         chunk_bounds[c] = bounds;
+        chunk_dropped[c] = dropped;
+        chunk_kept[c] = kept;
     }, params.threads);
-    const std::size_t degenerate = static_cast<std::size_t>(
-        std::count_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id == kDropped; }));
-    const std::size_t root_refs = static_cast<std::size_t>(
-        std::remove_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id >= kOutside; }) - refs);
+    std::size_t degenerate = 0, root_refs = 0;
+    for (std::size_t c = 0; c < chunks; ++c) {
+        degenerate += chunk_dropped[c];
+        root_refs += chunk_kept[c];
+    }
+    // A serial pass over every reference, so only where there are any to remove.
+    if (root_refs < soup.count) {
+        std::remove_if(refs, refs + soup.count, [](const PrimRef& r) { return r.id >= kOutside; });
+    }
     Box3f used;
     for (const Box3f& b : chunk_bounds) used.extend(b);
     tree.bounds = cell != nullptr ? *cell : used;
@@ -850,7 +1006,7 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     }
     const unsigned threads = params.threads == 0 ? hardware_threads() : params.threads;
     const unsigned helpers = root_refs >= (1u << 14) ? threads - 1 : 0;  // small trees: one thread
-    Builder builder(soup, params, max_depth, helpers > 0);
+    Builder builder(soup, params, max_depth, helpers > 0, helpers > 0 ? std::min(threads, ThreadPool::global().lanes()) : 1);
     Output out(params.huge_pages);
     // Measured: about one node and three leaf references per triangle.
     out.nodes.reserve(soup.count + soup.count / 4 + 16);

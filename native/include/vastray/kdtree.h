@@ -84,6 +84,7 @@ struct KdBuildStats {
     // empty_leaves counts empty children, which are flagged in their parent, not stored.
     std::uint64_t nodes = 0, leaves = 0, empty_leaves = 0, references = 0;
     std::uint64_t degenerate = 0;  // zero-area triangles left out of the tree
+    std::uint64_t wide_nodes = 0;  // nodes binned and partitioned by every lane (near the root)
     int max_depth = 0;
     double sah_cost = 0;
     double build_ms = 0;
