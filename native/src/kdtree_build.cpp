@@ -555,52 +555,46 @@ std::pair<Builder::Side, Builder::Side> Builder::partition(RefStack& rs, std::si
 std::pair<Builder::Side, Builder::Side> Builder::partition_wide(RefStack& rs, std::size_t first, std::size_t n,
                                                                int axis, float split, const Box3f& lcell,
                                                                const Box3f& rcell) const {
-    // Two passes: each chunk counts what it sends to each side, which places its output
-    // (prefix sums, in chunk order), then routes its references there. Both children are
-    // written above the node's references and copied down behind them, so the result is
-    // the serial partition's, reference for reference.
+    // A counting pass places each chunk's left references above the node's range (prefix
+    // sums, in chunk order); the chunks are then routed in parallel, each compacting its
+    // right references in place at its own start. Moving those down, chunk after chunk,
+    // and the left ones behind them leaves the serial partition's result, reference for
+    // reference, in the serial partition's memory.
     ThreadPool& pool = ThreadPool::global();
     const Chunks chunks(n, threads_);
-    std::vector<std::size_t> at_left(chunks.count + 1, 0), at_right(chunks.count + 1, 0);
+    std::vector<std::size_t> at_left(chunks.count + 1, 0), rights(chunks.count, 0);
     {
         const PrimRef* const refs = rs.data() + first;
         pool.parallel_for(chunks.count, [&](std::size_t c, unsigned) {
-            std::size_t l = 0, r = 0;
+            std::size_t l = 0;
             for (std::size_t i = chunks.begin(c); i < chunks.end(c); ++i) {
-                const float lo = refs[i].box.lo[axis], hi = refs[i].box.hi[axis];
-                l += goes_left(lo, hi, split) ? 1 : 0;
-                r += goes_right(lo, hi, split) ? 1 : 0;
+                l += goes_left(refs[i].box.lo[axis], refs[i].box.hi[axis], split) ? 1 : 0;
             }
             at_left[c + 1] = l;
-            at_right[c + 1] = r;
         }, threads_);
     }
-    for (std::size_t c = 0; c < chunks.count; ++c) {
-        at_left[c + 1] += at_left[c];
-        at_right[c + 1] += at_right[c];
-    }
-    const std::size_t nl = at_left[chunks.count], nr = at_right[chunks.count];
-    const std::size_t out = std::max(first + n, first + nr + nl);  // above both the input and the result
-    rs.reserve(out + nr + nl);
+    for (std::size_t c = 0; c < chunks.count; ++c) at_left[c + 1] += at_left[c];
+    const std::size_t top = first + n, nl = at_left[chunks.count];
+    rs.reserve(top + n);  // as the serial partition: the left child holds at most n
     PrimRef* const refs = rs.data();
-    PrimRef* const right = refs + out;
-    PrimRef* const left = right + nr;
     std::vector<UsedBoxes> used(chunks.count);
     pool.parallel_for(chunks.count, [&](std::size_t c, unsigned) {
-        std::size_t l = at_left[c], r = at_right[c];
-        route(refs + first + chunks.begin(c), chunks.end(c) - chunks.begin(c), axis, split, lcell, rcell, left, l,
-              right, r, used[c]);
+        PrimRef* const mine = refs + first + chunks.begin(c);
+        std::size_t l = at_left[c], r = 0;
+        route(mine, chunks.end(c) - chunks.begin(c), axis, split, lcell, rcell, refs + top, l, mine, r, used[c]);
         // A chunk routed otherwise than it counted has written over its neighbour's output:
         // fail the build rather than go on with it.
-        if (l != at_left[c + 1] || r != at_right[c + 1]) throw std::logic_error("a wide partition miscounted a chunk");
+        if (l != at_left[c + 1]) throw std::logic_error("a wide partition miscounted a chunk");
+        rights[c] = r;
     }, threads_);
     for (std::size_t c = 1; c < chunks.count; ++c) used[0].fold(used[c]);
-    const Chunks copies(nr + nl, threads_);
-    pool.parallel_for(copies.count, [&](std::size_t c, unsigned) {
-        // right, then left, are contiguous from `out`: one copy down to `first`.
-        std::memcpy(static_cast<void*>(refs + first + copies.begin(c)), right + copies.begin(c),
-                    (copies.end(c) - copies.begin(c)) * sizeof(PrimRef));
-    }, threads_);
+    // Each chunk's right references move down onto ground the earlier chunks have left.
+    std::size_t nr = 0;
+    for (std::size_t c = 0; c < chunks.count; ++c) {
+        std::memmove(static_cast<void*>(refs + first + nr), refs + first + chunks.begin(c), rights[c] * sizeof(PrimRef));
+        nr += rights[c];
+    }
+    std::memmove(static_cast<void*>(refs + first + nr), refs + top, nl * sizeof(PrimRef));
     const UsedBoxes& u = used[0];
     return {Side{first + nr, nl, lcell, to_box(u.llo, u.lhi)}, Side{first, nr, rcell, to_box(u.rlo, u.rhi)}};
 }
