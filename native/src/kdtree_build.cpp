@@ -271,6 +271,7 @@ public:
         {
             std::lock_guard<std::mutex> lock(mutex_);
             offered_.push_back(t);
+            on_offer_.store(offered_.size(), std::memory_order_relaxed);
         }
         changed_.notify_all();  // an idle helper, or an owner waiting for its own task
     }
@@ -280,6 +281,7 @@ public:
         if (t->state != Task::Offered) return false;
         t->state = Task::Reclaimed;
         offered_.erase(std::find(offered_.begin(), offered_.end(), t));
+        on_offer_.store(offered_.size(), std::memory_order_relaxed);
         return true;
     }
     void wait(Task* t) {
@@ -313,17 +315,21 @@ public:
         }
         changed_.notify_all();
     }
+    // Subtrees waiting for a thread (a hint: it changes as soon as it is read).
+    std::size_t on_offer() const { return on_offer_.load(std::memory_order_relaxed); }
 
 private:
     Task* pop() {  // the oldest task on offer: the biggest
         Task* t = offered_.front();
         offered_.pop_front();
+        on_offer_.store(offered_.size(), std::memory_order_relaxed);
         t->state = Task::Taken;
         return t;
     }
     std::mutex mutex_;
     std::condition_variable changed_;  // offered, completed or over
     std::deque<Task*> offered_;
+    std::atomic<std::size_t> on_offer_{0};  // offered_.size(), for readers without the lock
     bool over_ = false;
 };
 
@@ -418,11 +424,14 @@ private:
     // right, so writes never overtake reads.
     void route(const PrimRef* in, std::size_t n, int axis, float split, const Box3f& lcell, const Box3f& rcell,
                PrimRef* left, std::size_t& nl, PrimRef* right, std::size_t& nr, UsedBoxes& used) const;
-    // A node near the root, while threads have no subtree of their own to build: its
-    // passes over the references are worth splitting between them.
+    // A node near the root, while threads have no subtree of their own to build or to
+    // take: its passes over the references are worth splitting between them. (Subtrees on
+    // offer count as busy threads: a helper is about to take one, and a wide node beside
+    // it would only have the two share cores.)
     bool wide(std::size_t n) const {
         constexpr std::size_t kWideNode = std::size_t{1} << 18;
-        return threads_ > 1 && n >= kWideNode && building_.load(std::memory_order_relaxed) < threads_;
+        return threads_ > 1 && n >= kWideNode &&
+               building_.load(std::memory_order_relaxed) + tasks_.on_offer() < threads_;
     }
 
     const TriangleSoup& soup_;
