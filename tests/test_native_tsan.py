@@ -1,7 +1,8 @@
 """The block cache under concurrency, checked by ThreadSanitizer.
 
 Builds the native stress test (native/tests/cache_stress.cpp) with -fsanitize=thread
-through CMake (the VASTRAY_TSAN option) and runs it on two small built models: four
+through CMake (the VASTRAY_TSAN option; the baseline ISA path's kernels only: the
+threads around them are the same on every path) and runs it on two small built models: four
 threads render orbiting views of both models in a cache of 24 slots, so blocks are
 requested, fetched, published and evicted while other frames run. Any data race TSan
 sees fails the run (exit status 66), as does a broken cache invariant.
