@@ -110,8 +110,15 @@ def snapshot_vastray() -> tuple[Path, str]:
 
     # Where the editable install keeps the native module, asked of a separate interpreter
     # so that this one has not imported vastray yet.
-    probe = "import importlib.util; print(importlib.util.find_spec('vastray.native').origin)"
-    found = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    # Run elsewhere: `-c` puts the working directory first on the path, and from the
+    # repository root that is the source tree, whose `vastray/` has no native module
+    # unless the install is editable.
+    probe = "import importlib.util as u; s = u.find_spec('vastray.native'); print(s.origin if s else '')"
+    found = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=tempfile.gettempdir()
+    )
+    if not found.stdout.strip():
+        raise SystemExit("bench/build.py: vastray's native module is not installed (make install)")
     so = Path(found.stdout.strip())
     folder = Path(tempfile.mkdtemp(prefix="vastray-bench-"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
