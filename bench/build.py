@@ -55,6 +55,7 @@ from common import (  # bench/ is a folder of scripts, not a package
     markdown_table,
     models_dir,
     parse_count,
+    pyplot,
     save_figure,
 )
 
@@ -1232,11 +1233,10 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
 
 
-def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> bool:
+    plt = pyplot()
+    if plt is None:
+        return False
 
     ok = [r for r in rows if "error" not in r]
     fig, (ax_rate, ax_mem) = plt.subplots(1, 2, figsize=(13, 5.2))
@@ -1295,6 +1295,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str, nt: int) -> None:
     ax_mem.set_ylim(top=top * 30)  # room for the legend above the data
     ax_mem.legend(fontsize=6, ncol=2, loc="upper left")
     save_figure(fig, title, path)
+    return True
 
 
 # ----------------------------------------------------------------------------- main
@@ -1423,8 +1424,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.md").write_text(text)
     write_csv(rows, args.out / f"{args.name}.csv")
-    plot(rows, args.out / f"{args.name}.png", f"vastray build, {info['cpu']}, {nt} threads", nt)
-    print(f"wrote {args.out / args.name}.md, .csv, .png", file=sys.stderr)
+    plotted = plot(rows, args.out / f"{args.name}.png", f"vastray build, {info['cpu']}, {nt} threads", nt)
+    print(f"wrote {args.out / args.name}.md, .csv{', .png' if plotted else ''}", file=sys.stderr)
     return 1 if any("error" in r for r in rows) else 0
 
 

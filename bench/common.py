@@ -365,6 +365,20 @@ def fmt(value: float, digits: int = 2) -> str:
     return f"{value:.{digits}f}"
 
 
+def pyplot() -> Any | None:
+    """matplotlib's pyplot on the Agg backend, or None (with a note) where the `bench`
+    extra is not installed: the tables are the results, the plots only show them."""
+    try:
+        import matplotlib
+    except ImportError:
+        print("matplotlib is not installed (pip install '.[bench]'): no plot", file=sys.stderr)
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig: Any, title: str, path: Path) -> None:
     """Titles, lays out, writes (PNG, 110 dpi) and closes a matplotlib figure."""
     import matplotlib.pyplot as plt

@@ -55,6 +55,7 @@ from common import (  # bench/ is a folder of scripts, not a package
     models_dir,
     parse_count,
     pin_native,
+    pyplot,
     save_figure,
     timed,
 )
@@ -586,11 +587,10 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
             w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
 
 
-def plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def plot(rows: list[dict[str, Any]], path: Path, title: str) -> bool:
+    plt = pyplot()
+    if plt is None:
+        return False
 
     labels = [r["model"] for r in rows]
     x = np.arange(len(rows))
@@ -630,6 +630,7 @@ def plot(rows: list[dict[str, Any]], path: Path, title: str) -> None:
         ax.margins(y=0.12)
     axes[1].set_xticks(x, labels, rotation=35, ha="right")
     save_figure(fig, title, path)
+    return True
 
 
 # ----------------------------------------------------------------------------- main
@@ -712,10 +713,11 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f"{args.name}.md").write_text(text)
     write_csv(rows, args.out / f"{args.name}.csv")
+    plotted = False
     if pool is not None or rows:
         title = f"vastray ({isa_path()}) vs Embree, {args.width}x{args.height}, {info['cpu']}"
-        plot(rows, args.out / f"{args.name}.png", title)
-    print(f"\nwrote {args.out / args.name}.md, .csv, .png")
+        plotted = plot(rows, args.out / f"{args.name}.png", title)
+    print(f"\nwrote {args.out / args.name}.md, .csv{', .png' if plotted else ''}")
     return 0
 
 

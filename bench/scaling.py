@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, format_count, machine_info, markdown_table, parse_count, save_figure
+from common import RESULTS_DIR, format_count, machine_info, markdown_table, parse_count, pyplot, save_figure
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
@@ -167,10 +167,9 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], out: Path) -> None:
 
 
 def plot(rows: list[dict[str, Any]], threads: list[int], path: Path, info: dict[str, str]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    if plt is None:
+        return
 
     models = list(dict.fromkeys(r["model"] for r in rows))
     fig, axes = plt.subplots(1, len(models), figsize=(5.5 * len(models), 4.2), squeeze=False)

@@ -32,7 +32,7 @@ import numpy as np
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, machine_info, markdown_table, save_figure
+from common import RESULTS_DIR, machine_info, markdown_table, pyplot, save_figure
 
 from vastray.protocol import FrameHeader
 from vastray.server.process import ServerProcess
@@ -334,10 +334,9 @@ def write(rows: list[dict[str, Any]], idle: dict[str, Any], out: Path, args: arg
 
 
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    if plt is None:
+        return
 
     fig, (ax_l, ax_f) = plt.subplots(1, 2, figsize=(10, 4))
     for model in dict.fromkeys(r["model"] for r in rows):

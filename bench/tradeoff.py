@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, machine_info, markdown_table, save_figure
+from common import RESULTS_DIR, machine_info, markdown_table, pyplot, save_figure
 
 from vastray import native
 from vastray.camera import Camera, frame_bounds
@@ -410,7 +410,9 @@ def _cell(v: Any) -> Any:
 
 
 def plot_poe(rows: list[dict[str, Any]], out: Path) -> None:
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    if plt is None:
+        return
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5))
     for shading in SHADINGS:
@@ -429,7 +431,9 @@ def plot_poe(rows: list[dict[str, Any]], out: Path) -> None:
 
 
 def plot_size(rows: list[dict[str, Any]], out: Path) -> None:
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    if plt is None:
+        return
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     tris = [r["triangles"] for r in rows]
@@ -444,7 +448,9 @@ def plot_size(rows: list[dict[str, Any]], out: Path) -> None:
 
 
 def plot_ooc(rows: list[dict[str, Any]], summary: dict[str, Any], out: Path) -> None:
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    if plt is None:
+        return
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
     t = [r["t_s"] for r in rows]
