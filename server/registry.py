@@ -208,8 +208,11 @@ class Registry:
                     f"{self.path}: registry schema version {version} is newer than this vastray "
                     f"understands ({SCHEMA_VERSION}); upgrade vastray or use another data directory"
                 )
+            if version == 0:
+                log.info("registry: new at %s (schema %d)", self.path, SCHEMA_VERSION)
             for v in range(version, SCHEMA_VERSION):
-                log.info("registry: migrating schema %d -> %d", v, v + 1)
+                if version > 0:  # a new registry runs every step: nothing to tell
+                    log.info("registry: migrating schema %d -> %d", v, v + 1)
                 # executescript commits first; run each migration as one transaction.
                 self._db.executescript(
                     f"BEGIN IMMEDIATE;\n{MIGRATIONS[v]}\nPRAGMA user_version = {v + 1};\nCOMMIT;"
