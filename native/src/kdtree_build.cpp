@@ -758,15 +758,16 @@ void bin_wide(const PrimRef* refs, std::size_t n, const Binner& binner, unsigned
               std::uint32_t* ends) {
     const std::size_t per_set = 3 * static_cast<std::size_t>(binner.bins());
     ThreadPool& pool = ThreadPool::global();
-    // Per lane: starts, ends and bin_references' spare pair.
-    std::vector<std::uint32_t> counters(static_cast<std::size_t>(pool.lanes()) * 4 * per_set, 0u);
+    // Per lane taking part (parallel_for hands out lanes below `lanes`): starts, ends and
+    // bin_references' spare pair.
+    std::vector<std::uint32_t> counters(static_cast<std::size_t>(lanes) * 4 * per_set, 0u);
     const Chunks chunks(n, lanes);
     pool.parallel_for(chunks.count, [&](std::size_t c, unsigned lane) {
         std::uint32_t* mine = counters.data() + static_cast<std::size_t>(lane) * 4 * per_set;
         bin_references(refs + chunks.begin(c), chunks.end(c) - chunks.begin(c), binner, mine, mine + per_set,
                        mine + 2 * per_set);
     }, lanes);
-    for (unsigned lane = 0; lane < pool.lanes(); ++lane) {
+    for (unsigned lane = 0; lane < lanes; ++lane) {
         const std::uint32_t* mine = counters.data() + static_cast<std::size_t>(lane) * 4 * per_set;
         for (std::size_t k = 0; k < per_set; ++k) {
             starts[k] += mine[k];
@@ -898,8 +899,8 @@ void Builder::build(RefStack& rs, std::size_t first, std::size_t n, const Box3f&
         best_left = best_right = 0;
         for (std::size_t i = 0; i < n; ++i) {
             const float lo = refs[i].box.lo[best_axis], hi = refs[i].box.hi[best_axis];
-            best_left += lo < best_split || (lo == best_split && hi == best_split) ? 1 : 0;
-            best_right += hi > best_split || (lo == best_split && hi == best_split) ? 1 : 0;
+            best_left += goes_left(lo, hi, best_split) ? 1 : 0;
+            best_right += goes_right(lo, hi, best_split) ? 1 : 0;
         }
     }
 
