@@ -506,15 +506,18 @@ def read_parts(path: str | os.PathLike[str]) -> PartsSection | None:
     parts_offset, parts_size, parts_crc, part_count = (
         struct.unpack_from("<QQII", data, 200) if version >= 2 else (0, 0, 0, 0)
     )
-    # The blocks, in order, end where the parts section (or the file) starts; a tiered
-    # model's level table has a record per stream.
+    # The blocks, in file order, do not overlap, lie past the index with nothing but zero
+    # bytes between them (FORMAT.md §3: any order), and end where the parts section (or
+    # the file) starts; a tiered model's level table has a record per stream.
     tiers = struct.unpack_from("<I", data, TIER_COUNT_AT)[0] if version >= 5 and flags & TIERED else 1
     entry_at = index_offset + 24 * level_count * tiers
+    placed = sorted((*struct.unpack_from("<QI", data, entry_at + 24 * i), i) for i in range(block_count))
     end = data_offset
-    for i in range(block_count):
-        offset, stored = struct.unpack_from("<QI", data, entry_at + 24 * i)
-        if offset != end:
-            raise WalkError(f"block {i} does not follow the one before")
+    for offset, stored, i in placed:
+        if offset < end:
+            raise WalkError(f"block {i} overlaps the index or the block before it in the file")
+        if any(data[end:offset]):
+            raise WalkError(f"the bytes before block {i} are not zero padding")
         end = offset + stored
     if not flags & 4:
         if (parts_offset, parts_size, parts_crc, part_count) != (0, 0, 0, 0) or end != file_size:

@@ -50,8 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from vastray import modelfile, native
-from vastray.direct_io import DirectFile
+from vastray import model_assembly, modelfile, native
 from vastray.mesh import MeshError, PartName
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 from vastray.triangle_readers import TriangleChunk, VertexTable
@@ -896,6 +895,9 @@ class _Builder:
             tier_coarse_octaves=self.opt.tier_coarse_octaves,
             root_cell=(lo.tolist(), hi.tolist()),
             compact_triangles=self.opt.compact_triangles,
+            # The triangle level goes into the model file as it is made (model_assembly.py).
+            output=str(partial),
+            output_offset=model_assembly.front_reserve(count),
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
@@ -903,10 +905,11 @@ class _Builder:
         stats = writer.stats
         # {level: (path, (n, 5) stored size, raw size, crc32, codec, tier in file order)}
         level_files = writer.levels
+        triangle_output = writer.triangle_output
         t = self.timed("build", t)
 
-        layout = _assemble_streams(stats, level_files, tiered=self.opt.tier_width > 0)
-        levels, entries, reads = layout.records, layout.entries, layout.reads
+        layout = model_assembly.assemble_streams(stats, level_files, self.opt.tier_width > 0, triangle_output)
+        entries = layout.entries
         node_levels = len(stats["node_streams"])
         stored_total = sum(e[0] for e in entries)
         fields = {
@@ -928,31 +931,14 @@ class _Builder:
             "voxels_six": stats["voxels_six"],
             "references": stats["references"],
         }
-        written = 0
-
-        def blocks() -> Iterator[modelfile.FileRange]:
-            nonlocal written
-            for path, runs in reads:
-                fd = os.open(path, os.O_RDONLY)
-                try:
-                    if os.fstat(fd).st_size < max((o + n for o, n in runs), default=0):
-                        raise RuntimeError(f"{path}: shorter than the blocks written to it")
-                    for offset, size in runs:
-                        while size > 0:  # in pieces, for the progress bar
-                            piece = min(size, 64 << 20)
-                            yield modelfile.FileRange(fd, offset, piece)
-                            offset, size = offset + piece, size - piece
-                            written += piece
-                            self.report("write", written, stored_total, unit="bytes")
-                finally:
-                    os.close(fd)
-                os.unlink(path)
-
-        # Past the page cache (direct_io.py); closing fsyncs.
-        with DirectFile(partial) as out:
-            size = modelfile.write_model_file(
-                out, fields, levels, entries, blocks(), part_table, layout.tier_count
-            )
+        size, in_place = model_assembly.write_model(
+            partial,
+            fields,
+            layout,
+            part_table,
+            triangle_output,
+            lambda done, total: self.report("write", done, total, unit="bytes"),
+        )
         t = self.timed("write", t)
 
         raw_total = sum(e[1] for e in entries)
@@ -983,52 +969,8 @@ class _Builder:
                                      "references", "stored_triangles", "stored_vertices", "vertex_bytes",
                                      "kd_build_ms", "emit_ms", "max_depth", "emission_jobs")},
             "tiers": layout.tier_count,
+            "triangles_in_place": in_place,
         }  # fmt: skip
-
-
-@dataclass
-class _StreamLayout:
-    """How the level files become the model's blocks: the level table's records (first,
-    count, items, extra), the block index entries (stored size, raw size, crc32, codec)
-    in file order, and per level file the (offset, size) runs to copy, in that order."""
-
-    records: list[tuple[int, int, int, int]]
-    entries: list[tuple[int, int, int, int]]
-    reads: list[tuple[str, list[tuple[int, int]]]]
-    tier_count: int  # 0: untiered (one record per level)
-
-
-def _assemble_streams(stats: dict[str, Any], level_files: dict[int, Any], tiered: bool) -> _StreamLayout:
-    """Lays the streams out level by level, and within a level coarsest tier first
-    (docs/FORMAT.md §3, §5). A level file holds its tiers' blocks in the order they were
-    finished, each tier's in its stream's order."""
-    node_streams: list[list[tuple[int, int, int, int]]] = stats["node_streams"]
-    triangle_streams: list[tuple[int, int, int, int]] = stats["triangle_streams"]
-    tiers = max(len(t) for t in [*node_streams, triangle_streams]) if tiered else 1
-    records: list[tuple[int, int, int, int]] = []
-    entries: list[tuple[int, int, int, int]] = []
-    reads: list[tuple[str, list[tuple[int, int]]]] = []
-    for level, counts in [*enumerate(node_streams), (-1, triangle_streams)]:
-        path, rows = level_files.get(level, ("", np.zeros((0, 5), np.uint32)))
-        rows = np.asarray(rows, dtype=np.int64).reshape(-1, 5)
-        offsets = np.concatenate([[0], np.cumsum(rows[:, 0])])
-        runs: list[tuple[int, int]] = []
-        for tier in range(tiers):
-            mine = np.flatnonzero(rows[:, 4] == tier)
-            blocks, _, items, extra = counts[tier] if tier < len(counts) else (0, 0, 0, 0)
-            if len(mine) != blocks:
-                raise RuntimeError(f"level {level} tier {tier}: {len(mine)} blocks written, {blocks} counted")
-            records.append((len(entries), len(mine), items, extra))
-            entries.extend(tuple(int(x) for x in rows[i, :4]) for i in mine)
-            for i in mine:  # consecutive blocks of the file are read at once
-                start, size = int(offsets[i]), int(rows[i, 0])
-                if runs and runs[-1][0] + runs[-1][1] == start:
-                    runs[-1] = (runs[-1][0], runs[-1][1] + size)
-                else:
-                    runs.append((start, size))
-        if path:
-            reads.append((path, runs))
-    return _StreamLayout(records, entries, reads, tiers if tiered else 0)
 
 
 def peak_rss_bytes() -> int:

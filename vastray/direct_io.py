@@ -31,8 +31,12 @@ class DirectFile:
     """A new file written front to back. `close()` makes it durable (fsync) and returns
     its size; on an error the caller removes the file."""
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0)
+    def __init__(self, path: str | os.PathLike[str], append_at: int | None = None) -> None:
+        """A new file; or, with `append_at`, the existing file `path` kept up to that
+        byte and written on from there (its first bytes are left as they are)."""
+        flags = os.O_WRONLY | os.O_CREAT | getattr(os, "O_CLOEXEC", 0)
+        if append_at is None:
+            flags |= os.O_TRUNC
         self.direct = False
         if _O_DIRECT:
             try:
@@ -46,8 +50,18 @@ class DirectFile:
         self._buffer = mmap.mmap(-1, _BUFFER)  # page-aligned, as O_DIRECT wants
         self._view = memoryview(self._buffer)
         self._fill = 0  # bytes of the buffer in use
-        self._offset = 0  # where the buffer goes in the file (a multiple of _BUFFER)
+        self._offset = 0  # where the buffer goes in the file (a multiple of _ALIGN)
         self._closed = False
+        if append_at:
+            # Direct writes start on a page: the bytes of the last page before
+            # `append_at` are read back into the buffer and written again with it.
+            self._offset = append_at - append_at % _ALIGN
+            with open(path, "rb") as f:
+                kept = os.pread(f.fileno(), append_at - self._offset, self._offset)
+            if len(kept) != append_at - self._offset:
+                self._release()
+                raise RuntimeError(f"{path}: shorter than the {append_at} bytes to append to")
+            self.write(kept)
 
     @property
     def size(self) -> int:
@@ -78,6 +92,20 @@ class DirectFile:
             size -= n
             if self._fill == _BUFFER:
                 self._flush_buffer()
+
+    def write_at(self, offset: int, data: bytes | bytearray | memoryview) -> None:
+        """Writes `data` at `offset`, both a multiple of 4096 bytes, apart from the
+        appending (the region must lie before what is appended)."""
+        if offset % _ALIGN or len(data) % _ALIGN:
+            raise ValueError("write_at takes whole 4096-byte pages")
+        aligned = mmap.mmap(-1, len(data))  # page-aligned, as O_DIRECT wants
+        try:
+            view = memoryview(aligned)
+            view[:] = memoryview(data).cast("B")
+            self._write_at(view, offset)
+            view.release()
+        finally:
+            aligned.close()
 
     def close(self) -> int:
         """Writes what is left, fsyncs, closes; returns the file's size."""

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -253,36 +253,28 @@ class FileRange:
     size: int
 
 
-def write_model_file(
-    out: DirectFile,
+def pack_head(
     fields: dict[str, Any],
     levels: list[tuple[int, int, int, int]],
     entries: list[tuple[int, int, int, int]],
-    block_data: Iterator[bytes | FileRange],
-    parts: PartTable | None = None,
+    offsets: Sequence[int],
+    blocks_end: int,
+    section: bytes,
+    part_count: int,
     tier_count: int = 0,
-) -> int:
-    """Writes header, index, blocks and (when `parts` is given) the parts section.
-    `levels` are the level table's records (first, count, items, extra): one per level,
-    or with `tier_count` > 0 (FLAG_TIERED) that many per level, level-major. `entries`
-    are (stored size, raw size, crc, codec) in block order; `block_data` yields the
-    stored bytes in the same order (it may yield them in larger runs), as bytes or as
-    ranges of other files, which `out` (direct_io.py) copies past the page cache.
-    Returns the file size."""
+) -> tuple[bytes, bytes]:
+    """The header and the block index of a file whose blocks lie at `offsets` (absolute,
+    any order, no overlaps) below `blocks_end`, where the parts `section` (empty: none)
+    starts. `levels`, `entries` as in write_model_file."""
     if tier_count and len(levels) % tier_count:
         raise ValueError("a tiered level table holds tier_count records per level")
-    index_size = _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
-    data_offset = HEADER_SIZE + index_size
     index = bytearray()
     for first, count, items, extra in levels:
         index += _LEVEL.pack(first, count, items, extra)
-    offset = data_offset
-    for stored, raw, crc, codec in entries:
+    for offset, (stored, raw, crc, codec) in zip(offsets, entries, strict=True):
         index += _ENTRY.pack(offset, stored, raw, crc, codec)
-        offset += stored
-    section = parts.pack() if parts is not None else b""
     header = dict(fields)
-    if parts is not None:
+    if section:
         header["flags"] = header["flags"] | FLAG_PART_IDS
     else:
         header["flags"] = header["flags"] & ~FLAG_PART_IDS
@@ -300,17 +292,53 @@ def write_model_file(
         tier_count=tier_count,
         block_count=len(entries),
         index_offset=HEADER_SIZE,
-        data_offset=data_offset,
+        data_offset=HEADER_SIZE + len(index),
         raw_bytes=sum(e[1] for e in entries),
-        file_size=offset + len(section),
+        file_size=blocks_end + len(section),
         index_crc32=zlib.crc32(index),
         header_crc32=0,
-        parts_offset=offset if section else 0,
+        parts_offset=blocks_end if section else 0,
         parts_size=len(section),
         parts_crc32=zlib.crc32(section) if section else 0,
-        part_count=len(parts.names) if parts is not None else 0,
+        part_count=part_count if section else 0,
     )
-    out.write(_pack_header(header))
+    return _pack_header(header), bytes(index)
+
+
+def write_model_file(
+    out: DirectFile,
+    fields: dict[str, Any],
+    levels: list[tuple[int, int, int, int]],
+    entries: list[tuple[int, int, int, int]],
+    block_data: Iterator[bytes | FileRange],
+    parts: PartTable | None = None,
+    tier_count: int = 0,
+) -> int:
+    """Writes header, index, blocks and (when `parts` is given) the parts section, the
+    blocks one after the other in id order. `levels` are the level table's records
+    (first, count, items, extra): one per level, or with `tier_count` > 0 (FLAG_TIERED)
+    that many per level, level-major. `entries` are (stored size, raw size, crc, codec)
+    in block order; `block_data` yields the stored bytes in the same order (it may yield
+    them in larger runs), as bytes or as ranges of other files, which `out`
+    (direct_io.py) copies past the page cache. Returns the file size."""
+    data_offset = HEADER_SIZE + _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
+    offsets = []
+    offset = data_offset
+    for stored, *_ in entries:
+        offsets.append(offset)
+        offset += stored
+    section = parts.pack() if parts is not None else b""
+    header, index = pack_head(
+        fields,
+        levels,
+        entries,
+        offsets,
+        offset,
+        section,
+        len(parts.names) if parts is not None else 0,
+        tier_count,
+    )
+    out.write(header)
     out.write(index)
     written = data_offset
     for chunk in block_data:

@@ -43,8 +43,9 @@ public:
     PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
-                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles)
-        : files_(scratch_dir) {
+                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles, py::object output,
+                  std::uint64_t output_offset)
+        : files_(level_files(scratch_dir, output, output_offset)) {
         ModelWriterParams p;
         p.has_colours = has_colours;
         p.kd.leaf_size = leaf_size;
@@ -132,6 +133,14 @@ public:
         return d;
     }
 
+    // (path, start, end, direct) of the triangle level written into the model file, or
+    // None when it went to a scratch file.
+    py::object triangle_output() const {
+        if (files_.triangles_start() == 0) return py::none();
+        return py::make_tuple(files_.path(-1), files_.triangles_start(), files_.triangles_end(),
+                              files_.triangles_direct());
+    }
+
     py::dict stats() const {
         const ModelWriterStats& s = writer_->stats();
         py::dict d;
@@ -168,6 +177,13 @@ public:
     }
 
 private:
+    static writer::LevelFiles level_files(const std::string& scratch_dir, const py::object& output,
+                                          std::uint64_t offset) {
+        if (output.is_none()) return writer::LevelFiles(scratch_dir);
+        if (offset == 0) throw std::invalid_argument("the triangle level starts past the header and index");
+        return writer::LevelFiles(scratch_dir, output.cast<std::string>(), offset);
+    }
+
     writer::LevelFiles files_;  // declared first: the writer's sink writes into it
     std::unique_ptr<ModelWriter> writer_;
 };
@@ -670,19 +686,23 @@ void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
         .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object, double,
-                      int, py::object, bool>(),
+                      int, py::object, bool, py::object, std::uint64_t>(),
              py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
              py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
-             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false)
+             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false,
+             py::arg("output") = py::none(), py::arg("output_offset") = 0u,
+             "output: the model file the triangle level is appended to from output_offset, past the page "
+             "cache (the other levels still go to scratch_dir)")
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
              py::arg("axes"), py::arg("splits"), py::arg("children"))
         .def("finish", &PyModelWriter::finish, py::arg("root"))
         .def_property_readonly("levels", &PyModelWriter::levels)
+        .def_property_readonly("triangle_output", &PyModelWriter::triangle_output)
         .def_property_readonly("stats", &PyModelWriter::stats);
     m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("ids"), py::arg("first_id"),
           py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,

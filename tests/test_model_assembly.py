@@ -1,0 +1,173 @@
+"""The write phase (vastray/model_assembly.py): a large build's triangle level stays where
+the native writer appended it in the model file, and the node levels and the parts
+section are written around it; a small one, or one whose index would not fit the room
+kept in front, is written whole, every block in id order.
+
+Either way the model is the same: the same header fields, index entries and block bytes
+for every block id, only the blocks' offsets differ; and every reader takes both (the
+Python reader, the native block cache, the independent walker's layout checks).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from modelwalk import TIER_COUNT_AT, read_parts
+from views import model_views, render_camera
+
+from vastray import model_assembly
+from vastray.build import BuildOptions, build_model
+from vastray.modelfile import HEADER_SIZE, ModelFile
+from vastray.outofcore import make_cache
+from vastray.renderer import Frame
+
+SOURCE = "scene:plant:120000:3"
+
+
+def in_id_order(data: bytes) -> bytes:
+    """The model `data` with its blocks rewritten one after the other in id order from
+    the end of the index (the parts section after them), offsets, sizes and checksums
+    updated: pure Python, from the file's bytes and FORMAT.md §3-5 alone."""
+    level_count, flags = struct.unpack_from("<I", data, 28)[0], struct.unpack_from("<I", data, 16)[0]
+    tiers = struct.unpack_from("<I", data, TIER_COUNT_AT)[0] if flags & (1 << 6) else 1
+    block_count, index_offset, data_offset = struct.unpack_from("<3Q", data, 152)
+    parts_offset, parts_size = struct.unpack_from("<QQ", data, 200)
+    at = index_offset + 24 * level_count * tiers
+    out = bytearray(data[:data_offset])
+    blocks = []
+    offset = data_offset
+    for i in range(block_count):
+        old, stored = struct.unpack_from("<QI", data, at + 24 * i)
+        blocks.append(data[old : old + stored])
+        struct.pack_into("<Q", out, at + 24 * i, offset)
+        offset += stored
+    section = data[parts_offset : parts_offset + parts_size]
+    struct.pack_into("<Q", out, 184, offset + len(section))
+    if parts_size:
+        struct.pack_into("<Q", out, 200, offset)
+    struct.pack_into("<I", out, 192, zlib.crc32(bytes(out[index_offset:data_offset])))
+    struct.pack_into("<I", out, 196, 0)
+    struct.pack_into("<I", out, 196, zlib.crc32(bytes(out[:HEADER_SIZE])))
+    return bytes(out) + b"".join(blocks) + section
+
+
+def frames(path: Path) -> list[Frame]:
+    """Complete full-detail frames of two views, through the native block cache."""
+    cache = make_cache(256 << 20)
+    model = cache.open(str(path))
+    out = []
+    for camera in model_views(path):
+        for _ in range(200):
+            frame = render_camera(model, camera, pixels_of_error=0.0)
+            if frame.complete:
+                break
+            cache.drain()
+        assert frame.complete and (frame.prim >= 0).any()
+        out.append(frame)
+    model.close()
+    return out
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("assembly") / "in_place.vast"
+    return out, build_model(SOURCE, out, BuildOptions(memory=64 << 20))
+
+
+def test_a_large_build_keeps_its_triangle_level_where_it_was_written(built: tuple[Path, dict]) -> None:
+    path, report = built
+    assert report["triangles_in_place"]
+    front = model_assembly.front_reserve(report["triangles"])
+    with ModelFile(path) as model:
+        model.verify()
+        first = model.levels[-1][0]
+        offsets = np.array([b.offset for b in model.blocks], np.int64)
+        sizes = np.array([b.stored_size for b in model.blocks], np.int64)
+        triangles = np.sort(offsets[first:])
+        # The triangle level: one run from the room kept in front, as the writer made it.
+        assert triangles[0] == front
+        in_file_order = np.argsort(offsets[first:])
+        assert np.array_equal(triangles[1:], triangles[:-1] + sizes[first:][in_file_order][:-1])
+        end = int(triangles[-1] + sizes[first:][in_file_order][-1])
+        # The node blocks: the coarsest in front, the rest behind the triangle level.
+        nodes = offsets[:first]
+        ahead = nodes < front
+        assert ahead[0] and ahead.any() and (~ahead).any()
+        assert nodes[ahead].min() == model.header["data_offset"]
+        assert front - (nodes[ahead] + sizes[:first][ahead]).max() <= model_assembly.FRONT_SLACK
+        assert nodes[~ahead].min() == end
+        # The parts section follows the last block to the end of the file.
+        h = model.header
+        assert h["parts_size"] > 0 and h["parts_offset"] == int((offsets + sizes).max())
+        assert h["file_size"] == h["parts_offset"] + h["parts_size"] == path.stat().st_size
+    section = read_parts(path)  # the walker's layout checks: no overlaps, zero padding
+    assert section is not None and len(section.names) == report["input_parts"]
+
+
+def test_it_is_the_model_a_whole_write_makes(
+    built: tuple[Path, dict], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without room in front for the index, the build writes the file whole, blocks in
+    id order: the same file as the in-place one with its blocks moved into id order."""
+    path, _ = built
+    monkeypatch.setattr(model_assembly, "front_reserve", lambda triangles: 4096)
+    whole = tmp_path / "whole.vast"
+    report = build_model(SOURCE, whole, BuildOptions(memory=64 << 20))
+    assert not report["triangles_in_place"]
+    data = whole.read_bytes()
+    assert in_id_order(data) == data  # blocks one after the other, in id order
+    assert in_id_order(path.read_bytes()) == data
+    assert [f.name for f in tmp_path.iterdir()] == ["whole.vast"]  # no partial or copy left
+    # The native reader behind the block cache reads both to the same pixels.
+    for a, b in zip(frames(path), frames(whole), strict=True):
+        assert np.array_equal(a.prim, b.prim) and np.array_equal(a.depth, b.depth)
+
+
+def test_a_small_build_is_written_whole(tmp_path: Path) -> None:
+    """A model whose node levels cannot fill the room in front is written whole, with
+    no gap, as before."""
+    out = tmp_path / "small.vast"
+    report = build_model("scene:plant:5000:1", out, BuildOptions())
+    assert not report["triangles_in_place"]
+    data = out.read_bytes()
+    assert in_id_order(data) == data
+
+
+_FULL_DISK_CHILD = """
+import resource, signal, sys
+from vastray.build import BuildOptions, build_model
+phases = []
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, 1 << 20))
+try:
+    options = BuildOptions(memory=64 << 20)
+    build_model(sys.argv[1], sys.argv[2], options, progress=lambda p: phases.append(p.phase))
+except Exception as e:
+    print(phases[-1], type(e).__name__, e, flush=True)
+"""
+
+
+def test_a_failed_write_of_the_triangle_level_fails_the_build_cleanly(tmp_path: Path) -> None:
+    """The triangle level is written by a thread of the writer's own: when its write fails
+    (a file-size limit, as on a full disk), the build stops in its build phase with the
+    system's error and the file's name, and leaves nothing behind."""
+    ply = tmp_path / "plant.ply"  # read in place: a scene source would stage it first
+    scene = [sys.executable, "-m", "vastray", "scene", "plant", "--triangles", "120000", "-o", str(ply)]
+    subprocess.run(scene, check=True, capture_output=True)
+    out = tmp_path / "out"
+    out.mkdir()
+    result = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK_CHILD, str(ply), str(out / "m.vast")],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("build RuntimeError "), result.stdout
+    assert "m.vast.partial-" in result.stdout and "write failed: File too large" in result.stdout
+    assert os.listdir(out) == []
