@@ -141,3 +141,28 @@ def test_a_failed_write_raises_the_systems_error(tmp_path: Path) -> None:
             f.write(b"x" * size)
         assert raised.value.errno == errno.ENOSPC
     assert len(os.listdir("/proc/self/fd")) == before
+
+
+@pytest.mark.parametrize("keep", [0, 4096, 5000, BUFFER + 123])
+def test_appending_keeps_the_start_and_cuts_the_rest(tmp_path: Path, keep: int) -> None:
+    """`append_at` keeps the file's first bytes, writes on from there (the page it
+    starts in rewritten whole) and cuts whatever the old file had past the new end, also
+    when nothing is appended; `write_at` puts whole pages in front."""
+    rng = np.random.default_rng(keep)
+    old = rng.integers(0, 256, 2 * BUFFER + 999, dtype=np.uint8).tobytes()
+    new = rng.integers(0, 256, 7777, dtype=np.uint8).tobytes()
+    page = rng.integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    path = tmp_path / "f.bin"
+    for tail in (new, b""):
+        path.write_bytes(old)
+        with DirectFile(path, append_at=keep) as f:
+            if keep >= 8192:
+                f.write_at(4096, page)
+            f.write(tail)
+            assert f.size == keep + len(tail)
+        expected = bytearray(old[:keep] + tail)
+        if keep >= 8192:
+            expected[4096:8192] = page
+        assert path.read_bytes() == bytes(expected)
+    with pytest.raises(ValueError, match="whole 4096-byte pages"), DirectFile(path, append_at=keep) as f:
+        f.write_at(100, page)

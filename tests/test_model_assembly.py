@@ -1,7 +1,7 @@
-"""The write phase (vastray/model_assembly.py): a large build's triangle level stays where
-the native writer appended it in the model file, and the node levels and the parts
-section are written around it; a small one, or one whose index would not fit the room
-kept in front, is written whole, every block in id order.
+"""The write phase (vastray/model_assembly.py): a large build's blocks stay where the
+native writer appended them in the model file, behind room for the header and the index
+that the last blocks written fill; a small one, or one whose index would not fit that
+room, is written whole, every block in id order.
 
 Either way the model is the same: the same header fields, index entries and block bytes
 for every block id, only the blocks' offsets differ; and every reader takes both (the
@@ -81,31 +81,28 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     return out, build_model(SOURCE, out, BuildOptions(memory=64 << 20))
 
 
-def test_a_large_build_keeps_its_triangle_level_where_it_was_written(built: tuple[Path, dict]) -> None:
+def test_a_large_build_keeps_its_blocks_where_they_were_written(built: tuple[Path, dict]) -> None:
     path, report = built
-    assert report["triangles_in_place"]
+    assert report["blocks_in_place"]
     front = model_assembly.front_reserve(report["triangles"])
     with ModelFile(path) as model:
         model.verify()
-        first = model.levels[-1][0]
+        h = model.header
         offsets = np.array([b.offset for b in model.blocks], np.int64)
         sizes = np.array([b.stored_size for b in model.blocks], np.int64)
-        triangles = np.sort(offsets[first:])
-        # The triangle level: one run from the room kept in front, as the writer made it.
-        assert triangles[0] == front
-        in_file_order = np.argsort(offsets[first:])
-        assert np.array_equal(triangles[1:], triangles[:-1] + sizes[first:][in_file_order][:-1])
-        end = int(triangles[-1] + sizes[first:][in_file_order][-1])
-        # The node blocks: the coarsest in front, the rest behind the triangle level.
-        nodes = offsets[:first]
-        ahead = nodes < front
-        assert ahead[0] and ahead.any() and (~ahead).any()
-        assert nodes[ahead].min() == model.header["data_offset"]
-        assert front - (nodes[ahead] + sizes[:first][ahead]).max() <= model_assembly.FRONT_SLACK
-        assert nodes[~ahead].min() == end
-        # The parts section follows the last block to the end of the file.
-        h = model.header
-        assert h["parts_size"] > 0 and h["parts_offset"] == int((offsets + sizes).max())
+        order = np.argsort(offsets)
+        start, end = offsets[order], offsets[order] + sizes[order]
+        ahead = start < front
+        # In front: the last blocks written, one after the other from the end of the
+        # index, filling the room to within FRONT_SLACK.
+        assert ahead.any()
+        assert start[0] == h["data_offset"] and np.array_equal(start[1:][ahead[1:]], end[:-1][ahead[1:]])
+        assert 0 <= front - end[ahead][-1] <= model_assembly.FRONT_SLACK
+        # Behind: every other block, one after the other from `front`, as the writer
+        # appended them, up to the parts section, which runs to the end of the file.
+        assert start[~ahead][0] == front
+        assert np.array_equal(start[~ahead][1:], end[~ahead][:-1])
+        assert h["parts_size"] > 0 and h["parts_offset"] == end[-1]
         assert h["file_size"] == h["parts_offset"] + h["parts_size"] == path.stat().st_size
     section = read_parts(path)  # the walker's layout checks: no overlaps, zero padding
     assert section is not None and len(section.names) == report["input_parts"]
@@ -120,7 +117,7 @@ def test_it_is_the_model_a_whole_write_makes(
     monkeypatch.setattr(model_assembly, "front_reserve", lambda triangles: 4096)
     whole = tmp_path / "whole.vast"
     report = build_model(SOURCE, whole, BuildOptions(memory=64 << 20))
-    assert not report["triangles_in_place"]
+    assert not report["blocks_in_place"]
     data = whole.read_bytes()
     assert in_id_order(data) == data  # blocks one after the other, in id order
     assert in_id_order(path.read_bytes()) == data
@@ -130,14 +127,20 @@ def test_it_is_the_model_a_whole_write_makes(
         assert np.array_equal(a.prim, b.prim) and np.array_equal(a.depth, b.depth)
 
 
-def test_a_small_build_is_written_whole(tmp_path: Path) -> None:
-    """A model whose node levels cannot fill the room in front is written whole, with
-    no gap, as before."""
+@pytest.mark.parametrize("source", ["scene:plant:1000:1", "scene:spheres:5000:2"])
+def test_a_small_build_is_written_whole(tmp_path: Path, source: str) -> None:
+    """A model smaller than the room in front (one that would leave more than
+    FRONT_SLACK of it empty, and one that would not) is written whole, with no gap, as
+    before."""
     out = tmp_path / "small.vast"
-    report = build_model("scene:plant:5000:1", out, BuildOptions())
-    assert not report["triangles_in_place"]
+    report = build_model(source, out, BuildOptions())
+    assert not report["blocks_in_place"]
+    assert out.stat().st_size < model_assembly.front_reserve(report["triangles"])
     data = out.read_bytes()
     assert in_id_order(data) == data
+    read_parts(out)  # the walker's layout checks
+    with ModelFile(out) as model:
+        model.verify()
 
 
 _FULL_DISK_CHILD = """
@@ -154,8 +157,8 @@ except Exception as e:
 """
 
 
-def test_a_failed_write_of_the_triangle_level_fails_the_build_cleanly(tmp_path: Path) -> None:
-    """The triangle level is written by a thread of the writer's own: when its write fails
+def test_a_failed_write_of_a_block_fails_the_build_cleanly(tmp_path: Path) -> None:
+    """The blocks are written by a thread of the writer's own: when its write fails
     (a file-size limit, as on a full disk), the build stops in its build phase with the
     system's error and the file's name, and leaves nothing behind."""
     ply = tmp_path / "plant.ply"  # read in place: a scene source would stage it first

@@ -875,13 +875,11 @@ class _Builder:
         self.refs_seen = 0
         self.part_base = self.part_refs0 = self.part_count = 0
         self.dup = 1.5
-        blocks_dir = scratch / "blocks"
-        blocks_dir.mkdir()
         steps = native.vertex_grid_steps(lo.tolist(), hi.tolist()) if self.opt.quantized_vertices else None
         self.threads_used = self.opt.writer_threads(max((p.count for p in parts), default=0))
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
-            scratch_dir=str(blocks_dir),
+            scratch_dir=str(scratch),  # unused: the blocks go into the output
             progress=self.on_refs,
             leaf_size=self.opt.leaf_size,
             traversal_cost=self.opt.traversal_cost,
@@ -895,7 +893,7 @@ class _Builder:
             tier_coarse_octaves=self.opt.tier_coarse_octaves,
             root_cell=(lo.tolist(), hi.tolist()),
             compact_triangles=self.opt.compact_triangles,
-            # The triangle level goes into the model file as it is made (model_assembly.py).
+            # Every block goes into the model file as it is made (model_assembly.py).
             output=str(partial),
             output_offset=model_assembly.front_reserve(count),
         )
@@ -903,12 +901,12 @@ class _Builder:
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
         stats = writer.stats
-        # {level: (path, (n, 5) stored size, raw size, crc32, codec, tier in file order)}
+        # {level: (path, (n, 5) stored size, raw size, crc32, codec, tier, (n,) offsets)}
         level_files = writer.levels
-        triangle_output = writer.triangle_output
+        blocks_at = writer.output  # (partial, start, end, direct): the blocks are in the file
         t = self.timed("build", t)
 
-        layout = model_assembly.assemble_streams(stats, level_files, self.opt.tier_width > 0, triangle_output)
+        layout = model_assembly.assemble_streams(stats, level_files, self.opt.tier_width > 0)
         entries = layout.entries
         node_levels = len(stats["node_streams"])
         stored_total = sum(e[0] for e in entries)
@@ -936,7 +934,7 @@ class _Builder:
             fields,
             layout,
             part_table,
-            triangle_output,
+            blocks_at,
             lambda done, total: self.report("write", done, total, unit="bytes"),
         )
         t = self.timed("write", t)
@@ -969,7 +967,7 @@ class _Builder:
                                      "references", "stored_triangles", "stored_vertices", "vertex_bytes",
                                      "kd_build_ms", "emit_ms", "max_depth", "emission_jobs")},
             "tiers": layout.tier_count,
-            "triangles_in_place": in_place,
+            "blocks_in_place": in_place,
         }  # fmt: skip
 
 

@@ -52,6 +52,7 @@ class DirectFile:
         self._fill = 0  # bytes of the buffer in use
         self._offset = 0  # where the buffer goes in the file (a multiple of _ALIGN)
         self._closed = False
+        self._cut = append_at is not None  # the file may run past what is written: cut it
         if append_at:
             # Direct writes start on a page: the bytes of the last page before
             # `append_at` are read back into the buffer and written again with it.
@@ -117,6 +118,7 @@ class DirectFile:
                 padded = -(-self._fill // _ALIGN) * _ALIGN
                 self._view[self._fill : padded] = bytes(padded - self._fill)
                 self._write_at(self._view[:padded], self._offset)
+            if self._fill or self._cut:
                 os.ftruncate(self._fd, size)
             os.fsync(self._fd)
             return size

@@ -1,15 +1,14 @@
-"""The write phase of a build: the model file assembled from the writer's levels
+"""The write phase of a build: the model file assembled from the writer's blocks
 (docs/FORMAT.md §3, §5 and "Building a model", step 5).
 
-The native writer appends each node level's blocks to a scratch file of its own. A
-large build's triangle level, most of the model's bytes, goes straight into the model
-file instead, past the page cache, from an offset that leaves room in front for the
-header, the block index and as many node blocks as fit (`front_reserve`). Assembling
-that file writes the front and appends the other node blocks and the parts section
-behind the triangle level: the triangle blocks are not copied. Where the front does not
-fit the index, or would be left more than `FRONT_SLACK` short (a small model has too
-few node bytes to fill it), the model is written again, every block in id order, as
-every model was before.
+The native writer appends every block to the model file as it is made, past the page
+cache, behind room kept in front for the header and the block index (`front_reserve`).
+Assembling the file writes the header and the index there and moves the last blocks of
+the file into what the index leaves of that room; nothing else is copied. Where the
+room does not fit the index, or the blocks moved would leave more than `FRONT_SLACK` of
+it empty (a small model), the model is written again, every block in id order, as every
+model was before. With scratch files per level (the writer's other mode) that is the
+only way.
 """
 
 from __future__ import annotations
@@ -26,16 +25,17 @@ from vastray import modelfile
 from vastray.direct_io import DirectFile
 
 _ALIGN = 4096
-# Zero bytes the front may keep between its last node block and the triangle level;
-# a compacted file has none.
+_NO_BLOCKS = ("", np.zeros((0, 5), np.uint32), np.zeros(0, np.uint64))
+# Zero bytes the front may keep between the last block moved there and the first block
+# written behind it; a file written whole has none.
 FRONT_SLACK = 64 << 10
 
 
 def front_reserve(triangles: int) -> int:
-    """Bytes kept at the start of the model file, before the triangle level: room for
-    the header and the index of a model with a block per 256 triangles (built models
-    have one per 1,000 or more, bench/results) and 64 tiers of 64 levels, rounded up to
-    a 4 KiB page. Node blocks fill what the index leaves."""
+    """Bytes kept at the start of the model file for the header and the index of a model
+    with a block per 256 triangles (built models have one per 1,000 or more,
+    bench/results) and 64 tiers of 64 levels, rounded up to a 4 KiB page. The last
+    blocks written fill what the index leaves."""
     entries = 64 * 64 + triangles // 256 + 4096
     need = modelfile.HEADER_SIZE + 24 * entries
     return -(-need // _ALIGN) * _ALIGN
@@ -54,23 +54,17 @@ class StreamLayout:
     source: np.ndarray  # (blocks,) int: index into paths
     at: np.ndarray  # (blocks,) int64
     tier_count: int  # 0: untiered (one record per level)
-    triangles: int  # index into paths of the triangle level's file
 
     @property
     def stored(self) -> np.ndarray:
         return np.fromiter((e[0] for e in self.entries), np.int64, len(self.entries))
 
 
-def assemble_streams(
-    stats: dict[str, Any],
-    level_files: dict[int, Any],
-    tiered: bool,
-    triangle_output: tuple[str, int, int, bool] | None = None,
-) -> StreamLayout:
+def assemble_streams(stats: dict[str, Any], level_files: dict[int, Any], tiered: bool) -> StreamLayout:
     """Lays the streams out level by level, and within a level coarsest tier first
-    (docs/FORMAT.md §3, §5). A level file holds its tiers' blocks in the order they were
-    finished, each tier's in its stream's order. `triangle_output` (the writer's): the
-    triangle level's blocks lie in the model file from its start offset."""
+    (docs/FORMAT.md §3, §5). `level_files` (the writer's `levels`) holds per level the
+    file of its blocks and their entries, tiers and offsets there in the order they were
+    finished, each tier's in its stream's order."""
     node_streams: list[list[tuple[int, int, int, int]]] = stats["node_streams"]
     triangle_streams: list[tuple[int, int, int, int]] = stats["triangle_streams"]
     tiers = max(len(t) for t in [*node_streams, triangle_streams]) if tiered else 1
@@ -79,15 +73,13 @@ def assemble_streams(
     paths: list[str] = []
     sources: list[np.ndarray] = []
     ats: list[np.ndarray] = []
-    triangles = -1
     for level, counts in [*enumerate(node_streams), (-1, triangle_streams)]:
-        path, rows = level_files.get(level, ("", np.zeros((0, 5), np.uint32)))
+        path, rows, offsets = level_files.get(level, _NO_BLOCKS)
         rows = np.asarray(rows, dtype=np.int64).reshape(-1, 5)
-        base = triangle_output[1] if level < 0 and triangle_output is not None else 0
-        offsets = base + np.concatenate([[0], np.cumsum(rows[:, 0])])
-        if level < 0:
-            triangles = len(paths)
-        paths.append(path)
+        offsets = np.asarray(offsets, dtype=np.int64)
+        if path not in paths:
+            paths.append(path)
+        source = paths.index(path)
         for tier in range(tiers):
             mine = np.flatnonzero(rows[:, 4] == tier)
             blocks, _, items, extra = counts[tier] if tier < len(counts) else (0, 0, 0, 0)
@@ -95,15 +87,8 @@ def assemble_streams(
                 raise RuntimeError(f"level {level} tier {tier}: {len(mine)} blocks written, {blocks} counted")
             records.append((len(entries), len(mine), items, extra))
             entries.extend(tuple(int(x) for x in rows[i, :4]) for i in mine)
-            sources.append(np.full(len(mine), len(paths) - 1, np.int64))
+            sources.append(np.full(len(mine), source, np.int64))
             ats.append(offsets[mine])
-    if triangle_output is not None:
-        _, start, end, _ = triangle_output
-        rows = np.asarray(level_files.get(-1, ("", np.zeros((0, 5), np.uint32)))[1], np.int64).reshape(-1, 5)
-        if start + int(rows[:, 0].sum()) != end:
-            raise RuntimeError(
-                f"{triangle_output[0]}: the triangle level's blocks do not end where it does ({end})"
-            )
     return StreamLayout(
         records,
         entries,
@@ -111,7 +96,6 @@ def assemble_streams(
         np.concatenate(sources) if sources else np.zeros(0, np.int64),
         np.concatenate(ats) if ats else np.zeros(0, np.int64),
         tiers if tiered else 0,
-        triangles,
     )
 
 
@@ -120,15 +104,15 @@ def write_model(
     fields: dict[str, Any],
     layout: StreamLayout,
     parts: modelfile.PartTable | None,
-    triangle_output: tuple[str, int, int, bool] | None,
+    output: tuple[str, int, int, bool] | None,
     progress: Callable[[int, int], None],
 ) -> tuple[int, bool]:
-    """Writes the model to `partial` (fsynced); returns its size and whether the
-    triangle level stayed where the writer put it (False: the file was written whole,
-    blocks in id order). `progress(done, total)` counts the block bytes this phase
-    copies: all of them, or those of the node levels."""
-    if triangle_output is not None:
-        size = _write_around_triangles(partial, fields, layout, parts, triangle_output, progress)
+    """Writes the model to `partial` (fsynced); returns its size and whether the blocks
+    stayed where the writer put them (`output`, the writer's: they are in `partial`
+    from its start offset; False: the file was written whole, blocks in id order).
+    `progress(done, total)` counts the block bytes this phase copies."""
+    if output is not None:
+        size = _write_in_place(partial, fields, layout, parts, output, progress)
         if size is not None:
             return size, True
     compact = partial.with_name(partial.name + ".compact")
@@ -149,83 +133,62 @@ def write_model(
     return size, False
 
 
-def _write_around_triangles(
+def _write_in_place(
     partial: Path,
     fields: dict[str, Any],
     layout: StreamLayout,
     parts: modelfile.PartTable | None,
-    triangle_output: tuple[str, int, int, bool],
+    output: tuple[str, int, int, bool],
     progress: Callable[[int, int], None],
 ) -> int | None:
-    """The front (header, index, the first node blocks that fit) and the tail (the other
-    node blocks, the parts section) around the triangle level in `partial`; None when
-    the front cannot hold the index or would be left more than FRONT_SLACK short."""
-    _, front, end, _ = triangle_output
+    """The header, the index and the file's last blocks into the room in front of the
+    blocks in `partial`, which is then cut behind what is left and ends in the parts
+    section; None when the room cannot hold the index, would take every block, or would
+    be left more than FRONT_SLACK short."""
+    path, front, end, _ = output
     n = len(layout.entries)
     data_offset = modelfile.HEADER_SIZE + 24 * (len(layout.records) + n)
-    if data_offset > front:
+    if data_offset > front or any(p != path for p in layout.paths if p):
         return None
     stored = layout.stored
-    offsets = layout.at.copy()  # the triangle blocks stay where they are
-    nodes = np.flatnonzero(layout.source != layout.triangles)
-    in_front: list[int] = []
-    behind: list[int] = []
-    pos = data_offset
-    for i in nodes.tolist():  # first fit, in id order: the coarse levels come first
-        if pos + stored[i] <= front:
-            offsets[i] = pos
-            pos += int(stored[i])
-            in_front.append(i)
-        else:
-            behind.append(i)
-    if front - pos > FRONT_SLACK:
-        return None
-    tail = end
-    for i in behind:
-        offsets[i] = tail
-        tail += int(stored[i])
+    in_file_order = np.argsort(layout.at, kind="stable")
+    # The longest run of the file's last blocks that fits the room (the writer appended
+    # them one after the other, so they are one range of the file).
+    behind = np.cumsum(stored[in_file_order][::-1])
+    k = int(np.searchsorted(behind, front - data_offset, side="right"))
+    if k == n or front - data_offset - (int(behind[k - 1]) if k else 0) > FRONT_SLACK:
+        return None  # the model is smaller than the room, or leaves too much of it empty
+    moving = in_file_order[n - k :]
+    blocks_end = int(layout.at[moving[0]]) if k else end
+    offsets = layout.at.copy()
+    if k:
+        offsets[moving] = data_offset + np.concatenate([[0], np.cumsum(stored[moving])[:-1]])
     section = parts.pack() if parts is not None else b""
     header, index = modelfile.pack_head(
         fields,
         layout.records,
         layout.entries,
         offsets.tolist(),
-        tail,
+        blocks_end,
         section,
         len(parts.names) if parts is not None else 0,
         layout.tier_count,
     )
-    total = int(stored[nodes].sum())  # the block bytes this phase copies
+    total = end - blocks_end
+    progress(0, total)
     head = bytearray(front)
     head[: len(header)] = header
     head[len(header) : data_offset] = index
-    fds = {s: os.open(layout.paths[s], os.O_RDONLY) for s in set(layout.source[nodes].tolist())}
-    try:
-        for i in in_front:
-            data = os.pread(fds[int(layout.source[i])], int(stored[i]), int(layout.at[i]))
-            if len(data) != stored[i]:
-                raise RuntimeError(
-                    f"{layout.paths[int(layout.source[i])]}: shorter than the blocks written to it"
-                )
-            head[offsets[i] : offsets[i] + len(data)] = data
-        with DirectFile(partial, append_at=end) as out:
-            out.write_at(0, head)
-            written = int(stored[in_front].sum())
-            progress(written, total)
-            for s, at, size in _runs(behind, layout, stored):
-                out.copy(fds[s], at, size)
-                written += size
-                progress(written, total)
-            out.write(section)
-            if out.size != tail + len(section):
-                raise RuntimeError(
-                    f"{partial}: wrote {out.size} bytes but the index describes {tail + len(section)}"
-                )
-    finally:
-        for fd in fds.values():
-            os.close(fd)
+    with open(partial, "rb") as f:
+        moved = os.pread(f.fileno(), total, blocks_end)
+    if len(moved) != total:
+        raise RuntimeError(f"{partial}: shorter than the blocks written to it")
+    head[data_offset : data_offset + total] = moved
+    with DirectFile(partial, append_at=blocks_end) as out:
+        out.write_at(0, head)
+        out.write(section)
     progress(total, total)
-    return tail + len(section)
+    return blocks_end + len(section)
 
 
 def _runs(ids: list[int], layout: StreamLayout, stored: np.ndarray) -> Iterator[tuple[int, int, int]]:

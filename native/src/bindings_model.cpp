@@ -121,24 +121,26 @@ public:
         files_.close();
     }
 
-    // {level: (file path, (n, 5) uint32 of stored size, raw size, crc32, codec, tier)} in
-    // file order; level -1 is the triangle level.
+    // {level: (file path, (n, 5) uint32 of stored size, raw size, crc32, codec, tier,
+    // (n,) uint64 offsets in the file)} in the order written; level -1 is the triangle level.
     py::dict levels() const {
         py::dict d;
         for (const auto& [level, entries] : files_.entries()) {
             py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{5}});
             std::memcpy(a.mutable_data(), entries.data(), entries.size() * sizeof entries[0]);
-            d[py::int_(level)] = py::make_tuple(files_.path(level), a);
+            const std::vector<std::uint64_t>& at = files_.offsets().at(level);
+            py::array_t<std::uint64_t> o(static_cast<py::ssize_t>(at.size()));
+            std::memcpy(o.mutable_data(), at.data(), at.size() * sizeof at[0]);
+            d[py::int_(level)] = py::make_tuple(files_.path(level), a, o);
         }
         return d;
     }
 
-    // (path, start, end, direct) of the triangle level written into the model file, or
-    // None when it went to a scratch file.
-    py::object triangle_output() const {
-        if (files_.triangles_start() == 0) return py::none();
-        return py::make_tuple(files_.path(-1), files_.triangles_start(), files_.triangles_end(),
-                              files_.triangles_direct());
+    // (path, start, end, direct) of the blocks written into the model file, or None
+    // when they went to scratch files.
+    py::object output() const {
+        if (files_.start() == 0) return py::none();
+        return py::make_tuple(files_.path(0), files_.start(), files_.end(), files_.direct());
     }
 
     py::dict stats() const {
@@ -180,8 +182,8 @@ private:
     static writer::LevelFiles level_files(const std::string& scratch_dir, const py::object& output,
                                           std::uint64_t offset) {
         if (output.is_none()) return writer::LevelFiles(scratch_dir);
-        if (offset == 0) throw std::invalid_argument("the triangle level starts past the header and index");
-        return writer::LevelFiles(scratch_dir, output.cast<std::string>(), offset);
+        if (offset == 0) throw std::invalid_argument("the blocks start past the header and the index");
+        return writer::LevelFiles(output.cast<std::string>(), offset);
     }
 
     writer::LevelFiles files_;  // declared first: the writer's sink writes into it
@@ -694,15 +696,15 @@ void bind_model(py::module_& m) {
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
              py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false,
              py::arg("output") = py::none(), py::arg("output_offset") = 0u,
-             "output: the model file the triangle level is appended to from output_offset, past the page "
-             "cache (the other levels still go to scratch_dir)")
+             "output: the model file every block is appended to from output_offset, past the page cache "
+             "(None: a scratch file per level in scratch_dir)")
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
              py::arg("axes"), py::arg("splits"), py::arg("children"))
         .def("finish", &PyModelWriter::finish, py::arg("root"))
         .def_property_readonly("levels", &PyModelWriter::levels)
-        .def_property_readonly("triangle_output", &PyModelWriter::triangle_output)
+        .def_property_readonly("output", &PyModelWriter::output)
         .def_property_readonly("stats", &PyModelWriter::stats);
     m.def("make_records", &make_records, py::arg("corners"), py::arg("colours"), py::arg("ids"), py::arg("first_id"),
           py::arg("centre"), py::arg("out") = py::none(), py::arg("threads") = 0u,

@@ -188,11 +188,18 @@ std::string ModelIndex::level_name(std::size_t block) const {
 
 void ModelIndex::read_ahead(std::size_t first, std::size_t last) const {
     if (first > last || last >= entries_.size()) return;
-    const BlockEntry& a = entries_[first];
-    const BlockEntry& b = entries_[last];
-    if (b.offset + b.stored_size <= a.offset) return;
-    posix_fadvise(fd_, static_cast<off_t>(a.offset), static_cast<off_t>(b.offset + b.stored_size - a.offset),
-                  POSIX_FADV_WILLNEED);
+    // One call per run of blocks that follow one another in the file too: consecutive
+    // ids need not be neighbours there (FORMAT.md §3), and advice spanning the blocks
+    // between them would read what no one asked for.
+    std::size_t run = first;
+    for (std::size_t i = first + 1; i <= last + 1; ++i) {
+        if (i <= last && entries_[i].offset == entries_[i - 1].offset + entries_[i - 1].stored_size) continue;
+        const BlockEntry& a = entries_[run];
+        const BlockEntry& b = entries_[i - 1];
+        posix_fadvise(fd_, static_cast<off_t>(a.offset), static_cast<off_t>(b.offset + b.stored_size - a.offset),
+                      POSIX_FADV_WILLNEED);
+        run = i;
+    }
 }
 
 std::string ModelIndex::read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const {

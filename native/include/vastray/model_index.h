@@ -55,8 +55,9 @@ public:
     // `scratch` for the stored bytes. Safe to call from several threads at once (pread).
     // Returns an empty string on success, else what went wrong; never throws.
     std::string read_block(std::size_t block, std::uint8_t* out, std::vector<std::uint8_t>& scratch) const;
-    // Asks the kernel to start reading blocks [first, last] (consecutive in the file)
-    // into the page cache; returns at once. Only a hint: failures are ignored.
+    // Asks the kernel to start reading blocks [first, last] (consecutive ids; one call per
+    // run of them that is also consecutive in the file) into the page cache; returns at
+    // once. Only a hint: failures are ignored.
     void read_ahead(std::size_t first, std::size_t last) const;
 
 private:

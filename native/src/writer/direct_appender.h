@@ -1,9 +1,9 @@
-// Appends bytes to a file past the page cache (O_DIRECT), from a 4 KiB-aligned offset,
-// for the triangle level of a large build: those blocks are most of a model's bytes, and
-// written where they end up they need no copy in the write phase, and no page-cache
-// memory that the kernel must first find and clear (bench/results/firsttouch.md). A
-// thread of its own writes each full buffer while the next one fills, so the emission
-// never waits on the disk unless the disk is slower than it.
+// Appends bytes to a file past the page cache (O_DIRECT), from a 4 KiB-aligned offset:
+// how a build's blocks go into the model file as they are made. Written where they end
+// up, they need no copy in the write phase, and no page-cache memory that the kernel must
+// first find and clear (bench/results/firsttouch.md). A thread of its own writes each
+// full buffer while the next one fills, so the emission never waits on the disk unless
+// the disk is slower than it.
 #pragma once
 
 #include <condition_variable>
