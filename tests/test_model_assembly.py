@@ -22,7 +22,7 @@ import pytest
 from modelwalk import TIER_COUNT_AT, read_parts
 from views import model_views, render_camera
 
-from vastray import model_assembly
+from vastray import model_assembly, native
 from vastray.build import BuildOptions, build_model
 from vastray.modelfile import HEADER_SIZE, ModelFile
 from vastray.outofcore import make_cache
@@ -174,3 +174,11 @@ def test_a_failed_write_of_a_block_fails_the_build_cleanly(tmp_path: Path) -> No
     assert result.stdout.startswith("build RuntimeError "), result.stdout
     assert "m.vast.partial-" in result.stdout and "write failed: File too large" in result.stdout
     assert os.listdir(out) == []
+
+
+@pytest.mark.parametrize("offset", [0, 100])
+def test_the_writer_takes_only_page_aligned_room(tmp_path: Path, offset: int) -> None:
+    """Direct writes start on a 4 KiB page, past the header and the index."""
+    with pytest.raises(ValueError, match="multiple of 4096"):
+        native.ModelWriter(has_colours=False, output=str(tmp_path / "m.vast"), output_offset=offset)
+    assert list(tmp_path.iterdir()) == []

@@ -879,7 +879,9 @@ class _Builder:
         self.threads_used = self.opt.writer_threads(max((p.count for p in parts), default=0))
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
-            scratch_dir=str(scratch),  # unused: the blocks go into the output
+            # Every block goes into the model file as it is made (model_assembly.py).
+            output=str(partial),
+            output_offset=model_assembly.front_reserve(count),
             progress=self.on_refs,
             leaf_size=self.opt.leaf_size,
             traversal_cost=self.opt.traversal_cost,
@@ -893,20 +895,17 @@ class _Builder:
             tier_coarse_octaves=self.opt.tier_coarse_octaves,
             root_cell=(lo.tolist(), hi.tolist()),
             compact_triangles=self.opt.compact_triangles,
-            # Every block goes into the model file as it is made (model_assembly.py).
-            output=str(partial),
-            output_offset=model_assembly.front_reserve(count),
         )
         self.report("build", 0, self.build_total)
         root_handle = self.emit(tree, writer)
         writer.finish(root_handle)
         stats = writer.stats
-        # {level: (path, (n, 5) stored size, raw size, crc32, codec, tier, (n,) offsets)}
-        level_files = writer.levels
-        blocks_at = writer.output  # (partial, start, end, direct): the blocks are in the file
+        # {level: ((n, 5) stored size, raw size, crc32, codec, tier; (n,) offsets)}
+        levels = writer.levels
+        blocks_at = writer.output  # (partial, start, end, direct): where the blocks are
         t = self.timed("build", t)
 
-        layout = model_assembly.assemble_streams(stats, level_files, self.opt.tier_width > 0)
+        layout = model_assembly.assemble_streams(stats, levels, self.opt.tier_width > 0)
         entries = layout.entries
         node_levels = len(stats["node_streams"])
         stored_total = sum(e[0] for e in entries)

@@ -5,10 +5,9 @@ The native writer appends every block to the model file as it is made, past the 
 cache, behind room kept in front for the header and the block index (`front_reserve`).
 Assembling the file writes the header and the index there and moves the last blocks of
 the file into what the index leaves of that room; nothing else is copied. Where the
-room does not fit the index, or the blocks moved would leave more than `FRONT_SLACK` of
-it empty (a small model), the model is written again, every block in id order, as every
-model was before. With scratch files per level (the writer's other mode) that is the
-only way.
+room does not fit the index, or the model is smaller than the room or would leave more
+than `FRONT_SLACK` of it empty, the model is written again, every block in id order, as
+every model was before.
 """
 
 from __future__ import annotations
@@ -25,7 +24,7 @@ from vastray import modelfile
 from vastray.direct_io import DirectFile
 
 _ALIGN = 4096
-_NO_BLOCKS = ("", np.zeros((0, 5), np.uint32), np.zeros(0, np.uint64))
+_NO_BLOCKS = (np.zeros((0, 5), np.uint32), np.zeros(0, np.uint64))
 # Zero bytes the front may keep between the last block moved there and the first block
 # written behind it; a file written whole has none.
 FRONT_SLACK = 64 << 10
@@ -43,15 +42,12 @@ def front_reserve(triangles: int) -> int:
 
 @dataclass
 class StreamLayout:
-    """Where every block of the model comes from, in block-id order: the level table's
-    records (first, count, items, extra), the index entries (stored size, raw size,
-    crc32, codec), and per block the file holding its bytes (`paths[source]`) and their
-    offset there (`at`)."""
+    """The model's blocks in block-id order: the level table's records (first, count,
+    items, extra), the index entries (stored size, raw size, crc32, codec), and each
+    block's offset in the file the writer appended it to (`at`)."""
 
     records: list[tuple[int, int, int, int]]
     entries: list[tuple[int, int, int, int]]
-    paths: list[str]
-    source: np.ndarray  # (blocks,) int: index into paths
     at: np.ndarray  # (blocks,) int64
     tier_count: int  # 0: untiered (one record per level)
 
@@ -60,26 +56,21 @@ class StreamLayout:
         return np.fromiter((e[0] for e in self.entries), np.int64, len(self.entries))
 
 
-def assemble_streams(stats: dict[str, Any], level_files: dict[int, Any], tiered: bool) -> StreamLayout:
+def assemble_streams(stats: dict[str, Any], levels: dict[int, Any], tiered: bool) -> StreamLayout:
     """Lays the streams out level by level, and within a level coarsest tier first
-    (docs/FORMAT.md §3, §5). `level_files` (the writer's `levels`) holds per level the
-    file of its blocks and their entries, tiers and offsets there in the order they were
-    finished, each tier's in its stream's order."""
+    (docs/FORMAT.md §3, §5). `levels` (the writer's) holds per level its blocks'
+    entries, tiers and offsets in the order they were finished, each tier's in its
+    stream's order."""
     node_streams: list[list[tuple[int, int, int, int]]] = stats["node_streams"]
     triangle_streams: list[tuple[int, int, int, int]] = stats["triangle_streams"]
     tiers = max(len(t) for t in [*node_streams, triangle_streams]) if tiered else 1
     records: list[tuple[int, int, int, int]] = []
     entries: list[tuple[int, int, int, int]] = []
-    paths: list[str] = []
-    sources: list[np.ndarray] = []
     ats: list[np.ndarray] = []
     for level, counts in [*enumerate(node_streams), (-1, triangle_streams)]:
-        path, rows, offsets = level_files.get(level, _NO_BLOCKS)
+        rows, offsets = levels.get(level, _NO_BLOCKS)
         rows = np.asarray(rows, dtype=np.int64).reshape(-1, 5)
         offsets = np.asarray(offsets, dtype=np.int64)
-        if path not in paths:
-            paths.append(path)
-        source = paths.index(path)
         for tier in range(tiers):
             mine = np.flatnonzero(rows[:, 4] == tier)
             blocks, _, items, extra = counts[tier] if tier < len(counts) else (0, 0, 0, 0)
@@ -87,16 +78,9 @@ def assemble_streams(stats: dict[str, Any], level_files: dict[int, Any], tiered:
                 raise RuntimeError(f"level {level} tier {tier}: {len(mine)} blocks written, {blocks} counted")
             records.append((len(entries), len(mine), items, extra))
             entries.extend(tuple(int(x) for x in rows[i, :4]) for i in mine)
-            sources.append(np.full(len(mine), source, np.int64))
             ats.append(offsets[mine])
-    return StreamLayout(
-        records,
-        entries,
-        paths,
-        np.concatenate(sources) if sources else np.zeros(0, np.int64),
-        np.concatenate(ats) if ats else np.zeros(0, np.int64),
-        tiers if tiered else 0,
-    )
+    at = np.concatenate(ats) if ats else np.zeros(0, np.int64)
+    return StreamLayout(records, entries, at, tiers if tiered else 0)
 
 
 def write_model(
@@ -104,17 +88,19 @@ def write_model(
     fields: dict[str, Any],
     layout: StreamLayout,
     parts: modelfile.PartTable | None,
-    output: tuple[str, int, int, bool] | None,
+    output: tuple[str, int, int, bool],
     progress: Callable[[int, int], None],
 ) -> tuple[int, bool]:
-    """Writes the model to `partial` (fsynced); returns its size and whether the blocks
-    stayed where the writer put them (`output`, the writer's: they are in `partial`
-    from its start offset; False: the file was written whole, blocks in id order).
-    `progress(done, total)` counts the block bytes this phase copies."""
-    if output is not None:
-        size = _write_in_place(partial, fields, layout, parts, output, progress)
-        if size is not None:
-            return size, True
+    """Writes the model to `partial`, the file the writer appended the blocks to
+    (`output`, the writer's: that path, where the blocks start and end), fsynced; returns
+    its size and whether the blocks stayed where the writer put them (False: the file
+    was written whole, blocks in id order). `progress(done, total)` counts the block
+    bytes this phase copies."""
+    if output[0] != str(partial):
+        raise ValueError(f"the writer wrote {output[0]}, not {partial}")
+    size = _write_in_place(partial, fields, layout, parts, output, progress)
+    if size is not None:
+        return size, True
     compact = partial.with_name(partial.name + ".compact")
     try:
         with DirectFile(compact) as out:
@@ -123,7 +109,7 @@ def write_model(
                 fields,
                 layout.records,
                 layout.entries,
-                _block_ranges(layout, progress),
+                _block_ranges(partial, layout, progress),
                 parts,
                 layout.tier_count,
             )
@@ -145,10 +131,10 @@ def _write_in_place(
     blocks in `partial`, which is then cut behind what is left and ends in the parts
     section; None when the room cannot hold the index, would take every block, or would
     be left more than FRONT_SLACK short."""
-    path, front, end, _ = output
+    _, front, end, _ = output
     n = len(layout.entries)
     data_offset = modelfile.HEADER_SIZE + 24 * (len(layout.records) + n)
-    if data_offset > front or any(p != path for p in layout.paths if p):
+    if data_offset > front:
         return None
     stored = layout.stored
     in_file_order = np.argsort(layout.at, kind="stable")
@@ -191,38 +177,28 @@ def _write_in_place(
     return blocks_end + len(section)
 
 
-def _runs(ids: list[int], layout: StreamLayout, stored: np.ndarray) -> Iterator[tuple[int, int, int]]:
-    """(source, offset, size) of the blocks `ids`, in their order, consecutive bytes of
-    one file read at once."""
-    run: list[int] | None = None
-    for i in ids:
-        s, at, size = int(layout.source[i]), int(layout.at[i]), int(stored[i])
-        if run is not None and run[0] == s and run[1] + run[2] == at:
-            run[2] += size
-            continue
-        if run is not None:
-            yield run[0], run[1], run[2]
-        run = [s, at, size]
-    if run is not None:
-        yield run[0], run[1], run[2]
-
-
 def _block_ranges(
-    layout: StreamLayout, progress: Callable[[int, int], None]
+    path: Path, layout: StreamLayout, progress: Callable[[int, int], None]
 ) -> Iterator[modelfile.FileRange]:
-    """Every block's bytes in id order, as ranges of the files holding them."""
+    """Every block's bytes in id order, as ranges of `path` (consecutive bytes read at
+    once)."""
     stored = layout.stored
     total = int(stored.sum())
-    fds = {s: os.open(p, os.O_RDONLY) for s, p in enumerate(layout.paths) if p}
+    runs: list[list[int]] = []
+    for at, size in zip(layout.at.tolist(), stored.tolist(), strict=True):
+        if runs and runs[-1][0] + runs[-1][1] == at:
+            runs[-1][1] += size
+        else:
+            runs.append([at, size])
+    fd = os.open(path, os.O_RDONLY)
     written = 0
     try:
-        for s, at, size in _runs(list(range(len(layout.entries))), layout, stored):
+        for at, size in runs:
             while size > 0:  # in pieces, for the progress bar
                 piece = min(size, 64 << 20)
-                yield modelfile.FileRange(fds[s], at, piece)
+                yield modelfile.FileRange(fd, at, piece)
                 at, size = at + piece, size - piece
                 written += piece
                 progress(written, total)
     finally:
-        for fd in fds.values():
-            os.close(fd)
+        os.close(fd)

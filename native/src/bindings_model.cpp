@@ -14,7 +14,7 @@
 #include "vastray/model_decode.h"
 #include "vastray/model_writer.h"
 #include "vastray/thread_pool.h"
-#include "writer/level_files.h"
+#include "writer/model_blocks.h"
 
 namespace py = pybind11;
 using namespace vastray;
@@ -40,12 +40,11 @@ Box3f to_box(const std::vector<double>& lo, const std::vector<double>& hi) {
 
 class PyModelWriter {
 public:
-    PyModelWriter(bool has_colours, const std::string& scratch_dir, py::object progress, int leaf_size,
+    PyModelWriter(bool has_colours, const std::string& output, std::uint64_t output_offset, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
-                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles, py::object output,
-                  std::uint64_t output_offset)
-        : files_(level_files(scratch_dir, output, output_offset)) {
+                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles)
+        : blocks_(output, checked_offset(output_offset)) {
         ModelWriterParams p;
         p.has_colours = has_colours;
         p.kd.leaf_size = leaf_size;
@@ -76,7 +75,7 @@ public:
             throw std::invalid_argument("invalid model build parameters");
         }
         // Blocks go straight to the level files, without the GIL.
-        BlockSink block_sink = [this](int level, std::uint32_t tier, StoredBlock&& block) { files_.write(level, tier, block); };
+        BlockSink block_sink = [this](int level, std::uint32_t tier, StoredBlock&& block) { blocks_.write(level, tier, block); };
         ProgressSink progress_sink;
         if (!progress.is_none()) {
             progress_sink = [progress](std::uint64_t refs) {
@@ -118,29 +117,28 @@ public:
     void finish(int root) {
         py::gil_scoped_release release;
         writer_->finish(root);
-        files_.close();
+        blocks_.close();
     }
 
-    // {level: (file path, (n, 5) uint32 of stored size, raw size, crc32, codec, tier,
-    // (n,) uint64 offsets in the file)} in the order written; level -1 is the triangle level.
+    // {level: ((n, 5) uint32 of stored size, raw size, crc32, codec, tier, (n,) uint64
+    // offsets in the model file)} in the order written; level -1 is the triangle level.
     py::dict levels() const {
         py::dict d;
-        for (const auto& [level, entries] : files_.entries()) {
+        for (const auto& [level, entries] : blocks_.entries()) {
             py::array_t<std::uint32_t> a({static_cast<py::ssize_t>(entries.size()), py::ssize_t{5}});
             std::memcpy(a.mutable_data(), entries.data(), entries.size() * sizeof entries[0]);
-            const std::vector<std::uint64_t>& at = files_.offsets().at(level);
+            const std::vector<std::uint64_t>& at = blocks_.offsets().at(level);
             py::array_t<std::uint64_t> o(static_cast<py::ssize_t>(at.size()));
             std::memcpy(o.mutable_data(), at.data(), at.size() * sizeof at[0]);
-            d[py::int_(level)] = py::make_tuple(files_.path(level), a, o);
+            d[py::int_(level)] = py::make_tuple(a, o);
         }
         return d;
     }
 
-    // (path, start, end, direct) of the blocks written into the model file, or None
-    // when they went to scratch files.
-    py::object output() const {
-        if (files_.start() == 0) return py::none();
-        return py::make_tuple(files_.path(0), files_.start(), files_.end(), files_.direct());
+    // (path, start, end, direct): the model file, where its blocks start and end, and
+    // whether they were written past the page cache.
+    py::tuple output() const {
+        return py::make_tuple(blocks_.path(), blocks_.start(), blocks_.end(), blocks_.direct());
     }
 
     py::dict stats() const {
@@ -179,14 +177,14 @@ public:
     }
 
 private:
-    static writer::LevelFiles level_files(const std::string& scratch_dir, const py::object& output,
-                                          std::uint64_t offset) {
-        if (output.is_none()) return writer::LevelFiles(scratch_dir);
-        if (offset == 0) throw std::invalid_argument("the blocks start past the header and the index");
-        return writer::LevelFiles(output.cast<std::string>(), offset);
+    static std::uint64_t checked_offset(std::uint64_t offset) {
+        if (offset == 0 || offset % writer::DirectAppender::kAlign) {
+            throw std::invalid_argument("output_offset: a multiple of 4096 past the header and the index");
+        }
+        return offset;
     }
 
-    writer::LevelFiles files_;  // declared first: the writer's sink writes into it
+    writer::ModelBlocks blocks_;  // declared first: the writer's sink writes into it
     std::unique_ptr<ModelWriter> writer_;
 };
 
@@ -686,18 +684,16 @@ py::tuple vertex_bounds(const py::buffer& vertices, std::size_t stride, const st
 
 void bind_model(py::module_& m) {
     py::class_<PyModelWriter>(m, "ModelWriter",
-                              "Writes kd-subtrees as treelets, voxels and triangle blocks into level files in scratch_dir")
-        .def(py::init<bool, const std::string&, py::object, int, float, float, float, int, int, unsigned, bool, py::object, double,
-                      int, py::object, bool, py::object, std::uint64_t>(),
-             py::arg("has_colours"), py::arg("scratch_dir"), py::arg("progress") = py::none(), py::arg("leaf_size") = 4,
-             py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
+                              "Writes kd-subtrees as treelets, voxels and triangle blocks into the model file `output`, "
+                              "from output_offset on, past the page cache (vastray/model_assembly.py finishes the file)")
+        .def(py::init<bool, const std::string&, std::uint64_t, py::object, int, float, float, float, int, int, unsigned,
+                      bool, py::object, double, int, py::object, bool>(),
+             py::arg("has_colours"), py::arg("output"), py::arg("output_offset"), py::arg("progress") = py::none(),
+             py::arg("leaf_size") = 4, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
-             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false,
-             py::arg("output") = py::none(), py::arg("output_offset") = 0u,
-             "output: the model file every block is appended to from output_offset, past the page cache "
-             "(None: a scratch file per level in scratch_dir)")
+             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),

@@ -7,7 +7,7 @@
 //   triangle_blocks  packing leaf triangles into triangle blocks
 //   subtree_emitter  emitting a kd-subtree; parallel parts merged in tree order
 //   parallel_emission  cutting a part into jobs for all lanes, merging them as they finish
-//   level_files      the level scratch files the blocks go to
+//   model_blocks     the model file the blocks are appended to, and their index entries
 #include "vastray/model_writer.h"
 
 #include <chrono>
