@@ -247,9 +247,9 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
             for tag in ("p1", "p16"):
                 ooc = row.get("full_ms" if tag == "p1" else "full_packets16_ms", math.nan)
                 row[f"full_{tag}_over_incore"] = row[f"incore_{tag}_ms"] / ooc
-            row["full_fastest_over_incore_fastest"] = (
-                min(row["incore_p1_ms"], row["incore_p16_ms"]) / row.get("full_fastest_ms", math.nan)
-            )
+            row["full_fastest_over_incore_fastest"] = min(
+                row["incore_p1_ms"], row["incore_p16_ms"]
+            ) / row.get("full_fastest_ms", math.nan)
         rows.append(row)
         print(f"  {size:.0e}: {json.dumps(row)}", file=sys.stderr, flush=True)
     return rows
