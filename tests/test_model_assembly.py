@@ -121,6 +121,10 @@ def test_it_is_the_model_a_whole_write_makes(
     data = whole.read_bytes()
     assert in_id_order(data) == data  # blocks one after the other, in id order
     assert in_id_order(path.read_bytes()) == data
+    # What bench/layout.py compares the layouts with makes the same file.
+    assert model_assembly.rewrite_in_id_order(path, tmp_path / "copy.vast") == len(data)
+    assert (tmp_path / "copy.vast").read_bytes() == data
+    (tmp_path / "copy.vast").unlink()
     assert [f.name for f in tmp_path.iterdir()] == ["whole.vast"]  # no partial or copy left
     # The native reader behind the block cache reads both to the same pixels.
     for a, b in zip(frames(path), frames(whole), strict=True):

@@ -202,3 +202,47 @@ def _block_ranges(
                 progress(written, total)
     finally:
         os.close(fd)
+
+
+# The header fields a model's own header gives a copy of it (pack_head fills the rest).
+_KEPT_FIELDS = (
+    "flags", "centre", "cell_lo", "cell_hi", "triangle_count", "input_triangles", "degenerate",
+    "basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six", "references",
+)  # fmt: skip
+
+
+def rewrite_in_id_order(source: Path, target: Path) -> int:
+    """Writes a copy of the model `source` to `target` with its blocks one after the
+    other in id order, the layout every model had before blocks were written in place
+    (the same header fields, index entries and block bytes; only the offsets differ).
+    Returns the copy's size. For comparing the layouts (bench/layout.py)."""
+    with modelfile.ModelFile(source) as model:
+        h = model.header
+        tiers = h["tier_count"] if h["flags"] & modelfile.FLAG_TIERED else 0
+        records = [(s.first, s.count, s.items, s.extra) for s in model.streams]
+        entries = [(b.stored_size, b.raw_size, b.crc32, b.codec) for b in model.blocks]
+        at = np.fromiter((b.offset for b in model.blocks), np.int64, len(model.blocks))
+    layout = StreamLayout(records, entries, at, tiers)
+    offsets = (
+        modelfile.HEADER_SIZE
+        + 24 * (len(records) + len(entries))
+        + np.concatenate([[0], np.cumsum(layout.stored)[:-1]])
+    )
+    end = int(offsets[-1] + entries[-1][0])
+    with open(source, "rb") as f:
+        section = os.pread(f.fileno(), h["parts_size"], h["parts_offset"]) if h["parts_size"] else b""
+    fields = {k: h[k] for k in _KEPT_FIELDS}
+    header, index = modelfile.pack_head(
+        fields, records, entries, offsets.tolist(), end, section, h["part_count"], tiers
+    )
+    with DirectFile(target) as out:
+        out.write(header)
+        out.write(index)
+        fd = os.open(source, os.O_RDONLY)
+        try:
+            for run in _block_ranges(source, layout, lambda done, total: None):
+                out.copy(fd, run.offset, run.size)
+        finally:
+            os.close(fd)
+        out.write(section)
+        return out.size
