@@ -98,32 +98,50 @@ def write_model(
     bytes this phase copies."""
     if output[0] != str(partial):
         raise ValueError(f"the writer wrote {output[0]}, not {partial}")
-    size = _write_in_place(partial, fields, layout, parts, output, progress)
+    section = parts.pack() if parts is not None else b""
+    part_count = len(parts.names) if parts is not None else 0
+    size = _write_in_place(partial, fields, layout, section, part_count, output, progress)
     if size is not None:
         return size, True
     compact = partial.with_name(partial.name + ".compact")
     try:
-        with DirectFile(compact) as out:
-            size = modelfile.write_model_file(
-                out,
-                fields,
-                layout.records,
-                layout.entries,
-                _block_ranges(partial, layout, progress),
-                parts,
-                layout.tier_count,
-            )
+        size = _write_whole(partial, compact, fields, layout, section, part_count, progress)
         os.replace(compact, partial)
     finally:
         compact.unlink(missing_ok=True)
     return size, False
 
 
+def _write_whole(
+    source: Path,
+    target: Path,
+    fields: dict[str, Any],
+    layout: StreamLayout,
+    section: bytes,
+    part_count: int,
+    progress: Callable[[int, int], None],
+) -> int:
+    """`target`, fsynced: the blocks of `source` one after the other in id order, with
+    the header, the index and the parts section; returns its size."""
+    with DirectFile(target) as out:
+        return modelfile.write_model_file(
+            out,
+            fields,
+            layout.records,
+            layout.entries,
+            _block_ranges(source, layout, progress),
+            section,
+            part_count,
+            layout.tier_count,
+        )
+
+
 def _write_in_place(
     partial: Path,
     fields: dict[str, Any],
     layout: StreamLayout,
-    parts: modelfile.PartTable | None,
+    section: bytes,
+    part_count: int,
     output: tuple[str, int, int, bool],
     progress: Callable[[int, int], None],
 ) -> int | None:
@@ -149,7 +167,6 @@ def _write_in_place(
     offsets = layout.at.copy()
     if k:
         offsets[moving] = data_offset + np.concatenate([[0], np.cumsum(stored[moving])[:-1]])
-    section = parts.pack() if parts is not None else b""
     header, index = modelfile.pack_head(
         fields,
         layout.records,
@@ -157,7 +174,7 @@ def _write_in_place(
         offsets.tolist(),
         blocks_end,
         section,
-        len(parts.names) if parts is not None else 0,
+        part_count,
         layout.tier_count,
     )
     total = end - blocks_end
@@ -222,27 +239,8 @@ def rewrite_in_id_order(source: Path, target: Path) -> int:
         records = [(s.first, s.count, s.items, s.extra) for s in model.streams]
         entries = [(b.stored_size, b.raw_size, b.crc32, b.codec) for b in model.blocks]
         at = np.fromiter((b.offset for b in model.blocks), np.int64, len(model.blocks))
-    layout = StreamLayout(records, entries, at, tiers)
-    offsets = (
-        modelfile.HEADER_SIZE
-        + 24 * (len(records) + len(entries))
-        + np.concatenate([[0], np.cumsum(layout.stored)[:-1]])
-    )
-    end = int(offsets[-1] + entries[-1][0])
     with open(source, "rb") as f:
         section = os.pread(f.fileno(), h["parts_size"], h["parts_offset"]) if h["parts_size"] else b""
     fields = {k: h[k] for k in _KEPT_FIELDS}
-    header, index = modelfile.pack_head(
-        fields, records, entries, offsets.tolist(), end, section, h["part_count"], tiers
-    )
-    with DirectFile(target) as out:
-        out.write(header)
-        out.write(index)
-        fd = os.open(source, os.O_RDONLY)
-        try:
-            for run in _block_ranges(source, layout, lambda done, total: None):
-                out.copy(fd, run.offset, run.size)
-        finally:
-            os.close(fd)
-        out.write(section)
-        return out.size
+    layout = StreamLayout(records, entries, at, tiers)
+    return _write_whole(source, target, fields, layout, section, h["part_count"], lambda done, total: None)

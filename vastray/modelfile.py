@@ -311,11 +311,12 @@ def write_model_file(
     levels: list[tuple[int, int, int, int]],
     entries: list[tuple[int, int, int, int]],
     block_data: Iterator[bytes | FileRange],
-    parts: PartTable | None = None,
+    section: bytes = b"",
+    part_count: int = 0,
     tier_count: int = 0,
 ) -> int:
-    """Writes header, index, blocks and (when `parts` is given) the parts section, the
-    blocks one after the other in id order. `levels` are the level table's records
+    """Writes header, index, blocks and the parts `section` (packed, of `part_count`
+    parts; empty: none), the blocks one after the other in id order. `levels` are the level table's records
     (first, count, items, extra): one per level, or with `tier_count` > 0 (FLAG_TIERED)
     that many per level, level-major. `entries` are (stored size, raw size, crc, codec)
     in block order; `block_data` yields the stored bytes in the same order (it may yield
@@ -327,17 +328,7 @@ def write_model_file(
     for stored, *_ in entries:
         offsets.append(offset)
         offset += stored
-    section = parts.pack() if parts is not None else b""
-    header, index = pack_head(
-        fields,
-        levels,
-        entries,
-        offsets,
-        offset,
-        section,
-        len(parts.names) if parts is not None else 0,
-        tier_count,
-    )
+    header, index = pack_head(fields, levels, entries, offsets, offset, section, part_count, tier_count)
     out.write(header)
     out.write(index)
     written = data_offset
