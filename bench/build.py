@@ -48,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (  # bench/ is a folder of scripts, not a package
     REPO_ROOT,
     RESULTS_DIR,
+    command_and_machine,
     fmt,
     format_count,
     git_revision,
@@ -1214,12 +1215,6 @@ def report(
             parts.append(f"- {r['model']} {setting}: {r['error']}")
         parts.append("")
     return "\n".join(parts)
-
-
-def command_and_machine(info: dict[str, str]) -> list[str]:
-    """The report sections that say how a benchmark was run and on what."""
-    machine = [f"- {k}: {v}" for k, v in info.items() if k != "command"]
-    return ["## Command", "", "```sh", info["command"], "```", "", "## Machine", "", *machine]
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:

@@ -341,6 +341,12 @@ def ao_rays_from_hits(
 # ----------------------------------------------------------------------------- output
 
 
+def command_and_machine(info: dict[str, str]) -> list[str]:
+    """The report sections that say how a benchmark was run and on what."""
+    machine = [f"- {k}: {v}" for k, v in info.items() if k != "command"]
+    return ["## Command", "", "```sh", info["command"], "```", "", "## Machine", "", *machine]
+
+
 def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     """A GitHub-flavoured markdown table; numbers right-aligned."""
     body = [[str(c) for c in row] for row in rows]

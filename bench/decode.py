@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (
     REPO_ROOT,
     RESULTS_DIR,
+    command_and_machine,
     fmt,
     format_count,
     machine_info,
@@ -44,7 +45,7 @@ from common import (
     parse_count,
 )
 
-from build import command_and_machine, write_csv  # bench/build.py
+from build import write_csv  # bench/build.py
 
 BENCH_DIR = Path(__file__).resolve().parent
 CACHE = BENCH_DIR / ".cache" / "decode"

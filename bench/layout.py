@@ -21,7 +21,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import RESULTS_DIR, machine_info, markdown_table
+from common import RESULTS_DIR, command_and_machine, machine_info, markdown_table
 
 from vastray.camera import frame_bounds
 from vastray.model_assembly import rewrite_in_id_order
@@ -94,9 +94,7 @@ def main() -> None:
             "",
             __doc__.split("\n\n")[1].replace("\n", " "),
             "",
-            "## Machine",
-            "",
-            *(f"- {k}: {v}" for k, v in info.items()),
+            *command_and_machine(info),
             "",
             f"## {width}x{height} overview at PoE {args.poe:g}, cold open to complete",
             "",

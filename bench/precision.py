@@ -61,7 +61,7 @@ if "--baseline-package" in sys.argv and "--child" in sys.argv:
     sys.meta_path[:] = [f for f in sys.meta_path if "editable" not in type(f).__module__]
     sys.path.insert(0, sys.argv[sys.argv.index("--baseline-package") + 1])
 
-from common import machine_info, markdown_table, models_dir  # noqa: E402
+from common import command_and_machine, machine_info, markdown_table, models_dir  # noqa: E402
 
 from vastray.build import BuildOptions, build_model  # noqa: E402
 from vastray.camera import frame_bounds  # noqa: E402
@@ -347,15 +347,7 @@ def write(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Names
         "the renderer's counters over the timed frames, per ray (a packet of coherent primary rays counts "
         "one visit per node step it takes together, so visits per ray stay below the tree's depth).",
         "",
-        "## Command",
-        "",
-        "```sh",
-        info["command"],
-        "```",
-        "",
-        "## Machine",
-        "",
-        *[f"- {k}: {v}" for k, v in info.items() if k != "command"],
+        *command_and_machine(info),
         "",
         "## Size",
         "",
