@@ -28,8 +28,9 @@ _O_DIRECT = getattr(os, "O_DIRECT", 0)
 
 
 class DirectFile:
-    """A new file written front to back. `close()` makes it durable (fsync) and returns
-    its size; on an error the caller removes the file."""
+    """A file written front to back: a new one, or an existing one from a given byte
+    on. `close()` makes it durable (fsync) and returns its size; on an error the caller
+    removes the file."""
 
     def __init__(self, path: str | os.PathLike[str], append_at: int | None = None) -> None:
         """A new file; or, with `append_at`, the existing file `path` kept up to that

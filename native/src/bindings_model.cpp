@@ -74,7 +74,7 @@ public:
         if (leaf_size < 1 || !(traversal_cost > 0) || !(intersection_cost > 0) || bins < 2 || voxel_rays < 1) {
             throw std::invalid_argument("invalid model build parameters");
         }
-        // Blocks go straight to the level files, without the GIL.
+        // Blocks go straight into the model file, without the GIL.
         BlockSink block_sink = [this](int level, std::uint32_t tier, StoredBlock&& block) { blocks_.write(level, tier, block); };
         ProgressSink progress_sink;
         if (!progress.is_none()) {
