@@ -32,6 +32,7 @@ LOD = 1 << 30
 LEFT_EMPTY = 1 << 2
 RIGHT_EMPTY = 1 << 3
 ONE_SAMPLE = 1 << 31
+PACKED_VOXEL = 1 << 30  # a voxel's first word (version 6): six faces in four words, two colours at most
 TREELET_HEIGHT = 3
 QUANTIZED_SPLITS = 1 << 3  # header flag (version 3): 4-byte basic nodes, splits as grid steps
 SPLIT_STEPS = 1 << 20
@@ -78,7 +79,8 @@ class Node:
     empty: tuple[bool, bool] = (False, False)  # (left child empty, right child empty)
     # LOD nodes
     radius: float = 0.0
-    samples: list[int] = field(default_factory=list)  # raw 32-bit samples, 1 or 6
+    samples: list[int] = field(default_factory=list)  # 32-bit samples, 1 or 6 (a packed voxel's decoded)
+    voxel_words: list[int] = field(default_factory=list)  # the voxel as stored: 1, 4 (packed) or 6 words
     child_tier: int = 0  # the tier of the block holding its child treelets
     # leaves
     tri_tier: int = 0  # the tier of its (first) triangle block
@@ -110,6 +112,21 @@ def decode_sample(s: int) -> tuple[np.ndarray, np.ndarray]:
     n[(axis + 1) % 3] = s6((s >> 18) & 63)
     n[(axis + 2) % 3] = s6((s >> 24) & 63)
     return colour, n / np.linalg.norm(n)
+
+
+def voxel_samples(words: list[int]) -> list[int]:
+    """The samples of a voxel from its stored words (1, 4 or 6 of them): one sample, or
+    the six faces' samples (bits 0-29) in face order."""
+    first = words[0]
+    if first & ONE_SAMPLE:
+        return [first]
+    if not first & PACKED_VOXEL:
+        return list(words[:6])
+    # Words 1-3 as one 96-bit field: normals of faces 1-5, colour B, the faces showing B.
+    field = words[1] | words[2] << 32 | words[3] << 64
+    normals = [(first >> 15) & 0x7FFF] + [(field >> (15 * (f - 1))) & 0x7FFF for f in range(1, 6)]
+    a, b = first & 0x7FFF, (field >> 75) & 0x7FFF
+    return [(b if (field >> (90 + f)) & 1 else a) | normals[f] << 15 for f in range(6)]
 
 
 def _pad4(n: int) -> int:
@@ -452,8 +469,12 @@ class Walker:
                 else:
                     node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
                 first_sample = self.word(data, voxel)
-                n = 1 if first_sample & ONE_SAMPLE else 6
-                node.samples = [self.word(data, voxel + 4 * i) for i in range(n)]
+                packed = not first_sample & ONE_SAMPLE and first_sample & PACKED_VOXEL
+                if packed and h["version"] < 6:
+                    raise WalkError(f"a packed voxel in a version-{h['version']} file")
+                n = 1 if first_sample & ONE_SAMPLE else (4 if packed else 6)
+                node.voxel_words = [self.word(data, voxel + 4 * i) for i in range(n)]
+                node.samples = voxel_samples(node.voxel_words)
                 child_level = level + 1
                 if child_level >= self.tri_level:
                     raise WalkError("LOD node in the last node level")

@@ -324,6 +324,8 @@ def test_header_report_and_walk_agree(case: Case) -> None:
     assert sum(len(leaf.ids) for leaf in case.leaves) == h["references"] == r["references"]
     ones = sum(1 for n in case.nodes if n.kind == "lod" and len(n.samples) == 1)
     assert (ones, kinds["lod"] - ones) == (h["voxels_one"], h["voxels_six"])
+    packed = sum(1 for n in case.nodes if n.kind == "lod" and len(n.voxel_words) == 4)
+    assert packed == h["voxels_packed"] == r["voxels_packed"] <= h["voxels_six"]
     # The walk reaches every block of every level, and nothing else is in the file.
     assert sorted(case.walker.raw) == list(range(len(case.model.blocks)))
     # The level table's contents: nodes and voxels per node level, then triangle records

@@ -45,9 +45,9 @@ SOURCES = {
     "out-of-core": ("scene:plant:60000:2", SMALL_MEMORY),
     "bunny": (str(MODELS / "stanford-bunny.obj"), 2 << 30),  # a scan; quantized: 59-bit vertex records
 }
-# "full": full precision and untiered, a layout version 4 had; "both": both reduced-
+# "full": full precision, untiered, six-word voxels: a layout version 4 had; "both": both reduced-
 # precision options, tiered (the default).
-KINDS = {"full": {"quantized_splits": False, "tier_width": 0},
+KINDS = {"full": {"quantized_splits": False, "tier_width": 0, "packed_voxels": False},
          "both": {"quantized_splits": True, "quantized_vertices": True}}  # fmt: skip
 Key = tuple[str, str, bool]  # source, kind, compact
 
@@ -74,7 +74,7 @@ def assert_same_frame(a, b) -> None:  # type: ignore[no-untyped-def]
 def test_the_header_says_which_and_the_file_is_smaller(models: dict[Key, Path]) -> None:
     for (name, kind, compact), path in models.items():
         with ModelFile(path) as model:
-            assert model.header["version"] == VERSION == 5
+            assert model.header["version"] == VERSION == 6
             assert bool(model.header["flags"] & FLAG_COMPACT_TRIANGLES) == compact
             assert model.compact_triangles == compact == model.stats()["compact_triangles"]
             if compact:
@@ -242,7 +242,7 @@ def test_output_does_not_depend_on_the_thread_count(tmp_path: Path, memory: int)
 
 
 def test_old_versions_and_the_flag(tmp_path: Path, models: dict[Key, Path]) -> None:
-    """A version-5 file without the flag reads as version 4 (the plain layout is version
+    """A file without the flag (or packed voxels) reads as version 4 (the plain layout is version
     4's); a compact file cannot pass for version 4 (the flag came with version 5)."""
     plain, compact = models["plant", "full", False], models["plant", "full", True]
     camera = model_views(plain)[0]

@@ -256,14 +256,15 @@ def check_frame_bookkeeping(before: dict[int, int], after: dict[int, int], stats
 
 
 def test_budget_and_invariants_over_a_moving_camera(built: Callable[[str], Built]) -> None:
-    """A 12-slot cache and a 256-block model: orbiting, zooming views at PoE 8, 2 and 0,
-    two frames each with the fetchers drained in between. Some views need more than the
-    cache holds (every slot then belongs to the frame), others let old blocks go."""
+    """A 12-slot cache and a model of over 20 times as many blocks (252): orbiting,
+    zooming views at PoE 8, 2 and 0, two frames each with the fetchers drained in
+    between. Some views need more than the cache holds (every slot then belongs to the
+    frame), others let old blocks go."""
     plant = built("big-plant")
     cache = native.BlockCache(12 * SLOT + 1000, fetchers=2)
     assert cache.slot_count == 12
     model = cache.open(str(plant.path))
-    assert model.block_count == 256 and model.block_count > 10 * cache.slot_count
+    assert model.block_count > 20 * cache.slot_count
     lo, hi = np.array(plant.bounds[0]), np.array(plant.bounds[1])
     centre, size = (lo + hi) / 2, hi - lo
     evicted = full = complete = 0

@@ -294,11 +294,12 @@ def test_a_float_ply_property_named_part_is_not_a_part(tmp_path: Path) -> None:
 @pytest.fixture
 def plain(tmp_path: Path) -> Path:
     """A model whose input has no parts (an OBJ without o, g or usemtl), untiered and with
-    no flag that came after version 1: the layout of version 1 (it passes for a version-1
-    file below; a tiered file is version 5's alone, tests/test_tiers.py)."""
+    nothing that came after version 1 (no flag, no packed voxels): the layout of version 1
+    (it passes for a version-1 file below; a tiered file is version 5's alone,
+    tests/test_tiers.py)."""
     text = "\n".join(line for line in parts_obj(600).splitlines() if line.split()[0] in ("v", "f"))
     (tmp_path / "plain.obj").write_text(text + "\n")
-    options = BuildOptions(tier_width=0, quantized_splits=False)
+    options = BuildOptions(tier_width=0, quantized_splits=False, packed_voxels=False)
     assert build_model(tmp_path / "plain.obj", tmp_path / "plain.vast", options)["parts"] == 0
     return tmp_path / "plain.vast"
 
@@ -308,7 +309,7 @@ def with_parts(tmp_path: Path) -> Path:
     """Untiered and without quantized splits, so that relabelled as version 1 only its
     parts flag is unknown."""
     (tmp_path / "some.obj").write_text(parts_obj(600))
-    options = BuildOptions(tier_width=0, quantized_splits=False)
+    options = BuildOptions(tier_width=0, quantized_splits=False, packed_voxels=False)
     build_model(tmp_path / "some.obj", tmp_path / "some.vast", options)
     return tmp_path / "some.vast"
 

@@ -49,7 +49,7 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, bool], P
 def test_the_header_says_which(models: dict[tuple[str, bool], Path]) -> None:
     for (_, quantized), path in models.items():
         with ModelFile(path) as model:
-            assert model.header["version"] == VERSION == 5
+            assert model.header["version"] == VERSION == 6
             assert bool(model.header["flags"] & FLAG_QUANTIZED_SPLITS) == quantized
             assert model.quantized_splits == quantized and model.stats()["quantized_splits"] == quantized
 
@@ -117,7 +117,8 @@ def test_old_versions_still_read(models: dict[tuple[str, bool], Path], tmp_path:
     # A model without parts (the plant has them, and version 1 had no parts section),
     # untiered (the layout of versions 1-4).
     full = tmp_path / "spheres.vast"
-    build_model("scene:spheres:20000:3", full, BuildOptions(tier_width=0, quantized_splits=False))
+    options = BuildOptions(tier_width=0, quantized_splits=False, packed_voxels=False)
+    build_model("scene:spheres:20000:3", full, options)
     camera = model_views(full, (64, 48))[0]
     with ModelFile(full) as model:
         reference = trace(model.to_scene(), camera)

@@ -278,9 +278,9 @@ def refused(path: Path, message: str) -> None:
 def test_untiered_files_of_every_older_version_still_read(tmp_path: Path) -> None:
     soup = tmp_path / "soup.f32"
     write_soup(soup, np.random.default_rng(7))  # no parts, no colours: what version 1 can hold
-    # (and untiered, without quantized splits: no flag of a later version)
-    current = tmp_path / "v5.vast"
-    build_model(soup, current, BuildOptions(tier_width=0, quantized_splits=False))
+    # (and untiered, without quantized splits or packed voxels: nothing of a later version)
+    current = tmp_path / "current.vast"
+    build_model(soup, current, BuildOptions(tier_width=0, quantized_splits=False, packed_voxels=False))
     camera = frame_bounds(*ModelFile(current).bounds, width=64, height=48)
 
     def full_detail(path: Path) -> np.ndarray:
@@ -311,7 +311,7 @@ def test_tiered_and_unknown_flags_are_refused_clearly(pair: Callable[[str], Pair
         return path
 
     # A tiered file that claims to be version 4 (which had no tiers).
-    refused(variant("v4", version=VERSION - 1), "unsupported attribute flags")
+    refused(variant("v4", version=4), "unsupported attribute flags")
     # A flag this version does not know (bit 7).
     refused(variant("bit7", flags=flags | 1 << 7), "unsupported attribute flags")
     # The tier count and the flag disagree, or the count is impossible.
@@ -319,7 +319,7 @@ def test_tiered_and_unknown_flags_are_refused_clearly(pair: Callable[[str], Pair
     refused(variant("zero", tier_count=0), "implausible tier count")
     refused(variant("too-many", tier_count=MAX_TIERS + 1), "implausible tier count")
     # A newer version is refused by its number, before anything else.
-    refused(variant("v6", version=VERSION + 1), rf"format version {VERSION + 1} is not supported")
+    refused(variant("newer", version=VERSION + 1), rf"format version {VERSION + 1} is not supported")
 
 
 def test_a_damaged_block_reference_is_named(pair: Callable[[str], Pair]) -> None:

@@ -277,7 +277,8 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
     )
     print(
         f"voxels     {stats['voxels']:,} "
-        f"({stats['voxels_one']:,} one-sample, {stats['voxels_six']:,} six-sample)"
+        f"({stats['voxels_one']:,} one-sample, {stats['voxels_six']:,} six-sample, "
+        f"{stats['voxels_packed']:,} of them packed)"
     )
     print(
         f"size       {stats['file_bytes'] / 2**20:.2f} MiB, {stats['bytes_per_triangle']:.1f} B/triangle, "

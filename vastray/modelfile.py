@@ -28,7 +28,7 @@ from vastray.direct_io import DirectFile
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-4: version 5 without its later flags
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-5: version 6 without its later additions
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -122,6 +122,8 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
     ("part_count", "I"),
     # version 5: tiers per level with FLAG_TIERED, else zero (padding before)
     ("tier_count", "I"),
+    # version 6: the six-sample voxels stored packed, in four words (padding before)
+    ("voxels_packed", "Q"),
 )
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
 
@@ -410,6 +412,10 @@ class ModelFile:
             h.update(parts_offset=0, parts_size=0, parts_crc32=0, part_count=0)
         if h["version"] < 5:  # bytes 224-227 were padding
             h.update(tier_count=0)
+        if h["version"] < 6:  # bytes 228-235 were padding
+            h.update(voxels_packed=0)
+        if h["voxels_packed"] > h["voxels_six"]:
+            raise self._fail(f"implausible packed voxel count {h['voxels_packed']}")
         tiered = bool(h["flags"] & FLAG_TIERED)
         if not tiered and h["tier_count"]:
             raise self._fail("tier count set without the tiered flag")
@@ -754,6 +760,7 @@ class ModelFile:
             "voxels": h["voxels_one"] + h["voxels_six"],
             "voxels_one": h["voxels_one"],
             "voxels_six": h["voxels_six"],
+            "voxels_packed": h["voxels_packed"],
             "references": h["references"],
             "blocks": len(self.blocks),
             "raw_bytes": h["raw_bytes"],

@@ -4,8 +4,10 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <cstring>
 #include <memory>
 #include <stdexcept>
+#include <string_view>
 
 #include "bindings_common.h"
 #include "vastray/format.h"
@@ -267,6 +269,21 @@ PYBIND11_MODULE(native, m) {
     fmt["run_record"] = format::kRunRecord;
     fmt["no_part"] = format::kNoPart;
     m.attr("FORMAT") = fmt;
+
+    m.def(
+        "voxel_face_sample",
+        [](const py::bytes& voxel, int face) {
+            const std::string_view v(voxel);
+            if (face < 0 || face > 5) throw std::invalid_argument("face must be 0 ... 5");
+            std::uint32_t first = 0;
+            if (v.size() >= 4) std::memcpy(&first, v.data(), 4);
+            if (v.size() < 4 * static_cast<std::size_t>(format::voxel_words(first))) {
+                throw std::invalid_argument("the voxel's words are cut short");
+            }
+            return format::voxel_face_sample(reinterpret_cast<const std::uint8_t*>(v.data()), face);
+        },
+        py::arg("voxel"), py::arg("face"),
+        "The sample face `face` of a voxel shows, as the renderer reads it (its stored words from the first; test hook)");
 
     m.def("lz4_decompress", &lz4_decompress, py::arg("data"), py::arg("raw_size"),
           "Decode one LZ4 block (block format, no frame) of exactly raw_size bytes; ValueError if corrupt");

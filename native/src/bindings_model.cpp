@@ -43,7 +43,7 @@ public:
     PyModelWriter(bool has_colours, const std::string& output, std::uint64_t output_offset, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
-                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles)
+                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles, bool packed_voxels)
         : blocks_(output, checked_offset(output_offset)) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -55,6 +55,7 @@ public:
         p.kd.threads = threads;
         p.kd.quantized_splits = quantized_splits;
         p.compact_triangles = compact_triangles;
+        p.packed_voxels = packed_voxels;
         if (!vertex_steps.is_none()) {
             const auto steps = vertex_steps.cast<std::array<float, 3>>();
             p.quantized_vertices = true;
@@ -150,6 +151,7 @@ public:
         d["empty_children"] = s.empty_children;
         d["voxels_one"] = s.voxels_one;
         d["voxels_six"] = s.voxels_six;
+        d["voxels_packed"] = s.voxels_packed;
         d["treelets"] = s.treelets;
         d["references"] = s.references;
         d["stored_triangles"] = s.stored_triangles;
@@ -687,13 +689,13 @@ void bind_model(py::module_& m) {
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into the model file `output`, "
                               "from output_offset on, past the page cache (vastray/model_assembly.py finishes the file)")
         .def(py::init<bool, const std::string&, std::uint64_t, py::object, int, float, float, float, int, int, unsigned,
-                      bool, py::object, double, int, py::object, bool>(),
+                      bool, py::object, double, int, py::object, bool, bool>(),
              py::arg("has_colours"), py::arg("output"), py::arg("output_offset"), py::arg("progress") = py::none(),
              py::arg("leaf_size") = 4, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
-             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false)
+             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false, py::arg("packed_voxels") = true)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),

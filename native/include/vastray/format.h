@@ -28,8 +28,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 5;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-4 are version 5 without its later flags
+constexpr std::uint32_t kVersion = 6;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-5 are version 6 without its later additions
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -190,6 +190,66 @@ inline std::uint32_t leaf_count(std::uint32_t w) { return (w >> 16) & kMaxLeafTr
 // bits 18-23 u, 24-29 v (6-bit two's complement, the cube-face coordinates times 31);
 // bit 31 set when the voxel has one sample (else six, in face order -x +x -y +y -z +z).
 constexpr std::uint32_t kOneSample = 1u << 31;
+// Bit 30 of a voxel's first word, bit 31 clear (version 6): a packed voxel, six faces in
+// four words where they show at most two colours (docs/FORMAT.md §10):
+//   word 0      colour A (bits 0-14), face 0's normal (bits 15-29), bit 30 set
+//   words 1-3   a 96-bit little-endian field: the normals of faces 1-5 at bits 15(f-1),
+//               colour B at bit 75, and at bit 90 + f a 1 where face f shows colour B
+constexpr std::uint32_t kPackedVoxel = 1u << 30;
+constexpr std::uint32_t kSampleColour = 0x7FFFu;  // bits 0-14: what a face shows besides its normal
+constexpr int kSampleNormalShift = 15;
+
+// The words a voxel takes (1, 4 or 6), from its first word.
+inline int voxel_words(std::uint32_t first) { return first & kOneSample ? 1 : (first & kPackedVoxel ? 4 : 6); }
+
+// Six face samples in the packed form, when they show at most two colours. Only bits
+// 0-29 of each sample are kept.
+inline bool pack_voxel(const std::uint32_t (&six)[6], std::uint32_t (&out)[4]) {
+    const std::uint32_t a = six[0] & kSampleColour;
+    std::uint32_t b = a, mask = 0;
+    for (int f = 1; f < 6; ++f) {
+        const std::uint32_t c = six[f] & kSampleColour;
+        if (c == a) continue;
+        if (b != a && c != b) return false;
+        b = c;
+        mask |= 1u << f;
+    }
+    // The field as a low u64 (words 1-2) and a high u32 (word 3).
+    std::uint64_t lo = 0, hi = 0;
+    auto put = [&](int at, std::uint64_t v) {
+        if (at < 64) lo |= v << at;
+        if (at + 15 > 64) hi |= at >= 64 ? v << (at - 64) : v >> (64 - at);
+    };
+    for (int f = 1; f < 6; ++f) put(15 * (f - 1), (six[f] >> kSampleNormalShift) & 0x7FFFu);
+    put(75, b);
+    hi |= static_cast<std::uint64_t>(mask) << (90 - 64);
+    out[0] = a | (six[0] & (0x7FFFu << kSampleNormalShift)) | kPackedVoxel;
+    out[1] = static_cast<std::uint32_t>(lo);
+    out[2] = static_cast<std::uint32_t>(lo >> 32);
+    out[3] = static_cast<std::uint32_t>(hi);
+    return true;
+}
+
+// The sample (bits 0-29; a one-sample voxel's keeps its bit 31) that face `face` of the
+// voxel whose words start at `p` shows.
+inline std::uint32_t voxel_face_sample(const std::uint8_t* p, int face) {
+    std::uint32_t w[4];
+    std::memcpy(w, p, 4);
+    if (w[0] & kOneSample) return w[0];
+    if (!(w[0] & kPackedVoxel)) {
+        std::memcpy(w, p + 4 * face, 4);
+        return w[0];
+    }
+    std::memcpy(w + 1, p + 4, 12);
+    const std::uint64_t lo = w[1] | static_cast<std::uint64_t>(w[2]) << 32, hi = w[3];
+    auto field = [&](int at) -> std::uint32_t {  // 15 bits at `at`
+        const std::uint64_t v = at >= 64 ? hi >> (at - 64) : (lo >> at) | (at > 49 ? hi << (64 - at) : 0);
+        return static_cast<std::uint32_t>(v) & 0x7FFFu;
+    };
+    const std::uint32_t normal = face == 0 ? (w[0] >> kSampleNormalShift) & 0x7FFFu : field(15 * (face - 1));
+    const std::uint32_t colour = (hi >> (90 - 64 + face)) & 1u ? field(75) : w[0] & kSampleColour;
+    return colour | normal << kSampleNormalShift;
+}
 
 inline std::uint32_t pack_sample(const Vec3f& colour, const Vec3f& normal, bool one_sample) {
     auto q5 = [](float c) { return static_cast<std::uint32_t>(std::clamp(std::lround(c * 31.0f), 0L, 31L)); };

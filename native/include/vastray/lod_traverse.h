@@ -126,8 +126,7 @@ inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, L
     hit.voxel_radius = v.radius;
     const int face = 2 * entry_axis + (ray.dir[entry_axis] >= 0.0f ? 0 : 1);
     hit.face = face;
-    const std::uint32_t s0 = load<std::uint32_t>(v.samples);
-    hit.sample = (s0 & format::kOneSample) ? s0 : load<std::uint32_t>(v.samples + 4 * face);
+    hit.sample = format::voxel_face_sample(v.samples, face);
 }
 
 // A node in a cached block: the block's bytes, the node's offset, its LOD level, and its

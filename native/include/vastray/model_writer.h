@@ -43,6 +43,10 @@ struct ModelWriterParams {
     float root_radius = 0;  // half the root cell's diagonal (format::cell_radius)
     // FLAG_COMPACT_TRIANGLES: triangle blocks in the compact layout (format.h).
     bool compact_triangles = false;
+    // Six-sample voxels that show at most two colours in four words (format version 6,
+    // format::pack_voxel): the same samples, 8 bytes fewer. Off writes six words, as
+    // version 5 did (for comparisons).
+    bool packed_voxels = true;
 };
 
 // What one stream of a level holds: its blocks and their raw bytes; nodes and LOD voxels
@@ -62,6 +66,7 @@ struct StreamStats {
 struct ModelWriterStats {
     std::uint64_t basic_nodes = 0, lod_nodes = 0, leaves = 0, empty_children = 0;
     std::uint64_t voxels_one = 0, voxels_six = 0, treelets = 0;
+    std::uint64_t voxels_packed = 0;  // six-sample voxels in the packed form (4 words), among voxels_six
     std::uint64_t references = 0;           // leaf triangle-list entries
     std::uint64_t stored_triangles = 0;     // triangle records (a triangle repeats across blocks)
     std::uint64_t stored_vertices = 0;

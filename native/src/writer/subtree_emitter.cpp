@@ -35,10 +35,11 @@ std::uint32_t SubtreeEmitter::reference(std::uint32_t tier, std::uint32_t block)
 void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
     const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,
                                        p_.voxel_rays_per_axis);
-    const QuantisedVoxel q = quantise_voxel(s, p_.one_sample_colour, p_.one_sample_normal);
-    std::copy(q.samples, q.samples + q.count, node.samples);
-    node.sample_count = q.count;
+    const QuantisedVoxel q = quantise_voxel(s, p_.one_sample_colour, p_.one_sample_normal, p_.packed_voxels);
+    std::copy(q.words, q.words + q.count, node.voxel);
+    node.voxel_words = q.count;
     (q.count == 1 ? stats.voxels_one : stats.voxels_six)++;
+    stats.voxels_packed += q.count == 4 ? 1 : 0;
     self.proxies.push_back({node.cell, q.seen});
     const std::uint32_t tier = tier_below(node.cell);
     if (defer_) {
@@ -213,6 +214,7 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& tri
     stats.empty_children += s.empty_children;
     stats.voxels_one += s.voxels_one;
     stats.voxels_six += s.voxels_six;
+    stats.voxels_packed += s.voxels_packed;
     stats.references += s.references;
     stats.stored_triangles += s.stored_triangles;
     stats.stored_vertices += s.stored_vertices;

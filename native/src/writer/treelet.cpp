@@ -79,7 +79,7 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats,
     for (std::size_t i = 0; i < nodes.size(); ++i) {
         if (nodes[i].kind != TreeletNode::Lod) continue;
         voxel_at[i] = cursor;
-        cursor += 4 * static_cast<std::size_t>(nodes[i].sample_count);
+        cursor += 4 * static_cast<std::size_t>(nodes[i].voxel_words);
     }
     cursor = (cursor + 7) & ~std::size_t{7};
     out.bytes.assign(cursor, 0);
@@ -115,7 +115,7 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats,
                 if (!quantized) put(n.offset + 8, float_bits(n.radius));  // quantized: derived from the cell
                 put(n.offset + lod_child_block_at(quantized), n.child_block);
                 if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});
-                for (int s = 0; s < n.sample_count; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.samples[s]);
+                for (int s = 0; s < n.voxel_words; ++s) put(voxel_at[i] + 4 * static_cast<std::size_t>(s), n.voxel[s]);
                 break;
             }
             case TreeletNode::Leaf:

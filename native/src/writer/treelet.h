@@ -41,8 +41,8 @@ struct TreeletNode {
     int child_handles[2] = {-1, -1};          // LOD (out of core): pending children
     float radius = 0;
     std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;  // child_block: a block reference
-    std::uint32_t samples[6] = {};
-    int sample_count = 0;
+    std::uint32_t voxel[6] = {};  // the voxel's words (format::voxel_words)
+    int voxel_words = 0;
     std::uint32_t kd_node = 0;  // leaf (in-core): its kd node
     std::uint32_t tri_block = 0, first = 0, count = 0;  // tri_block: a block reference
     int unit = -1;  // LOD (deferred placement): the children's placement unit

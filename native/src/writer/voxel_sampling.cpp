@@ -181,7 +181,7 @@ FaceSamples sample_voxel(const Box3f& cell, const std::vector<Proxy>* a, const s
     return out;
 }
 
-QuantisedVoxel quantise_voxel(const FaceSamples& s, float colour_tolerance, float normal_tolerance) {
+QuantisedVoxel quantise_voxel(const FaceSamples& s, float colour_tolerance, float normal_tolerance, bool packed) {
     Vec3f cm, nm;
     for (int f = 0; f < 6; ++f) {
         cm += s.colour[f];
@@ -201,15 +201,22 @@ QuantisedVoxel quantise_voxel(const FaceSamples& s, float colour_tolerance, floa
     QuantisedVoxel q;
     q.seen = s;
     if (one) {
-        q.samples[0] = format::pack_sample(cm, nm, true);
+        q.words[0] = format::pack_sample(cm, nm, true);
         q.count = 1;
         for (int f = 0; f < 6; ++f) {
             q.seen.colour[f] = cm;
             q.seen.normal[f] = nm * (dot(nm, outward(f)) < 0 ? -1.0f : 1.0f);
         }
     } else {
-        for (int f = 0; f < 6; ++f) q.samples[f] = format::pack_sample(s.colour[f], s.normal[f], false);
-        q.count = 6;
+        std::uint32_t six[6], four[4];
+        for (int f = 0; f < 6; ++f) six[f] = format::pack_sample(s.colour[f], s.normal[f], false);
+        if (packed && format::pack_voxel(six, four)) {
+            std::copy(four, four + 4, q.words);
+            q.count = 4;
+        } else {
+            std::copy(six, six + 6, q.words);
+            q.count = 6;
+        }
     }
     return q;
 }

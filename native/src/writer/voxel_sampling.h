@@ -52,12 +52,13 @@ Proxy leaf_proxy(const TriangleSource& src, const std::uint32_t* tris, std::uint
 FaceSamples sample_voxel(const Box3f& cell, const std::vector<Proxy>* a, const std::vector<Proxy>* b, int rays);
 
 // The stored form of a voxel: one sample when all faces agree within the tolerances
-// (normals up to sign: shading is two-sided), else six.
+// (normals up to sign: shading is two-sided), else six; six that show at most two
+// colours take four words when `packed` (format::pack_voxel), the same samples.
 struct QuantisedVoxel {
-    std::uint32_t samples[6] = {};
-    int count = 0;
+    std::uint32_t words[6] = {};
+    int count = 0;  // words: 1, 4 or 6
     FaceSamples seen;  // what the level above samples (the one-sample value on every face)
 };
-QuantisedVoxel quantise_voxel(const FaceSamples& s, float colour_tolerance, float normal_tolerance);
+QuantisedVoxel quantise_voxel(const FaceSamples& s, float colour_tolerance, float normal_tolerance, bool packed);
 
 }  // namespace vastray::writer

@@ -1,0 +1,179 @@
+"""Packed voxels (format version 6, docs/FORMAT.md §10): a six-sample voxel whose faces
+show at most two colours takes four words instead of six. Lossless: every face reads the
+same sample, so frames are the same, and each such voxel is 8 bytes smaller.
+
+The packed form is checked three ways: against the unpacked build of the same input
+(the walker's decoding, tests/modelwalk.py), against the renderer's own decoding
+(`native.voxel_face_sample`, what `hit_voxel` calls), and against words this file packs
+by the specification from random samples."""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from modelwalk import Node, Walker, WalkError, voxel_samples
+from test_build import SMALL_MEMORY, rewrite_version
+
+from vastray import native
+from vastray.build import BuildOptions, build_model
+from vastray.camera import frame_bounds
+from vastray.modelfile import VERSION, ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
+
+# The real meshes are part of the bar (tests/conftest.py): a missing one fails the build.
+MODELS = Path(os.environ.get("VASTRAY_MODELS") or Path(__file__).resolve().parents[2] / "shared" / "models")
+SOURCES = {
+    "plant": ("scene:plant:60000:3", 2 << 30),  # colours: faces of one voxel differ
+    "out-of-core": ("scene:plant:60000:2", SMALL_MEMORY),  # parts emitted in parallel, merged
+    "bunny": (str(MODELS / "stanford-bunny.obj"), 2 << 30),  # no colours: every six-sample voxel packs
+}
+Built = tuple[Path, Path, dict]  # packed, unpacked, the packed build's report
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Built]:
+    folder = tmp_path_factory.mktemp("packed")
+    cache: dict[str, Built] = {}
+
+    def get(name: str) -> Built:
+        if name not in cache:
+            source, memory = SOURCES[name]
+            packed, unpacked = folder / f"{name}.vast", folder / f"{name}-six.vast"
+            report = build_model(source, packed, BuildOptions(memory=memory))
+            build_model(source, unpacked, BuildOptions(memory=memory, packed_voxels=False))
+            cache[name] = (packed, unpacked, report)
+        return cache[name]
+
+    return get
+
+
+def lod_nodes(path: Path) -> list[Node]:
+    with ModelFile(path) as model:
+        return [n for n in Walker(model).walk() if n.kind == "lod"]
+
+
+def colours(node: Node) -> set[int]:
+    return {s & 0x7FFF for s in node.samples}
+
+
+@pytest.mark.parametrize("name", list(SOURCES))
+def test_the_same_samples_in_fewer_bytes(built: Callable[[str], Built], name: str) -> None:
+    packed, unpacked, report = built(name)
+    a, b = lod_nodes(packed), lod_nodes(unpacked)
+    assert len(a) == len(b) > 100
+    for x, y in zip(a, b, strict=True):
+        assert (x.level, x.lo.tolist(), x.hi.tolist()) == (y.level, y.lo.tolist(), y.hi.tolist())
+        assert x.samples == y.samples
+        # Packed exactly where six faces show two colours or fewer; one sample stays one.
+        six = len(y.samples) == 6
+        assert len(y.voxel_words) == len(y.samples)
+        assert len(x.voxel_words) == (4 if six and len(colours(y)) <= 2 else len(y.samples))
+    count = sum(len(x.voxel_words) == 4 for x in a)
+    assert count == report["voxels_packed"] > 0
+    if name == "bunny":  # grey everywhere: every six-sample voxel packs
+        assert count == report["voxels_six"]
+    else:
+        assert count < report["voxels_six"]
+    with ModelFile(packed) as p, ModelFile(unpacked) as u:
+        assert p.header["version"] == u.header["version"] == VERSION == 6
+
+        # A treelet is 8 bytes shorter per packed voxel (its padding to 8 unchanged), so
+        # the node levels' raw bytes are too; the triangle level is the same.
+        def raw(model: ModelFile, nodes: bool) -> int:
+            return sum(
+                e.raw_size
+                for i, e in enumerate(model.blocks)
+                if (model.level_of(i) < model.node_levels) == nodes
+            )
+
+        assert raw(u, True) - raw(p, True) == 8 * count
+        assert raw(u, False) == raw(p, False)
+        assert p.header["file_size"] < u.header["file_size"]
+
+
+@pytest.mark.parametrize("name", ["plant", "out-of-core"])
+def test_the_renderer_reads_the_samples_the_walker_reads(built: Callable[[str], Built], name: str) -> None:
+    packed, _, _ = built(name)
+    forms = set()
+    for node in lod_nodes(packed):
+        words = struct.pack(f"<{len(node.voxel_words)}I", *node.voxel_words)
+        forms.add(len(node.voxel_words))
+        for face in range(6):
+            expected = node.samples[0] if len(node.samples) == 1 else node.samples[face]
+            assert native.voxel_face_sample(words, face) == expected
+    assert forms == {1, 4, 6}
+
+
+def pack_by_the_specification(six: list[int]) -> list[int]:
+    """FORMAT.md §10's packed voxel, written from the text: word 0 holds colour A and
+    face 0's normal with bit 30 set; words 1-3, one 96-bit field, hold the normals of
+    faces 1-5 at 15 (f - 1), colour B at 75 and at 90 + f a 1 where face f shows B."""
+    a = six[0] & 0x7FFF
+    b = next((s & 0x7FFF for s in six if s & 0x7FFF != a), a)
+    field = b << 75
+    for f in range(1, 6):
+        field |= ((six[f] >> 15) & 0x7FFF) << (15 * (f - 1))
+        field |= (1 if six[f] & 0x7FFF != a else 0) << (90 + f)
+    return [
+        a | (six[0] & (0x7FFF << 15)) | 1 << 30,
+        field & 0xFFFFFFFF,
+        (field >> 32) & 0xFFFFFFFF,
+        field >> 64,
+    ]
+
+
+def test_every_bit_of_the_packed_form_decodes_as_specified() -> None:
+    rng = np.random.default_rng(6)
+    for trial in range(2000):
+        colour_a, colour_b = (int(c) for c in rng.integers(0, 1 << 15, 2))
+        normals = [int(n) for n in rng.integers(0, 1 << 15, 6)]
+        shows_b = rng.random(6) < (0.0 if trial % 7 == 0 else 0.5)
+        shows_b[0] = False  # colour A is face 0's
+        six = [(colour_b if shows_b[f] else colour_a) | normals[f] << 15 for f in range(6)]
+        words = pack_by_the_specification(six)
+        raw = struct.pack("<4I", *words)
+        assert voxel_samples(words) == six  # the walker
+        assert [native.voxel_face_sample(raw, f) for f in range(6)] == six  # the renderer
+    # A voxel cut short, and a face that does not exist, are errors, not reads past the end.
+    with pytest.raises(ValueError, match="cut short"):
+        native.voxel_face_sample(struct.pack("<3I", 1 << 30, 0, 0), 0)
+    with pytest.raises(ValueError, match="cut short"):
+        native.voxel_face_sample(struct.pack("<5I", 0, 0, 0, 0, 0), 2)
+    with pytest.raises(ValueError, match="face"):
+        native.voxel_face_sample(struct.pack("<I", 1 << 31), 6)
+
+
+@pytest.mark.parametrize("name", ["plant", "out-of-core"])
+def test_frames_are_the_same(built: Callable[[str], Built], name: str) -> None:
+    packed, unpacked, _ = built(name)
+    frames = {}
+    for key, path in (("packed", packed), ("six", unpacked)):
+        with OutOfCoreModel(path, make_cache(64 << 20, 1)) as model:
+            camera = frame_bounds(*model.bounds, width=240, height=160)
+            frames[key] = [
+                model.render_complete(camera, pixels_of_error=poe, shading=shading)
+                for poe in (8.0, 2.0, 0.0)
+                for shading in ("headlight", "sun")
+            ]
+    for x, y in zip(frames["packed"], frames["six"], strict=True):
+        np.testing.assert_array_equal(x.image, y.image)
+        np.testing.assert_array_equal(x.prim, y.prim)
+        np.testing.assert_array_equal(x.depth, y.depth)
+    assert frames["packed"][0].stats.voxel_hits > 1000  # the far frames draw voxels
+
+
+def test_the_walker_refuses_a_packed_voxel_in_an_older_version(
+    built: Callable[[str], Built], tmp_path: Path
+) -> None:
+    packed, _, _ = built("bunny")
+    copy = tmp_path / "v5.vast"
+    copy.write_bytes(packed.read_bytes())
+    rewrite_version(copy, 5)
+    with ModelFile(copy) as model, pytest.raises(WalkError, match="packed voxel in a version-5 file"):
+        for _ in Walker(model).walk():
+            pass
