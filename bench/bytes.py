@@ -16,6 +16,7 @@ with quantized vertices the packed record's, FORMAT.md §11).
     python bench/bytes.py --quantized-vertices --name bytes-qv MODELS...
     python bench/bytes.py --triangles plain MODELS...    # the plain triangle blocks
     python bench/bytes.py --tier-width 0 MODELS...   # untiered, to compare
+    python bench/bytes.py --six-word-voxels MODELS...   # no packed voxels (FORMAT.md §10)
 
 A tiered model (FORMAT.md §15) stores a triangle once per tier block that references it,
 so its stored triangles and vertices per triangle are higher: the *tiers* column says how
@@ -102,6 +103,9 @@ def breakdown(path: Path) -> dict[str, Any]:
         row["index"] = h["data_offset"]
         row["parts"] = h["parts_size"]
         row["tiers"] = m.tier_count if m.tiered else 0
+        # Voxel words (FORMAT.md §10): 1 per one-sample voxel, 6 per six-sample one, 4 if packed.
+        row["voxel_raw"] = 4 * h["voxels_one"] + 24 * h["voxels_six"] - 8 * h["voxels_packed"]
+        row["packed_share"] = h["voxels_packed"] / max(1, h["voxels_six"])
         entries = tris = verts = 0
         for b in range(tri_first, tri_first + tri_count):
             data = m.read_block(b)
@@ -144,6 +148,11 @@ def main() -> None:
     ap.add_argument("--quantized-vertices", action="store_true")
     ap.add_argument("--tier-width", type=float, default=BuildOptions.tier_width, help="0: untiered")
     ap.add_argument("--traversal-cost", type=float, default=BuildOptions.traversal_cost)
+    ap.add_argument(
+        "--six-word-voxels",
+        action="store_true",
+        help="store every six-sample voxel in six words (no packed voxels), as version 5 did",
+    )
     ap.add_argument("--triangles", choices=("plain", "compact"), default=None,
                     help="triangle block layout (default: the builder's)")  # fmt: skip
     ap.add_argument("--out", type=Path, default=HERE / "results")
@@ -162,6 +171,7 @@ def main() -> None:
                     quantized_vertices=args.quantized_vertices,
                     tier_width=args.tier_width,
                     traversal_cost=args.traversal_cost,
+                    packed_voxels=not args.six_word_voxels,
                     overwrite=True,
                     **layout,
                 )
@@ -184,14 +194,15 @@ def main() -> None:
 
         table.append([
             r["model"], f"{n:,}", str(r["tiers"]), f"**{r['file'] / n:.2f}**", bt("node_raw"),
-            bt("node_stored"),
+            bt("node_stored"), bt("voxel_raw"), f"{100 * r['packed_share']:.0f} %",
             *[f"{r[f'{s}_raw'] / n:.2f} / {r[f'{s}_lz4'] / n:.2f}" for s in sections],
             *[f"{r[f'{f}_bits'] / 8 / n:.2f}" for f in (FIELDS if compact else ())],
             bt("tri_stored"), f"{r['refs_per_tri']:.2f}", f"{r['entries_per_tri']:.2f}",
             f"{r['stored_per_tri']:.2f}", f"{r['verts_per_stored']:.2f}", f"{r['vertex_bytes']:.2f}",
         ])  # fmt: skip
     md = markdown_table(
-        ["model", "triangles", "tiers", "**file B/tri**", "nodes raw", "nodes stored",
+        ["model", "triangles", "tiers", "**file B/tri**", "nodes raw", "nodes stored", "of which voxels raw",
+         "six-sample voxels packed",
          *[f"{s} raw / lz4" for s in sections], *[f"{f} raw" for f in (FIELDS if compact else ())],
          "triangle blocks stored", "refs/tri", "list entries/tri",
          "stored tris/tri", "vertices/stored tri", "bytes/vertex"],
@@ -199,7 +210,7 @@ def main() -> None:
     )  # fmt: skip
     print(md)
     if args.name:
-        flags = [f for f in ("quantized_splits", "quantized_vertices") if getattr(args, f)]
+        flags = [f for f in ("quantized_splits", "quantized_vertices", "six_word_voxels") if getattr(args, f)]
         kind = "compact" if compact else "plain"
         text = [
             f"# Bytes per triangle by section ({', '.join(flags) or 'full precision'}; "
@@ -209,7 +220,8 @@ def main() -> None:
             "alone, block by block; *triangle blocks stored* is what the file holds for them (LZ4 over whole "
             "blocks). *refs/tri* are leaf references per triangle, *stored tris/tri* triangle records "
             "(a triangle is stored once per block that references it), *bytes/vertex* the vertex "
-            "section's raw bytes per stored vertex."
+            "section's raw bytes per stored vertex. *of which voxels raw*: the LOD voxels' share of the "
+            "node levels (docs/FORMAT.md §10: 4 bytes for one sample, 24 for six, 16 packed)."
             + (
                 " Compact blocks (docs/FORMAT.md §11a): *records* are the leaf lists, *group headers* the "
                 "fixed-width header of each group of 8 triangles, *group data* their corner, id and colour "
