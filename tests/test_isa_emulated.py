@@ -45,7 +45,9 @@ pytestmark = pytest.mark.skipif(
 # CPU model -> the path the module must pick on it.
 CPUS = {"Nehalem": "sse2", "SandyBridge": "avx"}
 
-_SCRIPT = DIGEST_SCRIPT + r"""
+_SCRIPT = (
+    DIGEST_SCRIPT
+    + r"""
 model, inputs, mesh, built = sys.argv[1:5]
 data = np.load(inputs)
 out = {"isa": native.isa(), "supported": native.supported_isas()}
@@ -68,6 +70,7 @@ with open(built, "rb") as f:
     out["build"] = hashlib.sha256(f.read()).hexdigest()[:16]
 print(json.dumps(out))
 """
+)
 
 
 @pytest.fixture(scope="module")

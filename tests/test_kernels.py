@@ -82,7 +82,9 @@ def test_paths_are_listed_and_can_be_forced() -> None:
     )
 
 
-_FRAMES = DIGEST_SCRIPT + r"""
+_FRAMES = (
+    DIGEST_SCRIPT
+    + r"""
 path = sys.argv[1]
 out = {"isa": native.isa()}
 with ModelFile(path) as f:
@@ -105,6 +107,7 @@ with OutOfCoreModel(path, make_cache(64 << 20)) as model:
     out["pick"] = digest(picked.t, picked.prim)
 print(json.dumps(out))
 """
+)
 
 
 def test_every_path_renders_identical_frames(plant_model: Path) -> None:

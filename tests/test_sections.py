@@ -85,6 +85,7 @@ def test_a_cut_box_shows_its_cap_at_the_plane(offset: tuple[float, float, float]
     assert (prim[inside] == PRIM_CAP).all(), "rays into the cut box must see its cap"
     np.testing.assert_allclose(depth[inside], t_plane[inside], rtol=1e-5)
     assert (prim[outside] == PRIM_BACKGROUND).all()  # beside the box: nothing on the kept side ahead
+
     # A cap has its own hue (lit from the eye), unlike any face of the uncut box.
     def hue(rgb: np.ndarray) -> np.ndarray:
         rgb = rgb.astype(np.float64)
