@@ -49,7 +49,6 @@ run: install
 
 lint: install
 	$(BIN)/ruff check .
-	$(BIN)/ruff format --check .
 
 test: lint
 	$(BIN)/pytest
