@@ -11,18 +11,19 @@ from __future__ import annotations
 
 import os
 import struct
+import zlib
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 from modelwalk import Node, Walker, WalkError, voxel_samples
-from test_build import SMALL_MEMORY, rewrite_version
+from test_build import SMALL_MEMORY, header_offset, rewrite_version
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
 from vastray.camera import frame_bounds
-from vastray.modelfile import VERSION, ModelFile
+from vastray.modelfile import HEADER_SIZE, VERSION, ModelError, ModelFile
 from vastray.outofcore import OutOfCoreModel, make_cache
 
 # The real meshes are part of the bar (tests/conftest.py): a missing one fails the build.
@@ -177,3 +178,24 @@ def test_the_walker_refuses_a_packed_voxel_in_an_older_version(
     with ModelFile(copy) as model, pytest.raises(WalkError, match="packed voxel in a version-5 file"):
         for _ in Walker(model).walk():
             pass
+
+
+def test_a_packed_count_above_the_six_sample_count_is_refused(
+    built: Callable[[str], Built], tmp_path: Path
+) -> None:
+    packed, _, _ = built("bunny")
+    with ModelFile(packed) as model:
+        six = model.header["voxels_six"]
+    data = bytearray(packed.read_bytes())
+    struct.pack_into("<Q", data, header_offset("voxels_packed"), six + 1)
+    crc_at = header_offset("header_crc32")
+    struct.pack_into("<I", data, crc_at, 0)
+    struct.pack_into("<I", data, crc_at, zlib.crc32(bytes(data[:HEADER_SIZE])))
+    damaged = tmp_path / "damaged.vast"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(ModelError, match=f"implausible packed voxel count {six + 1}"):
+        ModelFile(damaged)
+    # In a version-5 file those bytes were padding: not read.
+    rewrite_version(damaged, 5)
+    with ModelFile(damaged) as model:
+        assert model.header["voxels_packed"] == 0
