@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import models_dir
 from modelwalk import TIER_COUNT_AT, read_parts
 from views import model_views, render_camera
 
@@ -94,10 +95,10 @@ def test_a_large_build_keeps_its_blocks_where_they_were_written(built: tuple[Pat
         start, end = offsets[order], offsets[order] + sizes[order]
         ahead = start < front
         # In front: the last blocks written, one after the other from the end of the
-        # index, filling the room to within FRONT_SLACK.
+        # index, filling the room to within front_slack.
         assert ahead.any()
         assert start[0] == h["data_offset"] and np.array_equal(start[1:][ahead[1:]], end[:-1][ahead[1:]])
-        assert 0 <= front - end[ahead][-1] <= model_assembly.FRONT_SLACK
+        assert 0 <= front - end[ahead][-1] <= model_assembly.front_slack(int(sizes.sum()))
         # Behind: every other block, one after the other from `front`, as the writer
         # appended them, up to the parts section, which runs to the end of the file.
         assert start[~ahead][0] == front
@@ -134,7 +135,7 @@ def test_it_is_the_model_a_whole_write_makes(
 @pytest.mark.parametrize("source", ["scene:plant:1000:1", "scene:spheres:5000:2"])
 def test_a_small_build_is_written_whole(tmp_path: Path, source: str) -> None:
     """A model smaller than the room in front (one that would leave more than
-    FRONT_SLACK of it empty, and one that would not) is written whole, with no gap, as
+    front_slack of it empty, and one that would not) is written whole, with no gap, as
     before."""
     out = tmp_path / "small.vast"
     report = build_model(source, out, BuildOptions())
@@ -186,3 +187,21 @@ def test_the_writer_takes_only_page_aligned_room(tmp_path: Path, offset: int) ->
     with pytest.raises(ValueError, match="multiple of 4096"):
         native.ModelWriter(has_colours=False, output=str(tmp_path / "m.vast"), output_offset=offset)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"tier_width": 0, "compact_triangles": True, "quantized_vertices": True}],
+    ids=["default", "small"],
+)
+def test_a_file_holds_no_more_zeros_than_its_slack(tmp_path: Path, options: dict) -> None:
+    """Whatever the layout, a model's file is its header, index, blocks and parts, with
+    at most front_slack zero bytes between them: 1/256 of the blocks, not 64 KiB, for a
+    model of a few MB (the bunny, whose bytes per triangle it would move by up to 1)."""
+    out = tmp_path / "bunny.vast"
+    build_model(models_dir() / "stanford-bunny.obj", out, BuildOptions(**options))
+    with ModelFile(out) as model:
+        h = model.header
+        blocks = sum(b.stored_size for b in model.blocks)
+        gap = h["file_size"] - h["data_offset"] - blocks - h["parts_size"]
+        assert 0 <= gap <= model_assembly.front_slack(blocks) < model_assembly.FRONT_SLACK

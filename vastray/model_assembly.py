@@ -6,7 +6,7 @@ cache, behind room kept in front for the header and the block index (`front_rese
 Assembling the file writes the header and the index there and moves the last blocks of
 the file into what the index leaves of that room; nothing else is copied. Where the
 room does not fit the index, or the model is smaller than the room or would leave more
-than `FRONT_SLACK` of it empty, the model is written again, every block in id order, as
+than `front_slack` of it empty, the model is written again, every block in id order, as
 every model was before.
 """
 
@@ -28,6 +28,14 @@ _NO_BLOCKS = (np.zeros((0, 5), np.uint32), np.zeros(0, np.uint64))
 # Zero bytes the front may keep between the last block moved there and the first block
 # written behind it; a file written whole has none.
 FRONT_SLACK = 64 << 10
+
+
+def front_slack(blocks_bytes: int) -> int:
+    """The zero bytes a model whose blocks take `blocks_bytes` may keep in front: at most
+    1/256 of them (a page at least) and FRONT_SLACK. A small model that would keep more
+    is written whole instead, which costs little at its size (64 KiB of zeros were up
+    to 1 B/triangle of the 69,451-triangle bunny)."""
+    return min(FRONT_SLACK, max(_ALIGN, blocks_bytes >> 8))
 
 
 def front_reserve(triangles: int) -> int:
@@ -148,7 +156,7 @@ def _write_in_place(
     """The header, the index and the file's last blocks into the room in front of the
     blocks in `partial`, which is then cut behind what is left and ends in the parts
     section; None when the room cannot hold the index, would take every block, or would
-    be left more than FRONT_SLACK short."""
+    be left more than front_slack short."""
     _, front, end, _ = output
     n = len(layout.entries)
     data_offset = modelfile.HEADER_SIZE + 24 * (len(layout.records) + n)
@@ -160,7 +168,7 @@ def _write_in_place(
     # them one after the other, so they are one range of the file).
     behind = np.cumsum(stored[in_file_order][::-1])
     k = int(np.searchsorted(behind, front - data_offset, side="right"))
-    if k == n or front - data_offset - (int(behind[k - 1]) if k else 0) > FRONT_SLACK:
+    if k == n or front - data_offset - (int(behind[k - 1]) if k else 0) > front_slack(int(behind[-1])):
         return None  # the model is smaller than the room, or leaves too much of it empty
     moving = in_file_order[n - k :]
     blocks_end = int(layout.at[moving[0]]) if k else end
