@@ -212,7 +212,7 @@ ssize_t pwritev64v2(int fd, const struct iovec* v, int n, off_t at, int flags) {
 _BUILD = """
 import sys
 from vastray.build import BuildOptions, build_model
-report = build_model("scene:plant:60000:1", sys.argv[1], BuildOptions(memory=8 << 20, threads=2))
+report = build_model("scene:plant:120000:3", sys.argv[1], BuildOptions(memory=64 << 20, threads=2))
 assert report["blocks_in_place"], report
 """
 
