@@ -163,6 +163,7 @@ class AsyncClient:
         compact_triangles: bool = False,
         tier_width: float | None = None,
         traversal_cost: float | None = None,
+        lz4_hc_level: int = 0,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
         directory; wait for it with `wait`. `quantized_splits`: the smaller node layout
@@ -172,7 +173,9 @@ class AsyncClient:
         per cent slower (§11a); `tier_width`: octaves of LOD radius per coarseness tier
         (server default 1; 0: untiered, smaller and faster to build, far views read more; §15);
         `traversal_cost`: the kd-tree's SAH cost of a node step (default 4; higher: a coarser
-        tree, faster to build and smaller, LOD frames slower where rays end in leaves)."""
+        tree, faster to build and smaller, LOD frames slower where rays end in leaves);
+        `lz4_hc_level`: LZ4 HC for the blocks (1-12; default 0, LZ4's fast compressor): the same
+        format, read as fast, smaller, a slower build."""
         options = {"memory": memory, "threads": threads, "quantized_splits": quantized_splits}
         if quantized_vertices:
             options["quantized_vertices"] = True
@@ -182,6 +185,8 @@ class AsyncClient:
             options["tier_width"] = tier_width
         if traversal_cost is not None:
             options["traversal_cost"] = traversal_cost
+        if lz4_hc_level:
+            options["lz4_hc_level"] = lz4_hc_level
         body = {"source": source, "name": name, "options": options}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 

@@ -97,6 +97,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             compact_triangles=bool(options.get("compact_triangles", False)),
             tier_width=float(options.get("tier_width", BuildOptions.tier_width)),
             traversal_cost=float(options.get("traversal_cost", BuildOptions.traversal_cost)),
+            lz4_hc_level=int(options.get("lz4_hc_level", 0)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

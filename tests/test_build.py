@@ -67,6 +67,7 @@ from vastray.build import (
 from vastray.camera import frame_bounds
 from vastray.mesh import MeshError
 from vastray.modelfile import _HEADER_FIELDS, FLAG_COLOURS, HEADER_SIZE, VERSION, ModelError, ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
 from vastray.render import SceneRenderer
 from vastray.triangle_readers import open_triangles
 from vastray.units import parse_bytes
@@ -1142,6 +1143,7 @@ def test_parse_bytes(tmp_path: Path) -> None:
         ({"voxel_rays": 9}, r"voxel_rays must be 1 \.\.\. 8"),
         ({"traversal_cost": float("nan")}, "traversal_cost must be a positive number"),
         ({"empty_space_ratio": 1.0}, r"empty_space_ratio must be in \[0, 1\)"),
+        ({"lz4_hc_level": 13}, r"lz4_hc_level must be 0 \(fast LZ4\) \.\.\. 12, got 13"),
     ],
 )
 def test_bad_options_are_clear_errors_before_any_work(tmp_path: Path, options: dict, message: str) -> None:
@@ -1179,6 +1181,38 @@ def test_traversal_cost_makes_a_coarser_smaller_tree(tmp_path: Path) -> None:
         result = run_cli("build", "scene:plant:2000:1", "-o", str(out), "--traversal-cost", bad, cwd=tmp_path)
         assert result.returncode == 2 and "traversal_cost must be a positive number" in result.stderr
         assert not out.exists()
+
+
+def test_lz4_hc_makes_smaller_blocks_of_the_same_model(tmp_path: Path) -> None:
+    """`--lz4-hc-level` compresses the blocks with LZ4 HC: every block decodes to the
+    bytes the fast compressor's build holds (the same model), the file is smaller, and
+    the block cache renders the same frame; a level past 12 is refused before any work."""
+    files = {}
+    for level in ("0", "9"):
+        out = tmp_path / f"hc-{level}.vast"
+        args = ("build", "scene:plant:20000:1", "-o", str(out), "--lz4-hc-level", level)
+        result = run_cli(*args, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        files[level] = out
+    with ModelFile(files["0"]) as fast, ModelFile(files["9"]) as small:
+        small.verify()
+        assert len(small.blocks) == len(fast.blocks)
+        for b in range(len(fast.blocks)):
+            assert small.read_block(b) == fast.read_block(b)
+        stored = [sum(e.stored_size for e in m.blocks) for m in (fast, small)]
+        assert stored[1] < 0.97 * stored[0], stored
+        assert small.header["file_size"] < fast.header["file_size"]
+    frames = []
+    for path in files.values():
+        with OutOfCoreModel(path, make_cache(64 << 20, 1)) as model:
+            camera = frame_bounds(*model.bounds, width=96, height=64)
+            frames.append(model.render_complete(camera, pixels_of_error=2.0))
+    np.testing.assert_array_equal(frames[0].image, frames[1].image)
+    np.testing.assert_array_equal(frames[0].prim, frames[1].prim)
+    out = tmp_path / "bad.vast"
+    result = run_cli("build", "scene:plant:2000:1", "-o", str(out), "--lz4-hc-level", "13", cwd=tmp_path)
+    assert result.returncode == 2 and "lz4_hc_level must be 0 (fast LZ4) ... 12, got 13" in result.stderr
+    assert not out.exists()
 
 
 def test_the_write_phase_copies_blocks_across_file_systems(tmp_path: Path, ooc_ply: Path) -> None:

@@ -294,6 +294,13 @@ class BuildOptionsIn(Strict):
         description="the kd-tree's SAH cost of a node step in triangle tests (default 4): higher "
         "builds a coarser tree, faster and smaller, with slower LOD frames where rays end in leaves",
     )
+    lz4_hc_level: int | None = Field(
+        None,
+        ge=0,
+        le=12,
+        description="LZ4 HC level of the blocks (default 0: LZ4's fast compressor): 1-12 make "
+        "smaller blocks of the same format, read as fast, in a slower build",
+    )
 
 
 class JobRequest(Strict):

@@ -12,6 +12,7 @@
 #include <string>
 
 #include "vastray/model_decode.h"
+#include "vastray/lz4.h"
 #include "vastray/model_writer.h"
 #include "vastray/thread_pool.h"
 #include "writer/model_blocks.h"
@@ -43,7 +44,8 @@ public:
     PyModelWriter(bool has_colours, const std::string& output, std::uint64_t output_offset, py::object progress, int leaf_size,
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
-                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles, bool packed_voxels)
+                  int tier_coarse_octaves, py::object root_cell, bool compact_triangles, bool packed_voxels,
+                  int lz4_hc_level)
         : blocks_(output, checked_offset(output_offset)) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -56,6 +58,8 @@ public:
         p.kd.quantized_splits = quantized_splits;
         p.compact_triangles = compact_triangles;
         p.packed_voxels = packed_voxels;
+        if (lz4_hc_level < 0 || lz4_hc_level > kLz4HcMaxLevel) throw std::invalid_argument("LZ4 HC level must be 0 ... 12");
+        p.lz4_hc_level = lz4_hc_level;
         if (!vertex_steps.is_none()) {
             const auto steps = vertex_steps.cast<std::array<float, 3>>();
             p.quantized_vertices = true;
@@ -689,13 +693,14 @@ void bind_model(py::module_& m) {
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into the model file `output`, "
                               "from output_offset on, past the page cache (vastray/model_assembly.py finishes the file)")
         .def(py::init<bool, const std::string&, std::uint64_t, py::object, int, float, float, float, int, int, unsigned,
-                      bool, py::object, double, int, py::object, bool, bool>(),
+                      bool, py::object, double, int, py::object, bool, bool, int>(),
              py::arg("has_colours"), py::arg("output"), py::arg("output_offset"), py::arg("progress") = py::none(),
              py::arg("leaf_size") = 4, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
-             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false, py::arg("packed_voxels") = true)
+             py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false, py::arg("packed_voxels") = true,
+             py::arg("lz4_hc_level") = 0)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),

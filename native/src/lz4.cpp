@@ -1,6 +1,7 @@
 #include "vastray/lz4.h"
 
 #include <lz4.h>
+#include <lz4hc.h>
 
 #include <limits>
 #include <stdexcept>
@@ -31,10 +32,14 @@ std::size_t lz4_compress_bound(std::size_t size) {
     return static_cast<std::size_t>(LZ4_compressBound(static_cast<int>(size)));
 }
 
-std::size_t lz4_compress_block(const std::uint8_t* src, std::size_t size, std::uint8_t* dst, std::size_t capacity) {
+std::size_t lz4_compress_block(const std::uint8_t* src, std::size_t size, std::uint8_t* dst, std::size_t capacity,
+                               int hc_level) {
     if (size > (1u << 16) || capacity < lz4_compress_bound(size)) throw std::invalid_argument("lz4_compress_block: bad sizes");
-    const int n = LZ4_compress_default(reinterpret_cast<const char*>(src), reinterpret_cast<char*>(dst),
-                                       static_cast<int>(size), static_cast<int>(capacity));
+    if (hc_level < 0 || hc_level > kLz4HcMaxLevel) throw std::invalid_argument("lz4_compress_block: bad HC level");
+    const auto* in = reinterpret_cast<const char*>(src);
+    auto* out = reinterpret_cast<char*>(dst);
+    const int n = hc_level == 0 ? LZ4_compress_default(in, out, static_cast<int>(size), static_cast<int>(capacity))
+                                : LZ4_compress_HC(in, out, static_cast<int>(size), static_cast<int>(capacity), hc_level);
     if (n <= 0 && size > 0) throw std::runtime_error("LZ4 compression failed");
     return static_cast<std::size_t>(n);
 }

@@ -29,11 +29,11 @@ using writer::Pending;
 using writer::SubtreeEmitter;
 using writer::TreeletNode;
 
-StoredBlock store_block(const std::vector<std::uint8_t>& raw) {
+StoredBlock store_block(const std::vector<std::uint8_t>& raw, int hc_level) {
     StoredBlock b;
     b.raw_size = static_cast<std::uint32_t>(raw.size());
     b.bytes.resize(lz4_compress_bound(raw.size()));
-    const std::size_t n = lz4_compress_block(raw.data(), raw.size(), b.bytes.data(), b.bytes.size());
+    const std::size_t n = lz4_compress_block(raw.data(), raw.size(), b.bytes.data(), b.bytes.size(), hc_level);
     if (n < raw.size()) {
         b.bytes.resize(n);
         b.codec = kCodecLz4;

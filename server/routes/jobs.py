@@ -82,6 +82,8 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
         opts["tier_width"] = options.tier_width
     if options is not None and options.traversal_cost is not None:
         opts["traversal_cost"] = options.traversal_cost
+    if options is not None and options.lz4_hc_level:
+        opts["lz4_hc_level"] = options.lz4_hc_level
     return opts
 
 

@@ -326,7 +326,7 @@ def test_an_upload_builds_with_the_chosen_layout(
             built = next(m for m in api.get("/api/models").json() if m["name"] == "pipes")
             options = api.get(f"/api/models/{built['id']}").json()["build"]["options"]
         assert options["compact_triangles"] is True and options["quantized_vertices"] is True
-        assert options["tier_width"] == 0 and options["traversal_cost"] == 6
+        assert options["tier_width"] == 0 and options["traversal_cost"] == 6 and options["lz4_hc_level"] == 9
         assert not_blank(v.thumbnail())
     finally:
         delete_all_but(server, model)

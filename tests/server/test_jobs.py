@@ -223,3 +223,23 @@ def test_a_build_chooses_its_traversal_cost(server: ServerProcess, api: httpx.Cl
     for bad in (0, -2, 100):
         r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"traversal_cost": bad}})
         assert r.status_code == 422 and "traversal_cost" in r.text, r.text
+
+
+def test_a_build_chooses_its_lz4_hc_level(server: ServerProcess, api: httpx.Client) -> None:
+    """`lz4_hc_level` reaches the block compressor: the same input makes a smaller file of
+    the same blocks, the job records the level, and a level past 12 is refused."""
+    from vastray.modelfile import ModelFile
+
+    sizes = {}
+    for level in (None, 9):
+        options = {} if level is None else {"lz4_hc_level": level}
+        body = {"source": "scene:plant:20000:5", "name": f"hc-{level}", "options": options}
+        done = wait_for_job(api, api.post("/api/jobs", json=body).json()["id"])
+        assert done["state"] == "succeeded", done
+        assert done["options"].get("lz4_hc_level") == level
+        with ModelFile(server.data_dir / "models" / f"{done['model_id']}.vast") as model:
+            sizes[level] = (model.header["file_size"], model.header["raw_bytes"])
+    assert sizes[9][0] < sizes[None][0] and sizes[9][1] == sizes[None][1], sizes
+    for bad in (-1, 13, "max"):
+        r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"lz4_hc_level": bad}})
+        assert r.status_code == 422 and "lz4_hc_level" in r.text, r.text

@@ -487,7 +487,9 @@ class App {
     // The build options of each layout choice (docs/FORMAT.md, Measured choices).
     const layouts = {
       smaller: { compact_triangles: true },
-      smallest: { compact_triangles: true, quantized_vertices: true, tier_width: 0, traversal_cost: 6 },
+      smallest: {
+        compact_triangles: true, quantized_vertices: true, tier_width: 0, traversal_cost: 6, lz4_hc_level: 9,
+      },
     };
     const options = layouts[$("upload-layout").value];
     try {

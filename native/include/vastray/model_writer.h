@@ -47,6 +47,9 @@ struct ModelWriterParams {
     // format::pack_voxel): the same samples, 8 bytes fewer. Off writes six words, as
     // version 5 did (for comparisons).
     bool packed_voxels = true;
+    // Blocks compressed with LZ4 HC at this level (1 ... 12) instead of the fast
+    // compressor (0): the same format and decoding, smaller blocks, a slower build.
+    int lz4_hc_level = 0;
 };
 
 // What one stream of a level holds: its blocks and their raw bytes; nodes and LOD voxels
@@ -88,7 +91,9 @@ struct StoredBlock {
     std::uint32_t raw_size = 0, crc32 = 0, codec = 0;
 };
 // Compresses and checksums one raw block.
-StoredBlock store_block(const std::vector<std::uint8_t>& raw);
+// LZ4-compressed (hc_level 0: the fast compressor; 1 ... 12: LZ4 HC), or stored raw
+// where that would not shrink it.
+StoredBlock store_block(const std::vector<std::uint8_t>& raw, int hc_level = 0);
 
 // Receives each finished block, in the order of its stream (a level's tier): level >= 0
 // is a node level, -1 the triangle level. Blocks of parts emitted in parallel are

@@ -30,7 +30,7 @@ void NodeBlocks::flush(std::size_t level, std::uint32_t tier) {
     StreamStats& s = node_stream(stats_, level, tier);
     s.blocks++;
     s.bytes += buf.size();
-    out_(static_cast<int>(level), tier, store_block(buf));
+    out_(static_cast<int>(level), tier, buf);
     buf.clear();
 }
 

@@ -17,7 +17,7 @@ namespace vastray::writer {
 
 class NodeBlocks {
 public:
-    NodeBlocks(BlockStream& out, ModelWriterStats& stats) : out_(out), stats_(stats) {}
+    NodeBlocks(RawBlockStream& out, ModelWriterStats& stats) : out_(out), stats_(stats) {}
 
     // Places sibling treelets (either may be null) contiguously in one block of stream
     // (`level`, `tier`), closing its current block first if they do not fit; returns the
@@ -35,7 +35,7 @@ public:
 private:
     std::vector<std::uint8_t>& open(std::size_t level, std::uint32_t tier);
 
-    BlockStream& out_;
+    RawBlockStream& out_;
     ModelWriterStats& stats_;
     std::vector<std::vector<std::vector<std::uint8_t>>> open_;  // the current block of each stream
 };

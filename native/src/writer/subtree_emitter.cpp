@@ -21,10 +21,13 @@ void ProgressCounter::add(std::uint64_t n) {
 }
 
 SubtreeEmitter::SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer)
-    : p_(params), counter_(counter), out_(std::move(out)), defer_(defer),
-      tiering_(params.root_radius, params.tier_width, params.tier_coarse_octaves), nodes(out_, stats),
+    : p_(params), counter_(counter), out_(std::move(out)),
+      pack_([this](int level, std::uint32_t tier, const std::vector<std::uint8_t>& raw) {
+          out_(level, tier, store_block(raw, p_.lz4_hc_level));
+      }),
+      defer_(defer), tiering_(params.root_radius, params.tier_width, params.tier_coarse_octaves), nodes(pack_, stats),
       triangles(params.has_colours, params.quantized_vertices ? &params.vertex_steps : nullptr, params.compact_triangles,
-                out_, stats) {}
+                pack_, stats) {}
 
 std::uint32_t SubtreeEmitter::reference(std::uint32_t tier, std::uint32_t block) const {
     if (!tiering_.enabled()) return block;

@@ -100,7 +100,8 @@ private:
 
     const ModelWriterParams& p_;
     ProgressCounter& counter_;
-    BlockStream out_;  // declared before the block packers that write into it
+    BlockStream out_;
+    RawBlockStream pack_;  // compresses into out_; declared before the block packers that write into it
     bool defer_;
     Tiering tiering_;
     std::vector<Unit> units_;

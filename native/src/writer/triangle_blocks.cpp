@@ -199,7 +199,7 @@ void TriangleBlocks::flush() {
     stream.bytes += bytes.size();
     stream.items += ids_.size();
     stream.extra += verts_.size();
-    out_(-1, tier_, store_block(bytes));
+    out_(-1, tier_, bytes);
     ++blocks_;
     clear_open();
 }

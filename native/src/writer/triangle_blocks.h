@@ -110,7 +110,7 @@ class TriangleBlocks {
 public:
     // `vertex_steps`: the grid of FLAG_QUANTIZED_VERTICES (null: f32 vertices as given).
     // `compact`: FLAG_COMPACT_TRIANGLES blocks (format.h) instead of the plain layout.
-    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, bool compact, std::uint32_t tier, BlockStream& out,
+    TriangleBlocks(bool has_colours, const Vec3f* vertex_steps, bool compact, std::uint32_t tier, RawBlockStream& out,
                    ModelWriterStats& stats)
         : has_colours_(has_colours), quantized_(vertex_steps != nullptr), compact_(compact),
           steps_(vertex_steps ? *vertex_steps : Vec3f(1, 1, 1)),
@@ -230,7 +230,7 @@ private:
     Vec3f steps_;
     std::size_t max_vertices_, max_triangles_;
     std::uint32_t tier_;
-    BlockStream& out_;
+    RawBlockStream& out_;
     ModelWriterStats& stats_;
     std::uint32_t blocks_ = 0;
     std::vector<std::uint16_t> list_, tri_verts_;
@@ -259,7 +259,7 @@ private:
 // tiers, and each tier's dedup tables take a few hundred KiB).
 class TriangleTiers {
 public:
-    TriangleTiers(bool has_colours, const Vec3f* vertex_steps, bool compact, BlockStream& out, ModelWriterStats& stats)
+    TriangleTiers(bool has_colours, const Vec3f* vertex_steps, bool compact, RawBlockStream& out, ModelWriterStats& stats)
         : has_colours_(has_colours), compact_(compact), steps_(vertex_steps), out_(out), stats_(stats) {}
 
     TriangleBlocks& operator[](std::uint32_t tier) {
@@ -285,7 +285,7 @@ public:
 private:
     bool has_colours_, compact_;
     const Vec3f* steps_;
-    BlockStream& out_;
+    RawBlockStream& out_;
     ModelWriterStats& stats_;
     std::vector<std::unique_ptr<TriangleBlocks>> tiers_;
 };
