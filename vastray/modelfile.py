@@ -318,12 +318,13 @@ def write_model_file(
     tier_count: int = 0,
 ) -> int:
     """Writes header, index, blocks and the parts `section` (packed, of `part_count`
-    parts; empty: none), the blocks one after the other in id order. `levels` are the level table's records
-    (first, count, items, extra): one per level, or with `tier_count` > 0 (FLAG_TIERED)
-    that many per level, level-major. `entries` are (stored size, raw size, crc, codec)
-    in block order; `block_data` yields the stored bytes in the same order (it may yield
-    them in larger runs), as bytes or as ranges of other files, which `out`
-    (direct_io.py) copies past the page cache. Returns the file size."""
+    parts; empty: none), the blocks one after the other in id order. `levels` are the
+    level table's records (first, count, items, extra): one per level, or with
+    `tier_count` > 0 (FLAG_TIERED) that many per level, level-major. `entries` are
+    (stored size, raw size, crc, codec) in block order; `block_data` yields the stored
+    bytes in the same order (it may yield them in larger runs), as bytes or as ranges
+    of other files, which `out` (direct_io.py) copies past the page cache. Returns the
+    file size."""
     data_offset = HEADER_SIZE + _LEVEL.size * len(levels) + _ENTRY.size * len(entries)
     offsets = []
     offset = data_offset

@@ -11,8 +11,8 @@
 #include <stdexcept>
 #include <string>
 
-#include "vastray/model_decode.h"
 #include "vastray/lz4.h"
+#include "vastray/model_decode.h"
 #include "vastray/model_writer.h"
 #include "vastray/thread_pool.h"
 #include "writer/model_blocks.h"
@@ -58,7 +58,9 @@ public:
         p.kd.quantized_splits = quantized_splits;
         p.compact_triangles = compact_triangles;
         p.packed_voxels = packed_voxels;
-        if (lz4_hc_level < 0 || lz4_hc_level > kLz4HcMaxLevel) throw std::invalid_argument("LZ4 HC level must be 0 ... 12");
+        if (lz4_hc_level < 0 || lz4_hc_level > kLz4HcMaxLevel) {
+            throw std::invalid_argument("LZ4 HC level must be 0 ... " + std::to_string(kLz4HcMaxLevel));
+        }
         p.lz4_hc_level = lz4_hc_level;
         if (!vertex_steps.is_none()) {
             const auto steps = vertex_steps.cast<std::array<float, 3>>();

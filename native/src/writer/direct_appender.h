@@ -42,7 +42,6 @@ private:
     void writer_loop();
     void hand_over();  // the full front buffer to the writer thread
     void wait_idle(std::unique_lock<std::mutex>& lock);
-    void rethrow_failure();
 
     std::string path_;
     int fd_ = -1;
