@@ -12,7 +12,11 @@ given, with the same other options, and measures side by side in one run:
 * what the LOD shows: each tree's frame at PoE > 0 against the same view at full detail
   (PoE 0) of the default tree (PSNR, SSIM, share of pixels whose hit differs), so both
   trees are judged against one image; and the trees' full-detail frames against each
-  other (the same triangles: they differ only where two triangles tie).
+  other (the same triangles: they differ only where two triangles tie);
+* the same accuracy, not the same PoE: a coarser tree stops fewer rays on voxels at a
+  given PoE, so its frame there is slower but nearer full detail. For each of the first
+  tree's frames at PoE > 0, the other trees' frame time at the same PSNR, interpolated
+  along their PoE curve, and the ratio (a plot, NAME.png, shows the curves).
 
     python bench/tree_cost.py bench/.cache/mandelbulb-1e7-s1.ply --costs 4,6 \\
         --options compact_triangles,quantized_vertices --tier-width 0 --name tree-cost-mandelbulb-1e7
@@ -21,6 +25,8 @@ given, with the same other options, and measures side by side in one run:
 from __future__ import annotations
 
 import argparse
+import itertools
+import math
 import statistics
 import sys
 import tempfile
@@ -31,7 +37,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, command_and_machine, machine_info, markdown_table
+from common import RESULTS_DIR, command_and_machine, fmt, machine_info, markdown_table, pyplot, save_figure
 from tradeoff import isa_path, psnr, ssim, views
 
 from vastray.build import BuildOptions, build_model
@@ -61,6 +67,46 @@ def build(src: Path, out: Path, cost: float, args: argparse.Namespace) -> dict[s
             "lod_levels": model.node_levels,
             "report": report,
         }
+
+
+def time_at_accuracy(curve: list[tuple[float, float]], target: float) -> float:
+    """Frame ms at PSNR `target` on a tree's (PSNR, ms) points, linear between the two
+    points around it; NaN outside the curve (no PoE reached that accuracy, or every PoE
+    passed it)."""
+    points = sorted((q, ms) for q, ms in curve if math.isfinite(q))
+    for (q0, t0), (q1, t1) in itertools.pairwise(points):
+        if q0 <= target <= q1:
+            return t0 if q1 == q0 else t0 + (target - q0) / (q1 - q0) * (t1 - t0)
+    return math.nan
+
+
+def plot_curves(
+    curves: dict[tuple[float, str], list[tuple[float, float, float]]],
+    costs: list[float],
+    views: list[str],
+    title: str,
+    path: Path,
+) -> None:
+    plt = pyplot()
+    if plt is None:
+        return
+    # A view that every PoE renders at full detail (the close one) has no curve.
+    views = [v for v in views if any(math.isfinite(q) for c in costs for _, q, _ in curves[c, v])]
+    if not views:
+        return
+    fig, axes = plt.subplots(1, len(views), figsize=(4.2 * len(views), 3.6))
+    for ax, view in zip(np.atleast_1d(axes), views, strict=True):
+        for c in costs:
+            pts = [(ms, q, poe) for poe, q, ms in curves[c, view] if math.isfinite(q)]
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"cost {c:g}")
+            for ms, q, poe in pts:
+                ax.annotate(f"{poe:g}", (ms, q), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_title(view, fontsize=9)
+        ax.set_xlabel("frame ms (median)")
+        ax.set_ylabel("PSNR dB against full detail")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    save_figure(fig, title, path)
 
 
 def main() -> None:
@@ -127,6 +173,31 @@ def main() -> None:
                     f"{psnr(f.image, reference.image):.1f}", f"{ssim(f.image, reference.image):.4f}",
                     f"{100 * float(np.mean(f.prim != reference.prim)):.2f}",
                 ])  # fmt: skip
+    # The same accuracy: each tree's (PoE, PSNR, ms) curve per view, against the first
+    # tree's full-detail frame, and the other trees' time at the first tree's PSNR.
+    curves: dict[tuple[float, str], list[tuple[float, float, float]]] = {}
+    for view in cameras:
+        reference = last[ref_cost, view, full]
+        for c in costs:
+            curves[c, view] = [
+                (p, psnr(last[c, view, p].image, reference.image), statistics.median(frames[c, view, p]))
+                for p in poes
+            ]
+    same_rows = []
+    for view in cameras:
+        for poe, q, ms in curves[ref_cost, view]:
+            if not math.isfinite(q):
+                continue
+            row = [view, f"{poe:g}", f"{q:.1f}", f"{ms:.1f}"]
+            for c in costs[1:]:
+                t = time_at_accuracy([(cq, cms) for _, cq, cms in curves[c, view]], q)
+                row += [fmt(t, 1), fmt(t / ms)]
+            same_rows.append(row)
+    same_table = markdown_table(
+        ["view", "PoE", "PSNR dB", f"cost {ref_cost:g} ms"]
+        + [h for c in costs[1:] for h in (f"cost {c:g} ms at that PSNR", "ratio")],
+        same_rows,
+    )
     table = markdown_table(
         ["view", "PoE", "cost", "frame ms", "vs first", "working set MiB", "voxel %",
          "PSNR dB", "SSIM", "hit differs %"],
@@ -139,6 +210,7 @@ def main() -> None:
     )  # fmt: skip
     print(files_table)
     print(table)
+    print(same_table)
     scratch.cleanup()
     if args.name:
         text = [
@@ -160,9 +232,25 @@ def main() -> None:
             "",
             table,
             "",
+            "## The same accuracy",
+            "",
+            f"Each cost-{ref_cost:g} frame at PoE > 0 (its PSNR against the cost-{ref_cost:g} full-detail "
+            "frame), and the other trees' frame time at that PSNR, linear between their two PoEs "
+            "around it (n/a: none of their PoEs reached or passed it). A ratio under 1: the coarser "
+            f"tree gives the same accuracy faster. The curves: {args.name}.png.",
+            "",
+            same_table,
+            "",
         ]
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.md").write_text("\n".join(text))
+        plot_curves(
+            curves,
+            costs,
+            list(cameras),
+            f"{args.name}: frame time against accuracy, by SAH cost",
+            args.out / f"{args.name}.png",
+        )
         print(f"wrote {args.out / (args.name + '.md')}", file=sys.stderr)
 
 
