@@ -158,35 +158,38 @@ class AsyncClient:
         name: str | None = None,
         memory: str | int | None = None,
         threads: int | None = None,
-        quantized_splits: bool = True,
-        quantized_vertices: bool = False,
-        compact_triangles: bool = False,
+        layout: str | None = None,
+        quantized_splits: bool | None = None,
+        quantized_vertices: bool | None = None,
+        compact_triangles: bool | None = None,
         tier_width: float | None = None,
         traversal_cost: float | None = None,
-        lz4_hc_level: int = 0,
+        lz4_hc_level: int | None = None,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
-        directory; wait for it with `wait`. `quantized_splits`: the smaller node layout
+        directory; wait for it with `wait`. `layout`: what the file is for, "balanced" (the
+        default: tiered, far views read least), "smaller" (compact triangle blocks) or
+        "smallest" (34-39 % of balanced; vastray/layouts.py). The options after it override
+        the layout's (None: the layout's value): `quantized_splits`: the smaller node layout
         with the same images (docs/FORMAT.md §8); `quantized_vertices`: vertices on a grid of
         the model's box, smaller and lossy by at most a grid step (§11); `compact_triangles`:
         bit-packed triangle blocks, about 30 % smaller and lossless, full-detail frames a few
         per cent slower (§11a); `tier_width`: octaves of LOD radius per coarseness tier
-        (server default 1; 0: untiered, smaller and faster to build, far views read more; §15);
+        (default 1; 0: untiered, smaller and faster to build, far views read more; §15);
         `traversal_cost`: the kd-tree's SAH cost of a node step (default 4; higher: a coarser
-        tree, faster to build and smaller, LOD frames slower where rays end in leaves);
+        tree, faster to build and smaller, LOD frames nearer full detail at a PoE);
         `lz4_hc_level`: LZ4 HC for the blocks (1-12; default 0, LZ4's fast compressor): the same
         format, read as fast, smaller, a slower build."""
-        options = {"memory": memory, "threads": threads, "quantized_splits": quantized_splits}
-        if quantized_vertices:
-            options["quantized_vertices"] = True
-        if compact_triangles:
-            options["compact_triangles"] = True
-        if tier_width is not None:
-            options["tier_width"] = tier_width
-        if traversal_cost is not None:
-            options["traversal_cost"] = traversal_cost
-        if lz4_hc_level:
-            options["lz4_hc_level"] = lz4_hc_level
+        chosen = {
+            "layout": layout,
+            "quantized_splits": quantized_splits,
+            "quantized_vertices": quantized_vertices,
+            "compact_triangles": compact_triangles,
+            "tier_width": tier_width,
+            "traversal_cost": traversal_cost,
+            "lz4_hc_level": lz4_hc_level,
+        }
+        options = {"memory": memory, "threads": threads, **{k: v for k, v in chosen.items() if v is not None}}
         body = {"source": source, "name": name, "options": options}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 

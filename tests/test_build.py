@@ -48,6 +48,7 @@ from itertools import groupby
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import lz4.block
 import numpy as np
 import pytest
 from modelwalk import Node, TriangleBlock, Walker, decode_sample
@@ -1181,6 +1182,53 @@ def test_traversal_cost_makes_a_coarser_smaller_tree(tmp_path: Path) -> None:
         result = run_cli("build", "scene:plant:2000:1", "-o", str(out), "--traversal-cost", bad, cwd=tmp_path)
         assert result.returncode == 2 and "traversal_cost must be a positive number" in result.stderr
         assert not out.exists()
+
+
+def test_a_layout_names_a_set_of_options_and_flags_override_it(tmp_path: Path) -> None:
+    """`--layout smallest` builds what vastray/layouts.py says (untiered, compact blocks,
+    quantized vertices, the coarser tree, LZ4 HC): the same triangles in a file under half
+    the balanced one's, with fewer leaves; a flag given beside it wins over the layout's
+    value; an unknown layout is refused with the choices before any work."""
+    from vastray.build import BuildOptions
+    from vastray.layouts import LAYOUTS
+
+    assert set(LAYOUTS) == {"balanced", "smaller", "smallest"}
+    for options in LAYOUTS.values():  # every layout is a valid set of options
+        BuildOptions(**options).check()
+    runs = {
+        "balanced": [],
+        "smallest": ["--layout", "smallest"],
+        "tiered": ["--layout", "smallest", "--tier-width", "1"],
+    }
+    said = {  # the report's layout line says what was built, overrides included
+        "balanced": "balanced: tiered, plain triangle blocks, quantized splits, traversal cost 4, LZ4\n",
+        "smallest": "smallest: untiered, compact triangle blocks, quantized splits and vertices, "
+        "traversal cost 6, LZ4 HC 9\n",
+        "tiered": "smallest: tiered, compact",
+    }
+    files = {}
+    for name, extra in runs.items():
+        files[name] = tmp_path / f"{name}.vast"
+        result = run_cli("build", "scene:plant:20000:1", "-o", str(files[name]), *extra, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert f"layout     {said[name]}" in result.stdout, result.stdout
+    with ModelFile(files["balanced"]) as balanced, ModelFile(files["smallest"]) as smallest:
+        assert balanced.tiered and not balanced.compact_triangles and not balanced.quantized_vertices
+        assert not smallest.tiered and smallest.compact_triangles and smallest.quantized_vertices
+        assert smallest.quantized_splits
+        assert smallest.header["triangle_count"] == balanced.header["triangle_count"]
+        assert smallest.header["leaves"] < balanced.header["leaves"]
+        assert smallest.header["file_size"] < 0.5 * balanced.header["file_size"]
+        # LZ4 HC: its blocks are stored smaller than LZ4's fast compressor makes them.
+        raw = [smallest.read_block(b) for b in range(len(smallest.blocks))]
+        fast = sum(min(len(lz4.block.compress(r, store_size=False)), len(r)) for r in raw)
+        assert sum(e.stored_size for e in smallest.blocks) < fast
+    with ModelFile(files["tiered"]) as tiered:
+        assert tiered.tiered and tiered.compact_triangles and tiered.quantized_vertices
+    out = tmp_path / "bad.vast"
+    result = run_cli("build", "scene:plant:2000:1", "-o", str(out), "--layout", "tiny", cwd=tmp_path)
+    assert result.returncode == 2 and "balanced" in result.stderr and "smallest" in result.stderr
+    assert not out.exists()
 
 
 def test_lz4_hc_makes_smaller_blocks_of_the_same_model(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from vastray import __version__
+from vastray.layouts import LAYOUTS
 from vastray.renderer import SHADING_MODES
 
 
@@ -180,19 +181,20 @@ def _cmd_build(args: argparse.Namespace) -> int:
         BuildOptions,
         build_model,
     )
+    from vastray.layouts import LAYOUT_FLAGS, layout_options
     from vastray.units import parse_bytes
 
+    # The layout's options, then each one given on the command line over them.
+    layout = layout_options(args.layout)
+    for name in LAYOUT_FLAGS:
+        if getattr(args, name) is not None:
+            layout[name] = getattr(args, name)
     options = BuildOptions(
         memory=parse_bytes(args.memory, "memory budget"),
         threads=args.threads,
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
-        quantized_splits=args.quantized_splits,
-        quantized_vertices=args.quantized_vertices,
-        tier_width=args.tier_width,
-        compact_triangles=args.compact_triangles,
-        traversal_cost=args.traversal_cost,
-        lz4_hc_level=args.lz4_hc_level,
+        **layout,
     )
     options.check()  # a bad option is a clear error before any work
     # Ctrl-C and SIGTERM (docker stop, kill) cancel the build: the builder checks the
@@ -235,6 +237,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         f"compression {report['compression_ratio']:.2f}x, {report['blocks']:,} blocks, "
         f"{report['node_levels']} LOD levels"
     )
+    print(f"layout     {args.layout}: {_describe_layout(options)}")
     print(
         f"memory     peak RSS {report['peak_rss_bytes'] / 2**20:.0f} MiB "
         f"(budget {options.memory / 2**20:.0f} MiB + {STATED_OVERHEAD_BYTES >> 20} MiB fixed overhead; "
@@ -243,6 +246,21 @@ def _cmd_build(args: argparse.Namespace) -> int:
     for warning in report["warnings"]:
         print(f"warning    {warning}")
     return 0
+
+
+def _describe_layout(options: Any) -> str:
+    """What a build's layout options made, in words (the layout's name alone would hide
+    the options given over it)."""
+    words = ["tiered" if options.tier_width > 0 else "untiered"]
+    if options.tier_width > 0 and options.tier_width != 1:
+        words[0] += f" ({options.tier_width:g} octaves per tier)"
+    words.append("compact triangle blocks" if options.compact_triangles else "plain triangle blocks")
+    quantized = {"splits": options.quantized_splits, "vertices": options.quantized_vertices}
+    precision = [name for name, on in quantized.items() if on]
+    words.append(f"quantized {' and '.join(precision)}" if precision else "full precision")
+    words.append(f"traversal cost {options.traversal_cost:g}")
+    words.append(f"LZ4 HC {options.lz4_hc_level}" if options.lz4_hc_level else "LZ4")
+    return ", ".join(words)
 
 
 def _cmd_inspect(args: argparse.Namespace) -> int:
@@ -410,50 +428,64 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--force", action="store_true", help="replace the output if it exists")
     b.add_argument("--scratch-dir", help="where temporary files go (default: next to the output)")
     b.add_argument(
+        "--layout",
+        choices=list(LAYOUTS),
+        default="balanced",
+        help="what the file is for: balanced (the default: tiered, so far views read least), "
+        "smaller (compact triangle blocks: about 30 %% smaller, lossless), smallest (also "
+        "untiered, quantized vertices, a coarser tree and LZ4 HC 9: 34-39 %% of balanced, the "
+        "same frame time for the same accuracy, far views read more, a slower build); the "
+        "options below override it (docs/FORMAT.md, Measured choices)",
+    )
+    b.add_argument(
         "--quantized-splits",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=None,
         help="split planes on a 20-bit grid of their cell: 4-byte basic nodes, the same images "
         "(format version 3; docs/FORMAT.md); on unless --no-quantized-splits",
     )
     b.add_argument(
         "--quantized-vertices",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="vertices on a 2^21-step grid of the model's box, bit-packed per block: smaller, "
-        "lossy by at most one grid step, watertight (docs/FORMAT.md)",
+        "lossy by at most one grid step, watertight (docs/FORMAT.md; on in the smallest layout)",
     )
     b.add_argument(
         "--tier-width",
         type=float,
-        default=1.0,
+        default=None,
         metavar="OCTAVES",
         help="coarseness tiers: blocks hold data a view needs from about the same distance, so "
         "far views read less; a tier per this many halvings of the LOD radius (default 1; "
-        "0: one stream per level, the layout of format version 4)",
+        "0: one stream per level, the layout of format version 4, and the smallest layout's)",
     )
     b.add_argument(
         "--compact-triangles",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="triangle blocks with bit-packed leaf lists, corners, ids and colours: about 30 %% "
-        "smaller, lossless, full-detail frames 4-12 %% slower (format version 5; docs/FORMAT.md)",
+        "smaller, lossless, full-detail frames 4-12 %% slower (format version 5; docs/FORMAT.md; "
+        "on in the smaller and smallest layouts)",
     )
     b.add_argument(
         "--traversal-cost",
         type=float,
-        default=4.0,
+        default=None,
         metavar="COST",
-        help="the kd-tree's SAH cost of a node step, in triangle tests (default 4): higher builds "
-        "a coarser tree, faster and smaller (6: about 1.3x and 15-20 %%), with slower LOD "
-        "frames where many rays end in leaves (docs/FORMAT.md, Measured choices)",
+        help="the kd-tree's SAH cost of a node step, in triangle tests (default 4, the smallest "
+        "layout 6): higher builds a coarser tree, faster and smaller (6: about 1.3x and 15-20 %%); "
+        "at the same PoE its LOD frames are slower and nearer full detail, at the same accuracy "
+        "as fast (docs/FORMAT.md, Measured choices)",
     )
     b.add_argument(
         "--lz4-hc-level",
         type=int,
-        default=0,
+        default=None,
         metavar="LEVEL",
         help="compress blocks with LZ4 HC at this level (1-12) instead of LZ4's fast compressor "
-        "(0, the default): the same format, read as fast; at 9 about 6 %% smaller and a build "
-        "1.4-1.6x as long (docs/FORMAT.md, Measured choices)",
+        "(0, the default; the smallest layout 9): the same format, read as fast; at 9 about 6 %% "
+        "smaller and a build 1.4-1.6x as long (docs/FORMAT.md, Measured choices)",
     )
     b.set_defaults(func=_cmd_build)
 

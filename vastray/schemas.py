@@ -264,8 +264,18 @@ class JobInfo(BaseModel):
 
 
 class BuildOptionsIn(Strict):
+    """A build's options: a named layout (vastray/layouts.py), and any option given here
+    over the layout's value."""
+
     memory: str | int | None = Field(None, description="memory budget, e.g. '2G' (default: the server's)")
     threads: int | None = Field(None, ge=0, le=1024, description="build threads (0: all cores)")
+    layout: Literal["balanced", "smaller", "smallest"] = Field(
+        "balanced",
+        description="what the file is for: balanced (tiered: far views read least), smaller (compact "
+        "triangle blocks, about 30 % smaller, lossless) or smallest (also untiered, quantized "
+        "vertices, a coarser tree, LZ4 HC 9: 34-39 % of balanced, the same frame time for the same "
+        "accuracy, a slower build); the options below override it",
+    )
     quantized_splits: bool = Field(
         True, description="split planes on a 20-bit grid of their cell: 5 % smaller, the same images"
     )

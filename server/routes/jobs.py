@@ -13,6 +13,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
 from vastray.build import INCORE_BYTES_PER_TRIANGLE, MIN_INCORE_TRIANGLES
+from vastray.layouts import LAYOUT_FLAGS, layout_options
 from vastray.schemas import TERMINAL_JOB_STATES, BuildOptionsIn, JobInfo, JobRequest
 from vastray.server.aio import ShutdownError, get_or_stop
 from vastray.server.app import State
@@ -71,19 +72,24 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
         )
     threads = s.build_threads if options is None or options.threads is None else options.threads
     opts: dict[str, int | float | bool] = {"memory": memory, "threads": threads}
-    # Layout options are recorded only when on, as the model's options (absent: off).
-    if options is None or options.quantized_splits:
+    # The layout's options, then those the request names over them. Each is recorded
+    # only when on (absent: off), as the model's options.
+    chosen = layout_options(options.layout if options is not None else "balanced")
+    if options is not None:
+        for name in LAYOUT_FLAGS:
+            value = getattr(options, name)
+            if name in options.model_fields_set and value is not None:
+                chosen[name] = value
+    if chosen.get("quantized_splits", True):
         opts["quantized_splits"] = True
-    if options is not None and options.quantized_vertices:
-        opts["quantized_vertices"] = True
-    if options is not None and options.compact_triangles:
-        opts["compact_triangles"] = True
-    if options is not None and options.tier_width is not None:
-        opts["tier_width"] = options.tier_width
-    if options is not None and options.traversal_cost is not None:
-        opts["traversal_cost"] = options.traversal_cost
-    if options is not None and options.lz4_hc_level:
-        opts["lz4_hc_level"] = options.lz4_hc_level
+    for name in ("quantized_vertices", "compact_triangles"):
+        if chosen.get(name):
+            opts[name] = True
+    for name in ("tier_width", "traversal_cost"):
+        if chosen.get(name) is not None:
+            opts[name] = chosen[name]
+    if chosen.get("lz4_hc_level"):
+        opts["lz4_hc_level"] = chosen["lz4_hc_level"]
     return opts
 
 

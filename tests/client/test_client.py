@@ -131,9 +131,10 @@ def test_a_view_reconnects_after_a_server_restart(tmp_path: Path) -> None:
     server = ServerProcess(tmp_path / "data", "--no-demo", port=port).start()
     try:
         with Client(f"{server.url}/?key={server.key}") as vr:
-            job = vr.wait(vr.build("scene:spheres:4000:2", quantized_splits=True, tier_width=0))
-            # The smaller layout and no tiers: the same views.
-            assert job.options["quantized_splits"] is True and job.options["tier_width"] == 0
+            job = vr.wait(vr.build("scene:spheres:4000:2", layout="smaller", tier_width=0))
+            # The smaller layout (compact blocks) and, over it, no tiers: the same views.
+            assert job.options["compact_triangles"] is True and job.options["tier_width"] == 0
+            assert job.options["quantized_splits"] is True and "traversal_cost" not in job.options
             with vr.view(job.model_id, viewport=(96, 64)) as view:
                 eye, target = orbit_eye(tuple(view.model_info["bounds"]), 0.4)
                 seq = view.set_camera(eye, target)

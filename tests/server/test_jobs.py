@@ -225,6 +225,35 @@ def test_a_build_chooses_its_traversal_cost(server: ServerProcess, api: httpx.Cl
         assert r.status_code == 422 and "traversal_cost" in r.text, r.text
 
 
+def test_a_build_names_a_layout_and_options_override_it(server: ServerProcess, api: httpx.Client) -> None:
+    """`layout` sets the options vastray/layouts.py names for it, the job and the model
+    record them, an option sent beside it wins, and the schema offers exactly those
+    layouts: an unknown one is refused with a 422 naming the field."""
+    from vastray.layouts import LAYOUTS
+    from vastray.modelfile import ModelFile
+    from vastray.schemas import BuildOptionsIn
+
+    assert set(BuildOptionsIn.model_json_schema()["properties"]["layout"]["enum"]) == set(LAYOUTS)
+    smallest = {"compact_triangles": True, "quantized_vertices": True, "tier_width": 0, "traversal_cost": 6}
+    cases = [
+        ({"layout": "smallest"}, {**smallest, "lz4_hc_level": 9}),
+        ({"layout": "smallest", "traversal_cost": 4, "lz4_hc_level": 0}, {**smallest, "traversal_cost": 4}),
+        ({"layout": "smaller"}, {"compact_triangles": True}),
+    ]
+    for options, expected in cases:
+        body = {"source": "scene:plant:20000:5", "options": options}
+        done = wait_for_job(api, api.post("/api/jobs", json=body).json()["id"])
+        assert done["state"] == "succeeded", done
+        recorded = {k: v for k, v in done["options"].items() if k not in ("memory", "threads")}
+        assert recorded == {"quantized_splits": True, **expected}, recorded
+        assert api.get(f"/api/models/{done['model_id']}").json()["build"]["options"] == done["options"]
+        with ModelFile(server.data_dir / "models" / f"{done['model_id']}.vast") as model:
+            assert model.compact_triangles and model.tiered == ("tier_width" not in expected)
+            assert model.quantized_vertices == expected.get("quantized_vertices", False)
+    r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"layout": "tiny"}})
+    assert r.status_code == 422 and "layout" in r.text and "smallest" in r.text, r.text
+
+
 def test_a_build_chooses_its_lz4_hc_level(server: ServerProcess, api: httpx.Client) -> None:
     """`lz4_hc_level` reaches the block compressor: the same input makes a smaller file of
     the same blocks, the job records the level, and a level past 12 is refused."""

@@ -484,14 +484,10 @@ class App {
     $("job").hidden = false;
     $("job-label").textContent = `uploading ${file.name}`;
     const bar = $("job-progress");
-    // The build options of each layout choice (docs/FORMAT.md, Measured choices).
-    const layouts = {
-      smaller: { compact_triangles: true },
-      smallest: {
-        compact_triangles: true, quantized_vertices: true, tier_width: 0, traversal_cost: 6, lz4_hc_level: 9,
-      },
-    };
-    const options = layouts[$("upload-layout").value];
+    // A named layout (the server's vastray/layouts.py says what each sets); "balanced",
+    // the default, registers the upload as it comes.
+    const layout = $("upload-layout").value;
+    const options = layout === "balanced" ? null : { layout };
     try {
       const up = await this.api.upload(file, (f) => { bar.value = 100 * f; }, { register: !options });
       const created = options ? await this.api.register(up.id, options) : up.created;
