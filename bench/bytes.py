@@ -17,6 +17,7 @@ with quantized vertices the packed record's, FORMAT.md §11).
     python bench/bytes.py --triangles plain MODELS...    # the plain triangle blocks
     python bench/bytes.py --tier-width 0 MODELS...   # untiered, to compare
     python bench/bytes.py --six-word-voxels MODELS...   # no packed voxels (FORMAT.md §10)
+    python bench/bytes.py --layout smallest MODELS...   # a named layout (vastray/layouts.py)
 
 A tiered model (FORMAT.md §15) stores a triangle once per tier block that references it,
 so its stored triangles and vertices per triangle are higher: the *tiers* column says how
@@ -41,6 +42,7 @@ sys.path.insert(0, str(HERE))
 from common import machine_info, markdown_table  # noqa: E402
 
 from vastray.build import BuildOptions, build_model  # noqa: E402
+from vastray.layouts import LAYOUTS, layout_options  # noqa: E402
 from vastray.modelfile import COMPACT_GROUP, ModelFile  # noqa: E402
 
 SECTIONS = ("header", "list", "triangles", "ids", "colours", "vertices")
@@ -155,6 +157,8 @@ def main() -> None:
     )
     ap.add_argument("--triangles", choices=("plain", "compact"), default=None,
                     help="triangle block layout (default: the builder's)")  # fmt: skip
+    ap.add_argument("--layout", choices=list(LAYOUTS), default=None,
+                    help="a named layout's options (vastray/layouts.py), not the flags above")  # fmt: skip
     ap.add_argument("--out", type=Path, default=HERE / "results")
     ap.add_argument("--name", default=None, help="write NAME.md to --out (default: print only)")
     args = ap.parse_args()
@@ -165,16 +169,18 @@ def main() -> None:
             path = src
             if src.suffix != ".vast":
                 path = Path(tmp) / f"{src.stem}.vast"
-                layout = {} if args.triangles is None else {"compact_triangles": args.triangles == "compact"}
-                opts = BuildOptions(
-                    quantized_splits=args.quantized_splits,
-                    quantized_vertices=args.quantized_vertices,
-                    tier_width=args.tier_width,
-                    traversal_cost=args.traversal_cost,
-                    packed_voxels=not args.six_word_voxels,
-                    overwrite=True,
-                    **layout,
-                )
+                if args.layout:
+                    fields = layout_options(args.layout)
+                else:
+                    fields = {
+                        "quantized_splits": args.quantized_splits,
+                        "quantized_vertices": args.quantized_vertices,
+                        "tier_width": args.tier_width,
+                        "traversal_cost": args.traversal_cost,
+                    }
+                    if args.triangles is not None:
+                        fields["compact_triangles"] = args.triangles == "compact"
+                opts = BuildOptions(packed_voxels=not args.six_word_voxels, overwrite=True, **fields)
                 t0 = time.perf_counter()
                 build_model(src, path, opts)
                 print(f"{src.name}: built in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
@@ -211,6 +217,7 @@ def main() -> None:
     print(md)
     if args.name:
         flags = [f for f in ("quantized_splits", "quantized_vertices", "six_word_voxels") if getattr(args, f)]
+        flags = [f"layout {args.layout}"] if args.layout else flags
         kind = "compact" if compact else "plain"
         text = [
             f"# Bytes per triangle by section ({', '.join(flags) or 'full precision'}; "
