@@ -17,6 +17,7 @@ with quantized vertices the packed record's, FORMAT.md §11).
     python bench/bytes.py --triangles plain MODELS...    # the plain triangle blocks
     python bench/bytes.py --tier-width 0 MODELS...   # untiered, to compare
     python bench/bytes.py --six-word-voxels MODELS...   # no packed voxels (FORMAT.md §10)
+    python bench/bytes.py --padded-treelets MODELS...   # no packed treelets (FORMAT.md §7-8)
     python bench/bytes.py --layout smallest MODELS...   # a named layout (vastray/layouts.py)
 
 A tiered model (FORMAT.md §15) stores a triangle once per tier block that references it,
@@ -155,6 +156,11 @@ def main() -> None:
         action="store_true",
         help="store every six-sample voxel in six words (no packed voxels), as version 5 did",
     )
+    ap.add_argument(
+        "--padded-treelets",
+        action="store_true",
+        help="treelets padded to 8 bytes, LOD words in 8-byte units (no packed treelets), as version 6 did",
+    )
     ap.add_argument("--triangles", choices=("plain", "compact"), default=None,
                     help="triangle block layout (default: the builder's)")  # fmt: skip
     ap.add_argument("--layout", choices=list(LAYOUTS), default=None,
@@ -180,7 +186,12 @@ def main() -> None:
                     }
                     if args.triangles is not None:
                         fields["compact_triangles"] = args.triangles == "compact"
-                opts = BuildOptions(packed_voxels=not args.six_word_voxels, overwrite=True, **fields)
+                opts = BuildOptions(
+                    packed_voxels=not args.six_word_voxels,
+                    packed_treelets=not args.padded_treelets,
+                    overwrite=True,
+                    **fields,
+                )
                 t0 = time.perf_counter()
                 build_model(src, path, opts)
                 print(f"{src.name}: built in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
@@ -216,8 +227,11 @@ def main() -> None:
     )  # fmt: skip
     print(md)
     if args.name:
-        flags = [f for f in ("quantized_splits", "quantized_vertices", "six_word_voxels") if getattr(args, f)]
-        flags = [f"layout {args.layout}"] if args.layout else flags
+        flags = ("quantized_splits", "quantized_vertices", "six_word_voxels", "padded_treelets")
+        flags = [f for f in flags if getattr(args, f)]
+        if args.layout:
+            kept = ("six_word_voxels", "padded_treelets")
+            flags = [f"layout {args.layout}", *(f for f in flags if f in kept)]
         kind = "compact" if compact else "plain"
         text = [
             f"# Bytes per triangle by section ({', '.join(flags) or 'full precision'}; "

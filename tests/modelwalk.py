@@ -41,6 +41,7 @@ TIERED = 1 << 6  # header flag (version 5): each level in streams by coarseness 
 TIER_COUNT_AT = 224  # the header's u32 tier count (tiers per level)
 TIER_SHIFT = 26  # a block reference: tier in bits 26-31, stream-relative id below
 COMPACT_TRIANGLES = 1 << 5  # header flag (version 5): compact triangle blocks
+PACKED_TREELETS = 1 << 7  # header flag (version 7): LOD words in 4-byte units, treelets unpadded
 COMPACT_HEADER = 32  # bytes of a compact block's header
 GROUP = 8  # triangles per group of a compact block
 
@@ -441,6 +442,18 @@ class Walker:
             raise WalkError("level 0 is not the root's single block, in tier 0")
         stack = [(0, 0, 0, 0, 0, lo, hi)]
         quantized = bool(h["version"] >= 3 and h["flags"] & QUANTIZED_SPLITS)
+        packed_treelets = bool(h["version"] >= 7 and h["flags"] & PACKED_TREELETS)
+        if packed_treelets and not quantized:
+            raise WalkError("packed treelets without quantized splits")
+        # A LOD word's fields (shift, width, unit in bytes): voxel, right from left, first child.
+        lod_fields = ((4, 5, 4), (9, 6, 4), (15, 15, 4))
+        if not packed_treelets:
+            lod_fields = ((4, 7, 4), (11, 6, 8), (17, 13, 8))
+
+        def lod_field(w: int, which: int) -> int:
+            shift, width, unit = lod_fields[which]
+            return unit * ((w >> shift) & ((1 << width) - 1))
+
         while stack:
             level, tier, block, off, depth, lo, hi = stack.pop()
             data = self.read(block)
@@ -462,7 +475,7 @@ class Walker:
             else:
                 node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
             if w & LOD:
-                voxel = off + 4 * ((w >> 4) & 127)
+                voxel = off + lod_field(w, 0)
                 if quantized:  # a 12-byte LOD node: the radius is half the cell's diagonal
                     ext = (hi - lo).astype(np.float32)
                     node.radius = float(np.float32(0.5) * np.sqrt(np.float32(ext @ ext)))
@@ -481,8 +494,8 @@ class Walker:
                 reference = self.word(data, off + (8 if quantized else 12))
                 child_tier, child_block, _ = self.resolve(child_level, reference)
                 node.child_tier = child_tier
-                l_off = 8 * ((w >> 17) & 8191)
-                r_off = l_off + 8 * ((w >> 11) & 63) if has_l else l_off
+                l_off = lod_field(w, 2)
+                r_off = l_off + lod_field(w, 1) if has_l else l_off
                 child_depth = 0
             else:
                 child_level, child_tier, child_block, child_depth = level, tier, block, depth + 1

@@ -25,6 +25,7 @@ from vastray.build import BuildOptions, build_model
 from vastray.camera import frame_bounds
 from vastray.modelfile import HEADER_SIZE, VERSION, ModelError, ModelFile
 from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.renderer import Frame
 
 # The real meshes are part of the bar (tests/conftest.py): a missing one fails the build.
 MODELS = Path(os.environ.get("VASTRAY_MODELS") or Path(__file__).resolve().parents[2] / "shared" / "models")
@@ -45,8 +46,11 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Built]:
         if name not in cache:
             source, memory = SOURCES[name]
             packed, unpacked = folder / f"{name}.vast", folder / f"{name}-six.vast"
-            report = build_model(source, packed, BuildOptions(memory=memory))
-            build_model(source, unpacked, BuildOptions(memory=memory, packed_voxels=False))
+            # Treelets in version 6's layout (FLAG_PACKED_TREELETS is version 7's): the
+            # files relabelled as version 5 below must hold nothing of a later version.
+            options = {"memory": memory, "packed_treelets": False}
+            report = build_model(source, packed, BuildOptions(**options))
+            build_model(source, unpacked, BuildOptions(packed_voxels=False, **options))
             cache[name] = (packed, unpacked, report)
         return cache[name]
 
@@ -81,7 +85,7 @@ def test_the_same_samples_in_fewer_bytes(built: Callable[[str], Built], name: st
     else:
         assert count < report["voxels_six"]
     with ModelFile(packed) as p, ModelFile(unpacked) as u:
-        assert p.header["version"] == u.header["version"] == VERSION == 6
+        assert p.header["version"] == u.header["version"] == VERSION == 7
 
         # A treelet is 8 bytes shorter per packed voxel (its padding to 8 unchanged), so
         # the node levels' raw bytes are too; the triangle level is the same.
@@ -149,18 +153,22 @@ def test_every_bit_of_the_packed_form_decodes_as_specified() -> None:
         native.voxel_face_sample(struct.pack("<I", 1 << 31), 6)
 
 
+def complete_frames(path: Path, shadings: tuple[str, ...]) -> list[Frame]:
+    """A model's complete out-of-core frames of its bounds, at PoE 8, 2 and 0 in each shading."""
+    with OutOfCoreModel(path, make_cache(64 << 20, 1)) as model:
+        camera = frame_bounds(*model.bounds, width=240, height=160)
+        return [
+            model.render_complete(camera, pixels_of_error=poe, shading=shading)
+            for poe in (8.0, 2.0, 0.0)
+            for shading in shadings
+        ]
+
+
 @pytest.mark.parametrize("name", ["plant", "out-of-core"])
 def test_frames_are_the_same(built: Callable[[str], Built], name: str) -> None:
     packed, unpacked, _ = built(name)
-    frames = {}
-    for key, path in (("packed", packed), ("six", unpacked)):
-        with OutOfCoreModel(path, make_cache(64 << 20, 1)) as model:
-            camera = frame_bounds(*model.bounds, width=240, height=160)
-            frames[key] = [
-                model.render_complete(camera, pixels_of_error=poe, shading=shading)
-                for poe in (8.0, 2.0, 0.0)
-                for shading in ("headlight", "sun")
-            ]
+    shadings = ("headlight", "sun")
+    frames = {"packed": complete_frames(packed, shadings), "six": complete_frames(unpacked, shadings)}
     for x, y in zip(frames["packed"], frames["six"], strict=True):
         np.testing.assert_array_equal(x.image, y.image)
         np.testing.assert_array_equal(x.prim, y.prim)

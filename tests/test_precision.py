@@ -49,7 +49,7 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, bool], P
 def test_the_header_says_which(models: dict[tuple[str, bool], Path]) -> None:
     for (_, quantized), path in models.items():
         with ModelFile(path) as model:
-            assert model.header["version"] == VERSION == 6
+            assert model.header["version"] == VERSION == 7
             assert bool(model.header["flags"] & FLAG_QUANTIZED_SPLITS) == quantized
             assert model.quantized_splits == quantized and model.stats()["quantized_splits"] == quantized
 

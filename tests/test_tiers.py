@@ -312,8 +312,8 @@ def test_tiered_and_unknown_flags_are_refused_clearly(pair: Callable[[str], Pair
 
     # A tiered file that claims to be version 4 (which had no tiers).
     refused(variant("v4", version=4), "unsupported attribute flags")
-    # A flag this version does not know (bit 7).
-    refused(variant("bit7", flags=flags | 1 << 7), "unsupported attribute flags")
+    # A flag this version does not know (bit 8).
+    refused(variant("bit8", flags=flags | 1 << 8), "unsupported attribute flags")
     # The tier count and the flag disagree, or the count is impossible.
     refused(variant("no-flag", flags=flags & ~FLAG_TIERED), "tier count set without the tiered flag")
     refused(variant("zero", tier_count=0), "implausible tier count")

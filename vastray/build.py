@@ -142,6 +142,10 @@ class BuildOptions:
     # (format version 6, docs/FORMAT.md §10): the same samples, 8 bytes fewer each.
     # False writes every one in six words, as version 5 did, for comparisons.
     packed_voxels: bool = True
+    # With quantized splits, treelets on 4-byte boundaries and LOD words in 4-byte units
+    # (format version 7, docs/FORMAT.md §8): the 8-byte padding took 4-5 % of the node
+    # levels. False writes version 6's layout, for comparisons and older-version tests.
+    packed_treelets: bool = True
     # Blocks compressed with LZ4 HC at this level (1 ... 12) instead of LZ4's fast
     # compressor (0): the same block format, read as fast; at 9 the default layout's
     # files are 5-7 % smaller and 10^7 builds take 1.4-1.6x as long (docs/FORMAT.md,
@@ -907,6 +911,7 @@ class _Builder:
             root_cell=(lo.tolist(), hi.tolist()),
             compact_triangles=self.opt.compact_triangles,
             packed_voxels=self.opt.packed_voxels,
+            packed_treelets=self.opt.packed_treelets,
             lz4_hc_level=self.opt.lz4_hc_level,
         )
         self.report("build", 0, self.build_total)
@@ -922,12 +927,14 @@ class _Builder:
         entries = layout.entries
         node_levels = len(stats["node_streams"])
         stored_total = sum(e[0] for e in entries)
+        packed_treelets = self.opt.quantized_splits and self.opt.packed_treelets  # only with quantized splits
         fields = {
             "flags": modelfile.FLAG_TRIANGLE_IDS
             | (modelfile.FLAG_COLOURS if self.src.has_colours else 0)
             | (modelfile.FLAG_QUANTIZED_SPLITS if self.opt.quantized_splits else 0)
             | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0)
-            | (modelfile.FLAG_COMPACT_TRIANGLES if self.opt.compact_triangles else 0),
+            | (modelfile.FLAG_COMPACT_TRIANGLES if self.opt.compact_triangles else 0)
+            | (modelfile.FLAG_PACKED_TREELETS if packed_treelets else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),

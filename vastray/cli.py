@@ -280,6 +280,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         return 0
     lo, hi = stats["bounds"]
     splits = ", quantized splits" if stats.get("quantized_splits") else ""
+    splits += " (packed treelets)" if stats.get("packed_treelets") else ""
     splits += ", quantized vertices" if stats.get("quantized_vertices") else ""
     splits += f", {stats['tiers']} coarseness tiers" if stats.get("tiers") else ""
     splits += ", compact triangles" if stats.get("compact_triangles") else ""

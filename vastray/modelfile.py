@@ -28,7 +28,7 @@ from vastray.direct_io import DirectFile
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-5: version 6 without its later additions
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-6: version 7 without its later additions
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -47,6 +47,8 @@ TIER_SHIFT: int = _F["tier_shift"]  # a node's block reference: tier << TIER_SHI
 MAX_TIERS: int = _F["max_tiers"]
 # Compact triangle blocks: bit-packed leaf records, grouped triangles, a palette (§11a)
 FLAG_COMPACT_TRIANGLES: int = _F["flag_compact_triangles"]
+# Treelets on 4-byte boundaries, LOD words in 4-byte units; with quantized splits (version 7, §8)
+FLAG_PACKED_TREELETS: int = _F["flag_packed_treelets"]
 COMPACT_HEADER: int = _F["compact_header"]  # bytes of a compact block's header
 COMPACT_GROUP: int = _F["compact_group"]  # triangles per group
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
@@ -407,8 +409,11 @@ class ModelFile:
         known |= FLAG_QUANTIZED_VERTICES if h["version"] >= 4 else 0
         known |= FLAG_TIERED if h["version"] >= 5 else 0
         known |= FLAG_COMPACT_TRIANGLES if h["version"] >= 5 else 0
+        known |= FLAG_PACKED_TREELETS if h["version"] >= 7 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
+        if h["flags"] & FLAG_PACKED_TREELETS and not h["flags"] & FLAG_QUANTIZED_SPLITS:
+            raise self._fail("packed treelets flag set without quantized splits")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
             h.update(parts_offset=0, parts_size=0, parts_crc32=0, part_count=0)
         if h["version"] < 5:  # bytes 224-227 were padding
@@ -548,6 +553,11 @@ class ModelFile:
     def quantized_splits(self) -> bool:
         """Basic nodes of 4 bytes with split planes on their cell's grid (version 3)."""
         return bool(self.header["flags"] & FLAG_QUANTIZED_SPLITS)
+
+    @property
+    def packed_treelets(self) -> bool:
+        """Treelets on 4-byte boundaries, LOD words in 4-byte units (version 7, FORMAT.md §8)."""
+        return bool(self.header["flags"] & FLAG_PACKED_TREELETS)
 
     @property
     def quantized_vertices(self) -> bool:
@@ -700,6 +710,7 @@ class ModelFile:
                 self.tier_count,
                 self.tiered,
                 self.compact_triangles,
+                self.packed_treelets,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -744,6 +755,7 @@ class ModelFile:
             "degenerate": h["degenerate"],
             "colours": self.has_colours,
             "quantized_splits": self.quantized_splits,
+            "packed_treelets": self.packed_treelets,
             "quantized_vertices": self.quantized_vertices,
             "tiers": self.tier_count if self.tiered else 0,
             "compact_triangles": self.compact_triangles,

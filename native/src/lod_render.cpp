@@ -35,6 +35,7 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.tiered = index.tiered();
         lane.has_colours = index.has_colours();
         lane.quantized_splits = index.quantized_splits();
+        lane.packed_treelets = index.packed_treelets();
         lane.quantized_vertices = index.quantized_vertices();
         lane.vertex_steps = index.vertex_steps();
         lane.compact_triangles = index.compact_triangles();

@@ -86,8 +86,9 @@ private:
             if (level + 1 >= tri_level_) bad(block, "LOD node in the last node level");
             child_level = level + 1;
             l_block = r_block = block_of(child_level, word(block, off + lod_child_block_at(in_.quantized_splits)), block).first;
-            l_off = 8 * static_cast<std::size_t>(lod_child_off8(w));
-            r_off = has_l ? l_off + 8 * static_cast<std::size_t>(lod_right_from_left8(w)) : l_off;
+            const LodOffsets o = lod_offsets(w, in_.packed_treelets);
+            l_off = o.first_child;
+            r_off = has_l ? l_off + o.right_from_left : l_off;
         } else {
             r_off = has_l ? off + size * static_cast<std::size_t>(basic_right_off8(w)) : off + size;
             if (has_r && r_off <= off + size && has_l) bad(block, "right child offset does not point past the left child");

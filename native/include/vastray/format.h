@@ -28,8 +28,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 6;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-5 are version 6 without its later additions
+constexpr std::uint32_t kVersion = 7;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-6 are version 7 without its later additions
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -41,6 +41,9 @@ constexpr std::uint32_t kFlagQuantizedSplits = 1u << 3;  // 4-byte basic nodes, 
 constexpr std::uint32_t kFlagQuantizedVertices = 1u << 4;  // vertices on a grid of the root cell, bit-packed per block
 constexpr std::uint32_t kFlagCompactTriangles = 1u << 5;  // compact triangle blocks (version 5, below)
 constexpr std::uint32_t kFlagTiered = 1u << 6;  // levels split into streams by coarseness tier (version 5)
+// Treelets on 4-byte boundaries and LOD words in 4-byte units (version 7, with
+// kFlagQuantizedSplits only: their nodes are all multiples of 4 bytes), below.
+constexpr std::uint32_t kFlagPackedTreelets = 1u << 7;
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
@@ -82,7 +85,8 @@ inline std::size_t stream_index(std::size_t level, std::uint32_t tier, std::uint
 //                            8-byte units
 //                 word 2 enclosing-sphere radius (f32), word 3 the child block's
 //                 reference (its stream of the next LOD level, and its id relative to
-//                 the stream's first block; see the tiers above).
+//                 the stream's first block; see the tiers above). With packed
+//                 treelets (version 7) the offsets move and count in 4-byte units (below).
 // leaf (8 B, bit 31 clear):  bits 0-15 first entry in the triangle block's list section,
 //                            bits 16-30 triangle count; word 1 the triangle block's
 //                            reference (a stream of the triangle level).
@@ -182,6 +186,29 @@ inline std::uint32_t basic_split_step(std::uint32_t w) { return (w >> 10) & (kSp
 inline std::uint32_t lod_voxel_off4(std::uint32_t w) { return (w >> 4) & 127u; }
 inline std::uint32_t lod_right_from_left8(std::uint32_t w) { return (w >> 11) & 63u; }
 inline std::uint32_t lod_child_off8(std::uint32_t w) { return (w >> 17) & 8191u; }
+
+// ---- packed treelets (version 7, kFlagPackedTreelets) ----------------------------------
+// In a quantized model every node and voxel is a multiple of 4 bytes, so treelets start
+// on 4-byte boundaries, unpadded (an 8-byte boundary left 4 bytes of zeros after about
+// half of them: 4-5 % of the node levels). A LOD word counts its offsets in 4-byte
+// units: bits 4-8 the voxel offset (a voxel lies at most 21 words past its node), 9-14
+// the right child treelet's offset from the left one (a quantized treelet is at most
+// 156 bytes), 15-29 the first child treelet's offset in its block (64 KiB / 4 = 2^14).
+inline std::uint32_t packed_lod_word(int axis, std::uint32_t empty, std::uint32_t voxel_off4,
+                                     std::uint32_t right_from_left4, std::uint32_t child_off4) {
+    return kInner | kLod | static_cast<std::uint32_t>(axis) | empty | (voxel_off4 << 4) | (right_from_left4 << 9) |
+           (child_off4 << 15);
+}
+constexpr std::uint32_t kPackedVoxelOffMax = 31, kPackedRightMax = 63, kPackedChildOffMax = 32767;
+
+// A LOD word's three offsets in bytes, in either layout.
+struct LodOffsets {
+    std::uint32_t voxel, right_from_left, first_child;
+};
+inline LodOffsets lod_offsets(std::uint32_t w, bool packed) {
+    if (packed) return {4 * ((w >> 4) & 31u), 4 * ((w >> 9) & 63u), 4 * ((w >> 15) & 32767u)};
+    return {4 * lod_voxel_off4(w), 8 * lod_right_from_left8(w), 8 * lod_child_off8(w)};
+}
 inline std::uint32_t leaf_first(std::uint32_t w) { return w & 0xffffu; }
 inline std::uint32_t leaf_count(std::uint32_t w) { return (w >> 16) & kMaxLeafTriangles; }
 

@@ -57,6 +57,7 @@ struct alignas(64) LodLane {
     bool tiered = false;
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
+    bool packed_treelets = false;   // FLAG_PACKED_TREELETS: LOD words in 4-byte units (format.h)
     bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: bit-packed grid offsets in triangle blocks
     Vec3f vertex_steps{1, 1, 1};      // that grid's steps
     bool compact_triangles = false;   // FLAG_COMPACT_TRIANGLES: compact triangle blocks (format.h)
@@ -153,11 +154,11 @@ inline float split_of(bool quantized, const NodeRef& node, std::uint32_t w) {
 
 // A LOD node's voxel: its samples, and its radius (a quantized model derives it from the
 // cell instead of storing it).
-inline Voxel voxel_of(bool quantized, const NodeRef& node, std::uint32_t w) {
+inline Voxel voxel_of(bool quantized, bool packed, const NodeRef& node, std::uint32_t w) {
     const float radius =
         quantized ? format::cell_radius(Vec3f(node.hi[0] - node.lo[0], node.hi[1] - node.lo[1], node.hi[2] - node.lo[2]))
                   : format::bits_float(load<std::uint32_t>(node.block + node.off + 8));
-    return {node.block + node.off + 4 * format::lod_voxel_off4(w), radius};
+    return {node.block + node.off + format::lod_offsets(w, packed).voxel, radius};
 }
 
 // The stream a block reference of `level` names: its first block, and one past its last
@@ -184,13 +185,15 @@ inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, f
 // loop or leave the block. The right child never lies before the left (a basic node's
 // offset is at least two nodes, a LOD node's at least 0), so when present it is the one
 // furthest on. Basic nodes are 8 bytes, 4 in a quantized model; offsets count in that.
+// `packed`: FLAG_PACKED_TREELETS, the LOD word's offsets in 4-byte units.
 template <bool Quantized>
-inline bool child_offsets(std::uint32_t w, std::uint32_t off, std::uint32_t& l_off, std::uint32_t& r_off) {
+inline bool child_offsets(std::uint32_t w, std::uint32_t off, bool packed, std::uint32_t& l_off, std::uint32_t& r_off) {
     using namespace format;
     const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
     if (is_lod(w)) {
-        l_off = 8 * lod_child_off8(w);
-        r_off = has_l ? l_off + 8 * lod_right_from_left8(w) : l_off;
+        const LodOffsets o = lod_offsets(w, Quantized && packed);
+        l_off = o.first_child;
+        r_off = has_l ? l_off + o.right_from_left : l_off;
     } else {
         constexpr std::uint32_t kNodeSize = Quantized ? 4 : 8;
         const std::uint32_t r = basic_right_off8(w);
@@ -649,7 +652,7 @@ public:
                     } else {
                         radius = bits_float(load<std::uint32_t>(block + off + 8));
                     }
-                    const Voxel here{block + off + 4 * lod_voxel_off4(w), radius};
+                    const Voxel here{block + off + lod_offsets(w, Quantized && lane.packed_treelets).voxel, radius};
                     const float reach = cone_t0 + tmin;
                     if (radius <= reach * cone) {
                         stand_in = here;
@@ -664,7 +667,7 @@ public:
                     voxel = here;
                     child_level = level + 1;
                 }
-                if (!child_offsets<Quantized>(w, off, l_off, r_off)) goto done;  // damaged
+                if (!child_offsets<Quantized>(w, off, lane.packed_treelets, l_off, r_off)) goto done;  // damaged
 
                 const float o = org_[axis];
                 const float t_split = (split - o) * inv_[axis];

@@ -217,7 +217,7 @@ public:
                 const std::uint8_t* child_block = node.block;
                 std::uint32_t child_level = node.level;
                 if (is_lod(w)) {
-                    const Voxel here = lod_detail::voxel_of(Quantized, node, w);
+                    const Voxel here = lod_detail::voxel_of(Quantized, lane.packed_treelets, node, w);
                     const vf radius = vf::broadcast(here.radius);
                     int rest = 0;
                     for (int v = 0; v < K; ++v) {
@@ -241,7 +241,9 @@ public:
                 // and the one it puts aside are written).
                 const bool has_l = (w & kLeftEmpty) == 0, has_r = (w & kRightEmpty) == 0;
                 std::uint32_t l_off, r_off;
-                if (!lod_detail::child_offsets<Quantized>(w, node.off, l_off, r_off)) return true;  // damaged
+                if (!lod_detail::child_offsets<Quantized>(w, node.off, lane.packed_treelets, l_off, r_off)) {
+                    return true;  // damaged
+                }
                 // The packet's near child: the origin's side (shared origin), else the side
                 // the directions leave.
                 bool near_is_left, may_flip = true;

@@ -47,6 +47,10 @@ struct ModelWriterParams {
     // format::pack_voxel): the same samples, 8 bytes fewer. Off writes six words, as
     // version 5 did (for comparisons).
     bool packed_voxels = true;
+    // With quantized splits: treelets on 4-byte boundaries and LOD words in 4-byte units
+    // (format version 7, FLAG_PACKED_TREELETS). Off pads them to 8 bytes, as version 6
+    // did (for comparisons and older-version tests).
+    bool packed_treelets = true;
     // Blocks compressed with LZ4 HC at this level (1 ... 12) instead of the fast
     // compressor (0): the same format and decoding, smaller blocks, a slower build.
     int lz4_hc_level = 0;

@@ -64,9 +64,9 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     } else {
         const auto [block, off] = nodes.place(level + 1, tier, a, b);
         node.child_block = reference(tier, block);
-        node.child_off8 = static_cast<std::uint32_t>(off / 8);
+        node.child_off = static_cast<std::uint32_t>(off);
     }
-    node.right_from_left8 = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size() / 8) : 0;
+    node.right_from_left = a != nullptr && b != nullptr ? static_cast<std::uint32_t>(a->bytes.size()) : 0;
     const Vec3f e = node.cell.extent();
     node.radius = format::cell_radius(e);
 }
@@ -196,7 +196,7 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& tri
                 continue;
             }
             const Placed& p = placed[static_cast<std::size_t>(q.unit)];
-            w = (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(p.offset / 8) << 17);
+            w = with_child_offset(w, p.offset, packed_treelets());
             std::memcpy(at, &w, 4);
             std::memcpy(at + format::lod_child_block_at(p_.kd.quantized_splits), &p.reference, 4);
         }

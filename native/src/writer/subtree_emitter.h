@@ -74,8 +74,10 @@ public:
 
     // Lays out a finished treelet into `out`.
     void serialise(std::vector<TreeletNode>& treelet, Pending& out) {
-        serialise_treelet(treelet, stats, out, p_.kd.quantized_splits);
+        serialise_treelet(treelet, stats, out, p_.kd.quantized_splits, packed_treelets());
     }
+    // FLAG_PACKED_TREELETS: with quantized splits only (their nodes are multiples of 4).
+    bool packed_treelets() const { return p_.kd.quantized_splits && p_.packed_treelets; }
 
     // The tier of the units below a LOD node (or a part's root) whose cell is `cell`.
     std::uint32_t tier_below(const Box3f& cell) const { return tiering_.tier_of(format::cell_radius(cell.extent())); }

@@ -60,7 +60,36 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
     collect(tree, root, cell, 0, nodes);
 }
 
-void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized) {
+namespace {
+
+// The LOD word of `n` in either layout; a field that does not fit is a logic error.
+std::uint32_t lod_word_of(const TreeletNode& n, std::size_t voxel_off, bool packed) {
+    const auto voxel4 = static_cast<std::uint32_t>(voxel_off / 4);
+    if (packed) {
+        const std::uint32_t right4 = n.right_from_left / 4, child4 = n.child_off / 4;
+        if (voxel4 > kPackedVoxelOffMax || right4 > kPackedRightMax || child4 > kPackedChildOffMax ||
+            (n.right_from_left | n.child_off) % 4 != 0) {
+            throw std::logic_error("LOD node field overflow");
+        }
+        return packed_lod_word(n.axis, n.empty, voxel4, right4, child4);
+    }
+    const std::uint32_t right8 = n.right_from_left / 8, child8 = n.child_off / 8;
+    if (voxel4 > 127 || right8 > 63 || child8 > 8191 || (n.right_from_left | n.child_off) % 8 != 0) {
+        throw std::logic_error("LOD node field overflow");
+    }
+    return lod_word(n.axis, n.empty, voxel4, right8, child8);
+}
+
+}  // namespace
+
+std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, bool packed) {
+    if (packed) return (w & ~(32767u << 15)) | (static_cast<std::uint32_t>(child_off / 4) << 15);
+    return (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(child_off / 8) << 17);
+}
+
+void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized,
+                       bool packed) {
+    packed = packed && quantized;
     const std::size_t basic_size = quantized ? 4 : 8;
     out.nodes = static_cast<std::uint32_t>(nodes.size());
     out.voxels = 0;
@@ -81,7 +110,8 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats,
         voxel_at[i] = cursor;
         cursor += 4 * static_cast<std::size_t>(nodes[i].voxel_words);
     }
-    cursor = (cursor + 7) & ~std::size_t{7};
+    const std::size_t align = packed ? 4 : 8;
+    cursor = (cursor + align - 1) & ~(align - 1);
     out.bytes.assign(cursor, 0);
     auto put = [&](std::size_t at, std::uint32_t w) { std::memcpy(out.bytes.data() + at, &w, 4); };
     for (std::size_t i = 0; i < nodes.size(); ++i) {
@@ -106,11 +136,7 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats,
             }
             case TreeletNode::Lod: {
                 out.voxels++;
-                const auto voxel4 = static_cast<std::uint32_t>((voxel_at[i] - n.offset) / 4);
-                if (voxel4 > 127 || n.right_from_left8 > 63 || n.child_off8 > 8191) {
-                    throw std::logic_error("LOD node field overflow");
-                }
-                put(n.offset, lod_word(n.axis, n.empty, voxel4, n.right_from_left8, n.child_off8));
+                put(n.offset, lod_word_of(n, voxel_at[i] - n.offset, packed));
                 put(n.offset + 4, float_bits(n.split));
                 if (!quantized) put(n.offset + 8, float_bits(n.radius));  // quantized: derived from the cell
                 put(n.offset + lod_child_block_at(quantized), n.child_block);

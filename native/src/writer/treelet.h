@@ -24,7 +24,7 @@ struct Patch {
 
 // A finished treelet waiting for its parent to place it.
 struct Pending {
-    std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes
+    std::vector<std::uint8_t> bytes;  // the serialised treelet, a multiple of 8 bytes (4 packed)
     std::vector<Proxy> proxies;       // what the LOD node above samples its voxel from
     std::vector<Patch> patches;       // ids to resolve when a parallel part is merged
     std::uint32_t nodes = 0, voxels = 0;  // what the level table counts where it is placed
@@ -40,7 +40,9 @@ struct TreeletNode {
     std::uint32_t kd_left = 0, kd_right = 0;  // LOD (in-core): kd-tree indices of the children
     int child_handles[2] = {-1, -1};          // LOD (out of core): pending children
     float radius = 0;
-    std::uint32_t child_block = 0, child_off8 = 0, right_from_left8 = 0;  // child_block: a block reference
+    // LOD: the child treelets' block (a block reference), the first one's byte offset in it,
+    // and the right one's from the left one.
+    std::uint32_t child_block = 0, child_off = 0, right_from_left = 0;
     std::uint32_t voxel[6] = {};  // the voxel's words (format::voxel_words)
     int voxel_words = 0;
     std::uint32_t kd_node = 0;  // leaf (in-core): its kd node
@@ -64,11 +66,15 @@ StreamStats& triangle_stream(ModelWriterStats& stats, std::uint32_t tier);
 void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cell, std::vector<TreeletNode>& nodes);
 
 // Lays out a finished treelet: nodes in preorder, then the voxels of its LOD nodes, padded
-// to 8 bytes. Leaves' triangle block ids are recorded as patches (a parallel part's ids
+// to 8 bytes (`packed`, FLAG_PACKED_TREELETS: 4, with LOD words in 4-byte units). Leaves' triangle block ids are recorded as patches (a parallel part's ids
 // are local until it is merged). Counts every node by kind in `stats`, and in `out` the
 // nodes and voxels its stream will count. `quantized`: basic nodes
 // take 4 bytes with their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS);
 // a split off that grid is a logic error.
-void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized = false);
+void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized = false,
+                       bool packed = false);
+
+// A LOD word's first-child field set to `child_off` bytes (a deferred unit's placement).
+std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, bool packed);
 
 }  // namespace vastray::writer
