@@ -194,20 +194,34 @@ inline std::uint32_t lod_child_off8(std::uint32_t w) { return (w >> 17) & 8191u;
 // units: bits 4-8 the voxel offset (a voxel lies at most 21 words past its node), 9-14
 // the right child treelet's offset from the left one (a quantized treelet is at most
 // 156 bytes), 15-29 the first child treelet's offset in its block (64 KiB / 4 = 2^14).
+constexpr int kPackedVoxelShift = 4, kPackedRightShift = 9, kPackedChildShift = 15;
+constexpr std::uint32_t kPackedVoxelOffMax = 31, kPackedRightMax = 63, kPackedChildOffMax = 32767;
 inline std::uint32_t packed_lod_word(int axis, std::uint32_t empty, std::uint32_t voxel_off4,
                                      std::uint32_t right_from_left4, std::uint32_t child_off4) {
-    return kInner | kLod | static_cast<std::uint32_t>(axis) | empty | (voxel_off4 << 4) | (right_from_left4 << 9) |
-           (child_off4 << 15);
+    return kInner | kLod | static_cast<std::uint32_t>(axis) | empty | (voxel_off4 << kPackedVoxelShift) |
+           (right_from_left4 << kPackedRightShift) | (child_off4 << kPackedChildShift);
 }
-constexpr std::uint32_t kPackedVoxelOffMax = 31, kPackedRightMax = 63, kPackedChildOffMax = 32767;
 
 // A LOD word's three offsets in bytes, in either layout.
 struct LodOffsets {
     std::uint32_t voxel, right_from_left, first_child;
 };
 inline LodOffsets lod_offsets(std::uint32_t w, bool packed) {
-    if (packed) return {4 * ((w >> 4) & 31u), 4 * ((w >> 9) & 63u), 4 * ((w >> 15) & 32767u)};
+    if (packed) {
+        return {4 * ((w >> kPackedVoxelShift) & kPackedVoxelOffMax), 4 * ((w >> kPackedRightShift) & kPackedRightMax),
+                4 * ((w >> kPackedChildShift) & kPackedChildOffMax)};
+    }
     return {4 * lod_voxel_off4(w), 8 * lod_right_from_left8(w), 8 * lod_child_off8(w)};
+}
+
+// A LOD word with its first-child field set to `child_off` bytes, in either layout (the
+// writer places a deferred unit's treelets after their parent's word is written).
+inline std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, bool packed) {
+    if (packed) {
+        return (w & ~(kPackedChildOffMax << kPackedChildShift)) |
+               (static_cast<std::uint32_t>(child_off / 4) << kPackedChildShift);
+    }
+    return (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(child_off / 8) << 17);
 }
 inline std::uint32_t leaf_first(std::uint32_t w) { return w & 0xffffu; }
 inline std::uint32_t leaf_count(std::uint32_t w) { return (w >> 16) & kMaxLeafTriangles; }

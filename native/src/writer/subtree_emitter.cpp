@@ -196,7 +196,7 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& tri
                 continue;
             }
             const Placed& p = placed[static_cast<std::size_t>(q.unit)];
-            w = with_child_offset(w, p.offset, packed_treelets());
+            w = format::with_child_offset(w, p.offset, packed_treelets());
             std::memcpy(at, &w, 4);
             std::memcpy(at + format::lod_child_block_at(p_.kd.quantized_splits), &p.reference, 4);
         }

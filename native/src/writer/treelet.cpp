@@ -82,14 +82,8 @@ std::uint32_t lod_word_of(const TreeletNode& n, std::size_t voxel_off, bool pack
 
 }  // namespace
 
-std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, bool packed) {
-    if (packed) return (w & ~(32767u << 15)) | (static_cast<std::uint32_t>(child_off / 4) << 15);
-    return (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(child_off / 8) << 17);
-}
-
 void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized,
                        bool packed) {
-    packed = packed && quantized;
     const std::size_t basic_size = quantized ? 4 : 8;
     out.nodes = static_cast<std::uint32_t>(nodes.size());
     out.voxels = 0;

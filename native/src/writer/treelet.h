@@ -66,15 +66,14 @@ StreamStats& triangle_stream(ModelWriterStats& stats, std::uint32_t tier);
 void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cell, std::vector<TreeletNode>& nodes);
 
 // Lays out a finished treelet: nodes in preorder, then the voxels of its LOD nodes, padded
-// to 8 bytes (`packed`, FLAG_PACKED_TREELETS: 4, with LOD words in 4-byte units). Leaves' triangle block ids are recorded as patches (a parallel part's ids
+// to 8 bytes. Leaves' triangle block ids are recorded as patches (a parallel part's ids
 // are local until it is merged). Counts every node by kind in `stats`, and in `out` the
-// nodes and voxels its stream will count. `quantized`: basic nodes
-// take 4 bytes with their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS);
-// a split off that grid is a logic error.
+// nodes and voxels its stream will count. `quantized`: basic nodes take 4 bytes with
+// their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS); a split off that
+// grid is a logic error. `packed` (FLAG_PACKED_TREELETS, only with `quantized`): padded
+// to 4 bytes instead, with LOD words in 4-byte units.
 void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized = false,
                        bool packed = false);
 
-// A LOD word's first-child field set to `child_off` bytes (a deferred unit's placement).
-std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, bool packed);
 
 }  // namespace vastray::writer
