@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from modelwalk import Node, Walker, WalkError
-from test_build import SMALL_MEMORY, rewrite_version
+from test_build import SMALL_MEMORY, rewrite_version, run_cli
 from test_packed_voxels import complete_frames
 from test_tiers import refused, rewrite_header
 
@@ -81,6 +81,10 @@ def test_the_same_tree_in_fewer_bytes(built: Callable[[str], Pair], name: str) -
         assert raw_bytes(p, False) == raw_bytes(v6, False)
         assert raw_bytes(p, True) < 0.98 * raw_bytes(v6, True)
         assert p.header["file_size"] < v6.header["file_size"]
+    # `vastray inspect` says which layout a file has.
+    said = {path: run_cli("inspect", str(path), cwd=path.parent).stdout for path in (packed, padded)}
+    assert "format version 7, quantized splits (packed treelets)" in said[packed], said[packed]
+    assert "quantized splits" in said[padded] and "packed treelets" not in said[padded], said[padded]
     a, b = nodes(packed), nodes(padded)
     assert len(a) == len(b) > 1000
     for x, y in zip(a, b, strict=True):
