@@ -165,6 +165,7 @@ class AsyncClient:
         tier_width: float | None = None,
         traversal_cost: float | None = None,
         lz4_hc_level: int | None = None,
+        voxel_errors: bool | None = None,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
         directory; wait for it with `wait`. `layout`: what the file is for, "balanced" (the
@@ -179,7 +180,9 @@ class AsyncClient:
         `traversal_cost`: the kd-tree's SAH cost of a node step (default 4; higher: a coarser
         tree, faster to build and smaller, LOD frames nearer full detail at a PoE);
         `lz4_hc_level`: LZ4 HC for the blocks (1-12; default 0, LZ4's fast compressor): the same
-        format, read as fast, smaller, a slower build."""
+        format, read as fast, smaller, a slower build; `voxel_errors`: LOD tests compare a bound
+        on how far a voxel's box lies from its triangles, not the box's size (default on with
+        quantized splits; §15)."""
         chosen = {
             "layout": layout,
             "quantized_splits": quantized_splits,
@@ -188,6 +191,7 @@ class AsyncClient:
             "tier_width": tier_width,
             "traversal_cost": traversal_cost,
             "lz4_hc_level": lz4_hc_level,
+            "voxel_errors": voxel_errors,
         }
         options = {"memory": memory, "threads": threads, **{k: v for k, v in chosen.items() if v is not None}}
         body = {"source": source, "name": name, "options": options}

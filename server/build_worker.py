@@ -98,6 +98,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             tier_width=float(options.get("tier_width", BuildOptions.tier_width)),
             traversal_cost=float(options.get("traversal_cost", BuildOptions.traversal_cost)),
             lz4_hc_level=int(options.get("lz4_hc_level", 0)),
+            voxel_errors=bool(options.get("voxel_errors", False)),
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

@@ -42,6 +42,7 @@ TIER_COUNT_AT = 224  # the header's u32 tier count (tiers per level)
 TIER_SHIFT = 26  # a block reference: tier in bits 26-31, stream-relative id below
 COMPACT_TRIANGLES = 1 << 5  # header flag (version 5): compact triangle blocks
 PACKED_TREELETS = 1 << 7  # header flag (version 7): LOD words in 4-byte units, treelets unpadded
+VOXEL_ERRORS = 1 << 8  # header flag (version 8): a LOD node's word 1 is its split step and an error code
 COMPACT_HEADER = 32  # bytes of a compact block's header
 GROUP = 8  # triangles per group of a compact block
 
@@ -80,6 +81,7 @@ class Node:
     empty: tuple[bool, bool] = (False, False)  # (left child empty, right child empty)
     # LOD nodes
     radius: float = 0.0
+    error: float = 0.0  # what its LOD test compares: the radius, or (version 8) R * (code + 1) / 256
     samples: list[int] = field(default_factory=list)  # 32-bit samples, 1 or 6 (a packed voxel's decoded)
     voxel_words: list[int] = field(default_factory=list)  # the voxel as stored: 1, 4 (packed) or 6 words
     child_tier: int = 0  # the tier of the block holding its child treelets
@@ -445,6 +447,9 @@ class Walker:
         packed_treelets = bool(h["version"] >= 7 and h["flags"] & PACKED_TREELETS)
         if packed_treelets and not quantized:
             raise WalkError("packed treelets without quantized splits")
+        voxel_errors = bool(h["version"] >= 8 and h["flags"] & VOXEL_ERRORS)
+        if voxel_errors and not quantized:
+            raise WalkError("voxel errors without quantized splits")
         # A LOD word's fields (shift, width, unit in bytes): voxel, right from left, first child.
         lod_fields = ((4, 5, 4), (9, 6, 4), (15, 15, 4))
         if not packed_treelets:
@@ -472,6 +477,10 @@ class Walker:
             small = quantized and not w & LOD  # a 4-byte basic node
             if small:
                 node.split = dequantize(lo[node.axis], hi[node.axis], (w >> 10) & (SPLIT_STEPS - 1))
+            elif w & LOD and voxel_errors:  # word 1: split step in bits 0-19, error code in 20-27
+                if w1 >> 28 or not w1 & (SPLIT_STEPS - 1):
+                    raise WalkError(f"LOD split word {w1:#x} out of range")
+                node.split = dequantize(lo[node.axis], hi[node.axis], w1 & (SPLIT_STEPS - 1))
             else:
                 node.split = float(np.frombuffer(struct.pack("<I", w1), "<f4")[0])
             if w & LOD:
@@ -481,6 +490,10 @@ class Walker:
                     node.radius = float(np.float32(0.5) * np.sqrt(np.float32(ext @ ext)))
                 else:
                     node.radius = float(np.frombuffer(data[off + 8 : off + 12], "<f4")[0])
+                node.error = node.radius
+                if voxel_errors:  # (code + 1) / 256 is exact in f32: one rounding, as the readers do
+                    code = (w1 >> 20) & 255
+                    node.error = float(np.float32(node.radius) * np.float32(code + 1) / np.float32(256))
                 first_sample = self.word(data, voxel)
                 packed = not first_sample & ONE_SAMPLE and first_sample & PACKED_VOXEL
                 if packed and h["version"] < 6:

@@ -1201,9 +1201,10 @@ def test_a_layout_names_a_set_of_options_and_flags_override_it(tmp_path: Path) -
         "tiered": ["--layout", "smallest", "--tier-width", "1"],
     }
     said = {  # the report's layout line says what was built, overrides included
-        "balanced": "balanced: tiered, plain triangle blocks, quantized splits, traversal cost 4, LZ4\n",
+        "balanced": "balanced: tiered, plain triangle blocks, quantized splits, traversal cost 4, LZ4, "
+        "voxel errors\n",
         "smallest": "smallest: untiered, compact triangle blocks, quantized splits and vertices, "
-        "traversal cost 6, LZ4 HC 9\n",
+        "traversal cost 6, LZ4 HC 9, voxel errors\n",
         "tiered": "smallest: tiered, compact",
     }
     files = {}

@@ -74,7 +74,7 @@ def assert_same_frame(a, b) -> None:  # type: ignore[no-untyped-def]
 def test_the_header_says_which_and_the_file_is_smaller(models: dict[Key, Path]) -> None:
     for (name, kind, compact), path in models.items():
         with ModelFile(path) as model:
-            assert model.header["version"] == VERSION == 7
+            assert model.header["version"] == VERSION == 8
             assert bool(model.header["flags"] & FLAG_COMPACT_TRIANGLES) == compact
             assert model.compact_triangles == compact == model.stats()["compact_triangles"]
             if compact:

@@ -46,9 +46,10 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Built]:
         if name not in cache:
             source, memory = SOURCES[name]
             packed, unpacked = folder / f"{name}.vast", folder / f"{name}-six.vast"
-            # Treelets in version 6's layout (FLAG_PACKED_TREELETS is version 7's): the
-            # files relabelled as version 5 below must hold nothing of a later version.
-            options = {"memory": memory, "packed_treelets": False}
+            # Treelets in version 6's layout (FLAG_PACKED_TREELETS is version 7's, voxel
+            # errors version 8's): the files relabelled as version 5 below must hold
+            # nothing of a later version.
+            options = {"memory": memory, "packed_treelets": False, "voxel_errors": False}
             report = build_model(source, packed, BuildOptions(**options))
             build_model(source, unpacked, BuildOptions(packed_voxels=False, **options))
             cache[name] = (packed, unpacked, report)
@@ -85,7 +86,7 @@ def test_the_same_samples_in_fewer_bytes(built: Callable[[str], Built], name: st
     else:
         assert count < report["voxels_six"]
     with ModelFile(packed) as p, ModelFile(unpacked) as u:
-        assert p.header["version"] == u.header["version"] == VERSION == 7
+        assert p.header["version"] == u.header["version"] == VERSION == 8
 
         # A treelet is 8 bytes shorter per packed voxel (its padding to 8 unchanged), so
         # the node levels' raw bytes are too; the triangle level is the same.

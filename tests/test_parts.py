@@ -394,7 +394,7 @@ def test_broken_part_structure_is_refused(with_parts: Path) -> None:
             ModelFile(with_parts)
     # An unknown flag bit is refused.
     data = bytearray(original)
-    struct.pack_into("<I", data, 16, struct.unpack_from("<I", data, 16)[0] | 1 << 8)
+    struct.pack_into("<I", data, 16, struct.unpack_from("<I", data, 16)[0] | 1 << 9)
     fix_header_crc(data)
     with_parts.write_bytes(bytes(data))
     with pytest.raises(ModelError, match="unsupported attribute flags"):

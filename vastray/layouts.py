@@ -38,6 +38,7 @@ LAYOUT_FLAGS = (
     "tier_width",
     "traversal_cost",
     "lz4_hc_level",
+    "voxel_errors",
 )
 
 

@@ -28,7 +28,7 @@ from vastray.direct_io import DirectFile
 _F = native.FORMAT
 MAGIC: bytes = _F["magic"]  # ends in \x1a, which stops `type`/`cat` from dumping binary
 VERSION: int = _F["version"]  # what the writer writes
-OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-6: version 7 without its later additions
+OLDEST_VERSION: int = _F["oldest_version"]  # versions 1-7: version 8 without its later additions
 HEADER_SIZE: int = _F["header_size"]
 BLOCK_SIZE: int = _F["block_size"]
 CODEC_STORED: int = _F["codec_stored"]  # raw bytes (compression would not have saved space)
@@ -49,6 +49,7 @@ MAX_TIERS: int = _F["max_tiers"]
 FLAG_COMPACT_TRIANGLES: int = _F["flag_compact_triangles"]
 # Treelets on 4-byte boundaries, LOD words in 4-byte units; with quantized splits (version 7, §8)
 FLAG_PACKED_TREELETS: int = _F["flag_packed_treelets"]
+FLAG_VOXEL_ERRORS: int = _F["flag_voxel_errors"]
 COMPACT_HEADER: int = _F["compact_header"]  # bytes of a compact block's header
 COMPACT_GROUP: int = _F["compact_group"]  # triangles per group
 VERTEX_GRID_BITS: int = _F["vertex_grid_bits"]  # |grid index| < 2^20
@@ -410,10 +411,13 @@ class ModelFile:
         known |= FLAG_TIERED if h["version"] >= 5 else 0
         known |= FLAG_COMPACT_TRIANGLES if h["version"] >= 5 else 0
         known |= FLAG_PACKED_TREELETS if h["version"] >= 7 else 0
+        known |= FLAG_VOXEL_ERRORS if h["version"] >= 8 else 0
         if not h["flags"] & FLAG_TRIANGLE_IDS or h["flags"] & ~known:
             raise self._fail(f"unsupported attribute flags {h['flags']:#x}")
         if h["flags"] & FLAG_PACKED_TREELETS and not h["flags"] & FLAG_QUANTIZED_SPLITS:
             raise self._fail("packed treelets flag set without quantized splits")
+        if h["flags"] & FLAG_VOXEL_ERRORS and not h["flags"] & FLAG_QUANTIZED_SPLITS:
+            raise self._fail("voxel errors flag set without quantized splits")
         if h["version"] < 2:  # bytes 200-255 were padding (zero; the CRC covers them)
             h.update(parts_offset=0, parts_size=0, parts_crc32=0, part_count=0)
         if h["version"] < 5:  # bytes 224-227 were padding
@@ -558,6 +562,11 @@ class ModelFile:
     def packed_treelets(self) -> bool:
         """Treelets on 4-byte boundaries, LOD words in 4-byte units (version 7, FORMAT.md §8)."""
         return bool(self.header["flags"] & FLAG_PACKED_TREELETS)
+
+    @property
+    def voxel_errors(self) -> bool:
+        """LOD nodes carry a surface error for their LOD test (version 8, FORMAT.md §8)."""
+        return bool(self.header["flags"] & FLAG_VOXEL_ERRORS)
 
     @property
     def quantized_vertices(self) -> bool:
@@ -711,6 +720,7 @@ class ModelFile:
                 self.tiered,
                 self.compact_triangles,
                 self.packed_treelets,
+                self.voxel_errors,
             )
         except RuntimeError as exc:
             raise self._fail(str(exc)) from None
@@ -756,6 +766,7 @@ class ModelFile:
             "colours": self.has_colours,
             "quantized_splits": self.quantized_splits,
             "packed_treelets": self.packed_treelets,
+            "voxel_errors": self.voxel_errors,
             "quantized_vertices": self.quantized_vertices,
             "tiers": self.tier_count if self.tiered else 0,
             "compact_triangles": self.compact_triangles,

@@ -311,6 +311,12 @@ class BuildOptionsIn(Strict):
         description="LZ4 HC level of the blocks (default 0: LZ4's fast compressor): 1-12 make "
         "smaller blocks of the same format, read as fast, in a slower build",
     )
+    voxel_errors: bool | None = Field(
+        None,
+        description="LOD nodes keep a bound on how far their voxel's box lies from its triangles, "
+        "which their LOD test compares instead of the box's radius (default on, with quantized "
+        "splits): at the same accuracy 0.6-0.8x the working set of a large model's overview",
+    )
 
 
 class JobRequest(Strict):

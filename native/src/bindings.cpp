@@ -254,6 +254,7 @@ PYBIND11_MODULE(native, m) {
     fmt["flag_quantized_vertices"] = format::kFlagQuantizedVertices;
     fmt["flag_tiered"] = format::kFlagTiered;
     fmt["flag_packed_treelets"] = format::kFlagPackedTreelets;
+    fmt["flag_voxel_errors"] = format::kFlagVoxelErrors;
     fmt["tier_count_at"] = format::kTierCountAt;
     fmt["tier_shift"] = format::kTierShift;
     fmt["max_tiers"] = format::kMaxTiers;

@@ -45,7 +45,7 @@ public:
                   float traversal_cost, float intersection_cost, float empty_space_ratio, int bins, int voxel_rays,
                   unsigned threads, bool quantized_splits, py::object vertex_steps, double tier_width,
                   int tier_coarse_octaves, py::object root_cell, bool compact_triangles, bool packed_voxels,
-                  bool packed_treelets, int lz4_hc_level)
+                  bool packed_treelets, int lz4_hc_level, bool voxel_errors, float voxel_error_floor)
         : blocks_(output, checked_offset(output_offset)) {
         ModelWriterParams p;
         p.has_colours = has_colours;
@@ -59,6 +59,12 @@ public:
         p.compact_triangles = compact_triangles;
         p.packed_voxels = packed_voxels;
         p.packed_treelets = packed_treelets;
+        if (voxel_errors && !quantized_splits) throw std::invalid_argument("voxel errors need quantized splits");
+        if (!(voxel_error_floor >= 0.0f && voxel_error_floor <= 1.0f)) {
+            throw std::invalid_argument("the voxel error floor must be 0 ... 1");
+        }
+        p.voxel_errors = voxel_errors;
+        p.voxel_error_floor = voxel_error_floor;
         if (lz4_hc_level < 0 || lz4_hc_level > kLz4HcMaxLevel) {
             throw std::invalid_argument("LZ4 HC level must be 0 ... " + std::to_string(kLz4HcMaxLevel));
         }
@@ -159,6 +165,9 @@ public:
         d["voxels_one"] = s.voxels_one;
         d["voxels_six"] = s.voxels_six;
         d["voxels_packed"] = s.voxels_packed;
+        d["lod_errors_below_radius"] = s.lod_errors_below_radius;
+        d["lod_error_ratio_sum"] = s.lod_error_ratio_sum;
+        d["voxel_error_ms"] = s.voxel_error_ms;
         d["treelets"] = s.treelets;
         d["references"] = s.references;
         d["stored_triangles"] = s.stored_triangles;
@@ -201,7 +210,7 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
                               const std::vector<double>& centre, const std::vector<double>& lo,
                               const std::vector<double>& hi, std::uint64_t triangle_ids, bool has_colours,
                               bool quantized_splits, bool quantized_vertices, std::uint32_t tier_count, bool tiered,
-                              bool compact_triangles, bool packed_treelets) {
+                              bool compact_triangles, bool packed_treelets, bool voxel_errors) {
     DecodeInput in;
     std::vector<std::string_view> views;
     for (const py::handle& b : blocks) {
@@ -220,6 +229,8 @@ std::shared_ptr<Scene> decode(const py::list& blocks, const std::vector<std::uin
     in.quantized_splits = quantized_splits;
     in.packed_treelets = packed_treelets;
     if (packed_treelets && !quantized_splits) throw std::invalid_argument("packed treelets need quantized splits");
+    in.voxel_errors = voxel_errors;
+    if (voxel_errors && !quantized_splits) throw std::invalid_argument("voxel errors need quantized splits");
     in.quantized_vertices = quantized_vertices;
     in.compact_triangles = compact_triangles;
     for (std::uint32_t f : stream_first) {
@@ -698,14 +709,15 @@ void bind_model(py::module_& m) {
                               "Writes kd-subtrees as treelets, voxels and triangle blocks into the model file `output`, "
                               "from output_offset on, past the page cache (vastray/model_assembly.py finishes the file)")
         .def(py::init<bool, const std::string&, std::uint64_t, py::object, int, float, float, float, int, int, unsigned,
-                      bool, py::object, double, int, py::object, bool, bool, bool, int>(),
+                      bool, py::object, double, int, py::object, bool, bool, bool, int, bool, float>(),
              py::arg("has_colours"), py::arg("output"), py::arg("output_offset"), py::arg("progress") = py::none(),
              py::arg("leaf_size") = 4, py::arg("traversal_cost") = 1.0f, py::arg("intersection_cost") = 1.5f,
              py::arg("empty_space_ratio") = 0.15f, py::arg("bins") = 32, py::arg("voxel_rays") = 3,
              py::arg("threads") = 0u, py::arg("quantized_splits") = false,
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
              py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false, py::arg("packed_voxels") = true,
-             py::arg("packed_treelets") = true, py::arg("lz4_hc_level") = 0)
+             py::arg("packed_treelets") = true, py::arg("lz4_hc_level") = 0, py::arg("voxel_errors") = false,
+             py::arg("voxel_error_floor") = 0.25f)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),
@@ -738,7 +750,7 @@ void bind_model(py::module_& m) {
     m.def("decode_model", &decode, py::arg("blocks"), py::arg("stream_first"), py::arg("centre"), py::arg("lo"),
           py::arg("hi"), py::arg("triangle_ids"), py::arg("has_colours"), py::arg("quantized_splits") = false,
           py::arg("quantized_vertices") = false, py::arg("tier_count") = 1u, py::arg("tiered") = false,
-          py::arg("compact_triangles") = false, py::arg("packed_treelets") = false,
+          py::arg("compact_triangles") = false, py::arg("packed_treelets") = false, py::arg("voxel_errors") = false,
           "Decode a whole model (raw blocks by global id; the first block of each stream, level-major) into an "
           "in-core Scene");
 }

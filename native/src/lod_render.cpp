@@ -36,6 +36,7 @@ std::vector<LodLane> make_lanes(BlockCache& cache, CachedModel& model, std::uint
         lane.has_colours = index.has_colours();
         lane.quantized_splits = index.quantized_splits();
         lane.packed_treelets = index.packed_treelets();
+        lane.voxel_errors = index.voxel_errors();
         lane.quantized_vertices = index.quantized_vertices();
         lane.vertex_steps = index.vertex_steps();
         lane.compact_triangles = index.compact_triangles();

@@ -71,11 +71,22 @@ private:
             return;
         }
         if (axis_of(w) > 2) bad(block, "split axis 3 at offset " + std::to_string(off));
-        // A quantized model's basic nodes are 4 bytes, their split a step of the cell.
+        // A quantized model's basic nodes are 4 bytes, their split a step of the cell; so
+        // is a LOD node's split with voxel errors (word 1, beside the error code).
         const bool quantized = in_.quantized_splits && !is_lod(w);
         const std::size_t size = quantized ? 4 : 8;
-        const float split = quantized ? dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], basic_split_step(w))
-                                      : bits_float(word(block, off + 4));
+        float split;
+        if (quantized) {
+            split = dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], basic_split_step(w));
+        } else if (is_lod(w) && in_.voxel_errors) {
+            const std::uint32_t word1 = word(block, off + 4);
+            if ((word1 >> (kErrorShift + 8)) != 0 || lod_split_step(word1) == 0) {
+                bad(block, "LOD split word out of range at offset " + std::to_string(off));
+            }
+            split = dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], lod_split_step(word1));
+        } else {
+            split = bits_float(word(block, off + 4));
+        }
         const std::uint32_t empty = w & (kLeftEmpty | kRightEmpty);
         const bool has_l = (empty & kLeftEmpty) == 0, has_r = (empty & kRightEmpty) == 0;
         if (!has_l && !has_r) bad(block, "inner node with two empty children");

@@ -79,7 +79,7 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         const std::uint32_t known = kFlagColours | kFlagTriangleIds | (version >= 2 ? kFlagPartIds : 0u) |
                                     (version >= 3 ? kFlagQuantizedSplits : 0u) | (version >= 4 ? kFlagQuantizedVertices : 0u) |
                                     (version >= 5 ? kFlagCompactTriangles | kFlagTiered : 0u) |
-                                    (version >= 7 ? kFlagPackedTreelets : 0u);
+                                    (version >= 7 ? kFlagPackedTreelets : 0u) | (version >= 8 ? kFlagVoxelErrors : 0u);
         if (!(flags & kFlagTriangleIds) || (flags & ~known)) {
             throw fail("unsupported attribute flags");
         }
@@ -112,6 +112,8 @@ ModelIndex::ModelIndex(const std::string& path) : path_(path) {
         quantized_splits_ = (flags & kFlagQuantizedSplits) != 0;
         packed_treelets_ = (flags & kFlagPackedTreelets) != 0;
         if (packed_treelets_ && !quantized_splits_) throw fail("packed treelets flag set without quantized splits");
+        voxel_errors_ = (flags & kFlagVoxelErrors) != 0;
+        if (voxel_errors_ && !quantized_splits_) throw fail("voxel errors flag set without quantized splits");
         const auto level_count = load<std::uint32_t>(h + 28);
         for (int a = 0; a < 3; ++a) {
             centre_[a] = load<double>(h + 32 + 8 * a);

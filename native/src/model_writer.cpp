@@ -11,6 +11,7 @@
 #include "vastray/model_writer.h"
 
 #include <chrono>
+#include <limits>
 #include <stdexcept>
 #include <string>
 #include <unordered_map>
@@ -21,6 +22,7 @@
 #include "vastray/thread_pool.h"
 #include "writer/parallel_emission.h"
 #include "writer/subtree_emitter.h"
+#include "writer/voxel_errors.h"
 
 namespace vastray {
 
@@ -104,7 +106,13 @@ int ModelWriter::add_subtree(const std::uint8_t* records, std::size_t stride, st
     }, lanes);
     const writer::TriangleSource src{records, stride, impl_->p.has_colours, facets.data()};
     SubtreeEmitter& m = impl_->main;
-    m.bind(&tree, src);
+    std::vector<float> errors;
+    if (m.voxel_errors()) {
+        const auto e0 = std::chrono::steady_clock::now();
+        errors = writer::kd_errors(tree, src, cell, impl_->p.voxel_error_floor, lanes);
+        stats_.voxel_error_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - e0).count();
+    }
+    m.bind(&tree, src, errors.empty() ? nullptr : errors.data());
     const auto lvl = static_cast<std::size_t>(level);
 
     const std::uint32_t tier = lod_parent != nullptr ? m.tier_below(*lod_parent) : 0;
@@ -158,13 +166,23 @@ int ModelWriter::add_inner_treelet(int level, const Box3f& cell, const std::arra
 
     SubtreeEmitter& m = impl_->main;
     Pending self;
+    constexpr float kNone = std::numeric_limits<float>::infinity();
     for (TreeletNode& n : nodes) {
         if (n.kind != TreeletNode::Lod) continue;
         const bool has_l = n.child_handles[0] >= 0, has_r = n.child_handles[1] >= 0;
         Pending l, r;
         if (has_l) l = impl_->take(n.child_handles[0]);
         if (has_r) r = impl_->take(n.child_handles[1]);
+        // Surface errors (when kept) come up from the parts below, as in kd_errors.
+        n.error = writer::inner_error(n.cell, n.axis, n.split, has_l ? l.error : kNone, has_r ? r.error : kNone);
+        m.code_error(n);
         m.finish_lod(n, has_l ? &l : nullptr, has_r ? &r : nullptr, static_cast<std::size_t>(level), self);
+    }
+    for (auto it = nodes.rbegin(); it != nodes.rend(); ++it) {  // children before parents
+        if (it->kind != TreeletNode::Basic) continue;
+        const float l = it->left >= 0 ? nodes[static_cast<std::size_t>(it->left)].error : kNone;
+        const float r = it->right >= 0 ? nodes[static_cast<std::size_t>(it->right)].error : kNone;
+        it->error = writer::inner_error(it->cell, it->axis, it->split, l, r);
     }
     m.serialise(nodes, self);
     return impl_->keep(std::move(self));

@@ -82,6 +82,8 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
                 chosen[name] = value
     if chosen.get("quantized_splits", True):
         opts["quantized_splits"] = True
+    if chosen.get("voxel_errors", True):
+        opts["voxel_errors"] = True
     for name in ("quantized_vertices", "compact_triangles"):
         if chosen.get(name):
             opts[name] = True

@@ -235,10 +235,15 @@ def test_a_build_names_a_layout_and_options_override_it(server: ServerProcess, a
 
     assert set(BuildOptionsIn.model_json_schema()["properties"]["layout"]["enum"]) == set(LAYOUTS)
     smallest = {"compact_triangles": True, "quantized_vertices": True, "tier_width": 0, "traversal_cost": 6}
+    on = {"voxel_errors": True}  # every layout's default (with quantized splits)
     cases = [
-        ({"layout": "smallest"}, {**smallest, "lz4_hc_level": 9}),
-        ({"layout": "smallest", "traversal_cost": 4, "lz4_hc_level": 0}, {**smallest, "traversal_cost": 4}),
-        ({"layout": "smaller"}, {"compact_triangles": True}),
+        ({"layout": "smallest"}, {**smallest, **on, "lz4_hc_level": 9}),
+        (
+            {"layout": "smallest", "traversal_cost": 4, "lz4_hc_level": 0},
+            {**smallest, **on, "traversal_cost": 4},
+        ),
+        ({"layout": "smaller"}, {"compact_triangles": True, **on}),
+        ({"layout": "smaller", "voxel_errors": False}, {"compact_triangles": True}),
     ]
     for options, expected in cases:
         body = {"source": "scene:plant:20000:5", "options": options}
@@ -250,6 +255,7 @@ def test_a_build_names_a_layout_and_options_override_it(server: ServerProcess, a
         with ModelFile(server.data_dir / "models" / f"{done['model_id']}.vast") as model:
             assert model.compact_triangles and model.tiered == ("tier_width" not in expected)
             assert model.quantized_vertices == expected.get("quantized_vertices", False)
+            assert model.voxel_errors == expected.get("voxel_errors", False)
     r = api.post("/api/jobs", json={"source": "scene:plant:2000:4", "options": {"layout": "tiny"}})
     assert r.status_code == 422 and "layout" in r.text and "smallest" in r.text, r.text
 

@@ -28,8 +28,8 @@ constexpr int kTreeletHeight = 3;
 // The Python writer (vastray/modelfile.py) takes these values from the native module,
 // so the reader and the writer cannot disagree.
 constexpr std::uint8_t kMagic[8] = {'V', 'A', 'S', 'T', 'R', 'A', 'Y', 0x1a};
-constexpr std::uint32_t kVersion = 7;        // what the writer writes
-constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-6 are version 7 without its later additions
+constexpr std::uint32_t kVersion = 8;        // what the writer writes
+constexpr std::uint32_t kOldestVersion = 1;  // still read: versions 1-7 are version 8 without its later additions
 constexpr std::size_t kHeaderSize = 256;
 constexpr std::size_t kHeaderCrcAt = 196;  // the header's own CRC-32 (zeroed while summing)
 constexpr std::uint32_t kCodecStored = 0, kCodecLz4 = 1;
@@ -44,6 +44,9 @@ constexpr std::uint32_t kFlagTiered = 1u << 6;  // levels split into streams by 
 // Treelets on 4-byte boundaries and LOD words in 4-byte units (version 7, with
 // kFlagQuantizedSplits only: their nodes are all multiples of 4 bytes), below.
 constexpr std::uint32_t kFlagPackedTreelets = 1u << 7;
+// LOD nodes carry a surface error beside their radius (version 8, with
+// kFlagQuantizedSplits only: it takes the bits their split no longer needs), below.
+constexpr std::uint32_t kFlagVoxelErrors = 1u << 8;
 constexpr std::size_t kLevelRecord = 24, kEntryRecord = 24;
 // The parts section (version 2): header fields at these offsets (zero without parts),
 // then u32 part_count, u32 run_count, part records, runs and the names blob.
@@ -223,6 +226,31 @@ inline std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, b
     }
     return (w & ~(8191u << 17)) | (static_cast<std::uint32_t>(child_off / 8) << 17);
 }
+
+// ---- voxel errors (version 8, kFlagVoxelErrors) ----------------------------------------
+// A LOD node's word 1 holds its split as a step of its cell's grid, as a quantized basic
+// node does (bits 0-19), and an error code c (bits 20-27; bits 28-31 zero). The node's
+// LOD test compares e = R * (c + 1) / 256 instead of its radius R: an upper bound on how
+// far the voxel's box surface lies from the triangles it stands in for, or R when that
+// is no smaller (c = 255; docs/FORMAT.md §8 and §15). (c + 1) / 256 is exact in f32, so
+// e is one rounding of one product, the same in every reader, and e = R at c = 255.
+constexpr int kErrorShift = kSplitBits;
+constexpr std::uint32_t kErrorCodeMax = 255;
+inline std::uint32_t lod_split_word(std::uint32_t step, std::uint32_t code) { return step | (code << kErrorShift); }
+inline std::uint32_t lod_split_step(std::uint32_t word1) { return word1 & (kSplitSteps - 1); }
+inline std::uint32_t lod_error_code(std::uint32_t word1) { return (word1 >> kErrorShift) & kErrorCodeMax; }
+inline float lod_error(float radius, std::uint32_t code) {
+    return radius * (static_cast<float>(code + 1) * (1.0f / 256.0f));
+}
+// The smallest code whose error is at least `error` (kErrorCodeMax when none below is).
+inline std::uint32_t lod_error_code_for(float radius, float error) {
+    if (!(error < radius) || !(radius > 0)) return kErrorCodeMax;
+    const double c = std::ceil(static_cast<double>(error) / static_cast<double>(radius) * 256.0) - 1.0;
+    auto code = static_cast<std::uint32_t>(std::clamp(c, 0.0, static_cast<double>(kErrorCodeMax)));
+    while (code < kErrorCodeMax && lod_error(radius, code) < error) ++code;
+    return code;
+}
+
 inline std::uint32_t leaf_first(std::uint32_t w) { return w & 0xffffu; }
 inline std::uint32_t leaf_count(std::uint32_t w) { return (w >> 16) & kMaxLeafTriangles; }
 

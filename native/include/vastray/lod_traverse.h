@@ -58,6 +58,7 @@ struct alignas(64) LodLane {
     bool has_colours = false;
     bool quantized_splits = false;  // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes, splits on their cell's grid
     bool packed_treelets = false;   // FLAG_PACKED_TREELETS: LOD words in 4-byte units (format.h)
+    bool voxel_errors = false;      // FLAG_VOXEL_ERRORS: LOD splits as steps, and a surface error (format.h)
     bool quantized_vertices = false;  // FLAG_QUANTIZED_VERTICES: bit-packed grid offsets in triangle blocks
     Vec3f vertex_steps{1, 1, 1};      // that grid's steps
     bool compact_triangles = false;   // FLAG_COMPACT_TRIANGLES: compact triangle blocks (format.h)
@@ -112,12 +113,14 @@ inline T load(const std::uint8_t* p) {
     return v;
 }
 
-// A voxel: its samples and enclosing radius.
+// A voxel: its samples, enclosing radius (how far a ray leaving it must start) and the
+// error its LOD test compares (the radius, or with FLAG_VOXEL_ERRORS the surface error).
 // Voxel and NodeRef are plain aggregates on purpose: traversal stacks hold 64 of them,
 // and default member initialisers would zero the whole stack for every ray.
 struct Voxel {
     const std::uint8_t* samples;
     float radius;
+    float error;
 };
 
 inline void hit_voxel(const Voxel& v, int entry_axis, const Ray& ray, float t, LodHit& hit) {
@@ -142,23 +145,30 @@ inline NodeRef root_ref(const std::uint8_t* block, const Box3f& cell) {
     return {block, 0, 0, {cell.lo.x, cell.lo.y, cell.lo.z}, {cell.hi.x, cell.hi.y, cell.hi.z}};
 }
 
-// An inner node's split position: word 1, or (a quantized model's basic node) the step
-// of its cell on the split axis in word 0 (format.h).
-inline float split_of(bool quantized, const NodeRef& node, std::uint32_t w) {
-    if (quantized && !format::is_lod(w)) {
+// An inner node's split position: word 1, or the step of its cell on the split axis (a
+// quantized model's basic node in word 0; with FLAG_VOXEL_ERRORS a LOD node in word 1).
+inline float split_of(bool quantized, bool voxel_errors, const NodeRef& node, std::uint32_t w) {
+    if (quantized) {
         const int a = std::min(format::axis_of(w), 2);
-        return format::dequantize_split(node.lo[a], node.hi[a], format::basic_split_step(w));
+        if (!format::is_lod(w)) return format::dequantize_split(node.lo[a], node.hi[a], format::basic_split_step(w));
+        if (voxel_errors) {
+            const auto word1 = load<std::uint32_t>(node.block + node.off + 4);
+            return format::dequantize_split(node.lo[a], node.hi[a], format::lod_split_step(word1));
+        }
     }
     return format::bits_float(load<std::uint32_t>(node.block + node.off + 4));
 }
 
-// A LOD node's voxel: its samples, and its radius (a quantized model derives it from the
-// cell instead of storing it).
-inline Voxel voxel_of(bool quantized, bool packed, const NodeRef& node, std::uint32_t w) {
+// A LOD node's voxel: its samples, its radius (a quantized model derives it from the
+// cell instead of storing it) and its error (FLAG_VOXEL_ERRORS: word 1's code).
+inline Voxel voxel_of(bool quantized, bool packed, bool voxel_errors, const NodeRef& node, std::uint32_t w) {
     const float radius =
         quantized ? format::cell_radius(Vec3f(node.hi[0] - node.lo[0], node.hi[1] - node.lo[1], node.hi[2] - node.lo[2]))
                   : format::bits_float(load<std::uint32_t>(node.block + node.off + 8));
-    return {node.block + node.off + format::lod_offsets(w, packed).voxel, radius};
+    const float error =
+        voxel_errors ? format::lod_error(radius, format::lod_error_code(load<std::uint32_t>(node.block + node.off + 4)))
+                     : radius;
+    return {node.block + node.off + format::lod_offsets(w, packed).voxel, radius, error};
 }
 
 // The stream a block reference of `level` names: its first block, and one past its last
@@ -610,7 +620,7 @@ public:
         std::uint64_t node_visits = 0;
         Stop why = Stop::Done;
         bool finished = true;
-        Voxel stand_in{nullptr, 0.0f};  // the voxel a finished ray hits, at tmin
+        Voxel stand_in{nullptr, 0.0f, 0.0f};  // the voxel a finished ray hits, at tmin
 
         if constexpr (Yield) {
             if (leaf_.waiting()) {
@@ -640,6 +650,8 @@ public:
                 float split;
                 if (Quantized && !lod) {
                     split = dequantize_split(lo[axis], hi[axis], basic_split_step(w));
+                } else if (Quantized && lane.voxel_errors) {
+                    split = dequantize_split(lo[axis], hi[axis], lod_split_step(load<std::uint32_t>(block + off + 4)));
                 } else {
                     split = bits_float(load<std::uint32_t>(block + off + 4));
                 }
@@ -652,14 +664,17 @@ public:
                     } else {
                         radius = bits_float(load<std::uint32_t>(block + off + 8));
                     }
-                    const Voxel here{block + off + lod_offsets(w, Quantized && lane.packed_treelets).voxel, radius};
+                    const float error = Quantized && lane.voxel_errors
+                                            ? lod_error(radius, lod_error_code(load<std::uint32_t>(block + off + 4)))
+                                            : radius;
+                    const Voxel here{block + off + lod_offsets(w, Quantized && lane.packed_treelets).voxel, radius, error};
                     const float reach = cone_t0 + tmin;
-                    if (radius <= reach * cone) {
+                    if (error <= reach * cone) {
                         stand_in = here;
                         goto done;
                     }
                     child_block =
-                        lod_child_block(lane, NodeRef{block, off, level, {}, {}}, radius / std::max(reach, 1e-30f));
+                        lod_child_block(lane, NodeRef{block, off, level, {}, {}}, error / std::max(reach, 1e-30f));
                     if (!child_block) {
                         stand_in = here;
                         goto done;
@@ -736,7 +751,7 @@ public:
             }
             if (leaf) {
                 leaf = false;
-                const float priority = voxel.samples ? voxel.radius / std::max(cone_t0 + tmin, 1e-30f) : 0.0f;
+                const float priority = voxel.samples ? voxel.error / std::max(cone_t0 + tmin, 1e-30f) : 0.0f;
                 LeafTriangles triangles(lane, block + off, priority);
                 Vec3f v0, v1, v2;
                 std::uint32_t local;
@@ -834,7 +849,7 @@ private:
     float lo_[3], hi_[3];
     float tmin_ = 0, tmax_ = 0;
     int entry_axis_ = 0;
-    Voxel voxel_{nullptr, 0.0f};
+    Voxel voxel_{nullptr, 0.0f, 0.0f};
     int top_ = 0;
     LeafPrefetch leaf_;
     bool finished_ = false;
@@ -883,7 +898,7 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     const std::uint8_t* block = lane.lookup(lane.level_first[0], 0.0f);
     if (!block) return false;
     lod_walk<AnyHit>(lane, lray, ShearedRay(ray.dir), lod_detail::root_ref(block, root_cell), tmin, tmax, entry_axis,
-                     {nullptr, 0.0f}, hit, skip);
+                     {nullptr, 0.0f, 0.0f}, hit, skip);
     return hit.prim != kNoHit;
 }
 
@@ -908,7 +923,7 @@ inline void trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* ra
             const std::uint8_t* root = lane.lookup(lane.level_first[0], 0.0f);
             if (!root) continue;
             walkers[g].start(rays[i], ShearedRay(ray.dir), root_ref(root, root_cell), tmin, tmax, entry_axis,
-                             {nullptr, 0.0f}, hit, kNoHit);
+                             {nullptr, 0.0f, 0.0f}, hit, kNoHit);
             return true;
         }
         return false;

@@ -133,7 +133,7 @@ public:
         for (int a = 0; a < 3; ++a) sign_negative[a] = std::signbit(rays[0].ray.dir[a]);
         top = 0;
         node = lod_detail::root_ref(root, root_cell);
-        voxel = Voxel{nullptr, 0.0f};
+        voxel = Voxel{nullptr, 0.0f, 0.0f};
         stage = Stage::Descend;
         leaf_.stage = 0;
         return true;
@@ -213,21 +213,21 @@ public:
                 }
                 ++lane.node_visits;
                 const int axis = std::min(axis_of(w), 2);
-                const float split = lod_detail::split_of(Quantized, node, w);
+                const float split = lod_detail::split_of(Quantized, lane.voxel_errors, node, w);
                 const std::uint8_t* child_block = node.block;
                 std::uint32_t child_level = node.level;
                 if (is_lod(w)) {
-                    const Voxel here = lod_detail::voxel_of(Quantized, lane.packed_treelets, node, w);
-                    const vf radius = vf::broadcast(here.radius);
+                    const Voxel here = lod_detail::voxel_of(Quantized, lane.packed_treelets, lane.voxel_errors, node, w);
+                    const vf error = vf::broadcast(here.error);
                     int rest = 0;
                     for (int v = 0; v < K; ++v) {
-                        const vm accept = active[v] & (radius <= (cone_t0[v] + tmin[v]) * v_cone);
+                        const vm accept = active[v] & (error <= (cone_t0[v] + tmin[v]) * v_cone);
                         if (const int a = accept.bits(); a != 0) take_voxels(here, v, a);
                         active[v] = andnot(accept, active[v]);
                         rest |= active[v].bits();
                     }
                     if (!rest) break;
-                    child_block = lod_detail::lod_child_block(lane, node, here.radius / std::max(nearest_of(active), 1e-30f));
+                    child_block = lod_detail::lod_child_block(lane, node, here.error / std::max(nearest_of(active), 1e-30f));
                     if (!child_block) {
                         for (int v = 0; v < K; ++v) {
                             if (const int a = active[v].bits(); a != 0) take_voxels(here, v, a);
@@ -307,7 +307,7 @@ public:
                 }
             }
             if (leaf) {
-                const float priority = voxel.samples ? voxel.radius / std::max(nearest_of(active), 1e-30f) : 0.0f;
+                const float priority = voxel.samples ? voxel.error / std::max(nearest_of(active), 1e-30f) : 0.0f;
                 lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
                 HitV<W> hv[K];
                 int act[K];
@@ -462,7 +462,7 @@ private:
     Entry stack[64];
     int top = 0;
     NodeRef node;
-    Voxel voxel{nullptr, 0.0f};
+    Voxel voxel{nullptr, 0.0f, 0.0f};
     Stage stage = Stage::Descend;
     LeafPrefetch leaf_;
 };

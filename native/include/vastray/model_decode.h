@@ -26,6 +26,7 @@ struct DecodeInput {
     bool has_colours = false;
     bool quantized_splits = false;            // FLAG_QUANTIZED_SPLITS: 4-byte basic nodes
     bool packed_treelets = false;             // FLAG_PACKED_TREELETS: LOD words in 4-byte units
+    bool voxel_errors = false;                // FLAG_VOXEL_ERRORS: LOD splits as steps, beside an error code
     bool quantized_vertices = false;          // FLAG_QUANTIZED_VERTICES: vertices on the root cell's grid
     bool compact_triangles = false;           // FLAG_COMPACT_TRIANGLES: compact triangle blocks
 };

@@ -29,6 +29,7 @@ public:
     bool has_colours() const { return has_colours_; }
     bool quantized_splits() const { return quantized_splits_; }  // FLAG_QUANTIZED_SPLITS
     bool packed_treelets() const { return packed_treelets_; }    // FLAG_PACKED_TREELETS (version 7)
+    bool voxel_errors() const { return voxel_errors_; }          // FLAG_VOXEL_ERRORS (version 8)
     bool quantized_vertices() const { return quantized_vertices_; }  // FLAG_QUANTIZED_VERTICES
     bool compact_triangles() const { return compact_triangles_; }  // FLAG_COMPACT_TRIANGLES
     const Vec3f& vertex_steps() const { return vertex_steps_; }  // that flag's grid (format.h)
@@ -65,7 +66,7 @@ private:
     std::string path_;
     int fd_ = -1;
     bool has_colours_ = false;
-    bool quantized_splits_ = false, packed_treelets_ = false, quantized_vertices_ = false, compact_triangles_ = false;
+    bool quantized_splits_ = false, packed_treelets_ = false, voxel_errors_ = false, quantized_vertices_ = false, compact_triangles_ = false;
     Vec3f vertex_steps_{1, 1, 1};
     Vec3d centre_;
     Box3f root_cell_;

@@ -51,6 +51,12 @@ struct ModelWriterParams {
     // (format version 7, FLAG_PACKED_TREELETS). Off pads them to 8 bytes, as version 6
     // did (for comparisons and older-version tests).
     bool packed_treelets = true;
+    // With quantized splits: LOD nodes carry a surface error (format version 8,
+    // FLAG_VOXEL_ERRORS; writer/voxel_errors.h), which their LOD test compares instead of
+    // the radius R, never below `voxel_error_floor` * R (0 ... 1; 1 keeps the radius, so
+    // that no voxel is taken while it covers more than the PoE allows a voxel's size).
+    bool voxel_errors = false;
+    float voxel_error_floor = 0.25f;
     // Blocks compressed with LZ4 HC at this level (1 ... 12) instead of the fast
     // compressor (0): the same format and decoding, smaller blocks, a slower build.
     int lz4_hc_level = 0;
@@ -74,6 +80,10 @@ struct ModelWriterStats {
     std::uint64_t basic_nodes = 0, lod_nodes = 0, leaves = 0, empty_children = 0;
     std::uint64_t voxels_one = 0, voxels_six = 0, treelets = 0;
     std::uint64_t voxels_packed = 0;  // six-sample voxels in the packed form (4 words), among voxels_six
+    // FLAG_VOXEL_ERRORS: LOD nodes whose error is below their radius, the sum of error /
+    // radius over all LOD nodes, and the time the errors took (in emit_ms too).
+    std::uint64_t lod_errors_below_radius = 0;
+    double lod_error_ratio_sum = 0, voxel_error_ms = 0;
     std::uint64_t references = 0;           // leaf triangle-list entries
     std::uint64_t stored_triangles = 0;     // triangle records (a triangle repeats across blocks)
     std::uint64_t stored_vertices = 0;

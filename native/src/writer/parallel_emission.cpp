@@ -32,13 +32,17 @@ std::uint64_t subtree_references(const KdTree& tree, std::uint32_t node) {
 }
 
 // The roots of the treelets one LOD level below the treelet rooted at `job.node`.
-std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& job, const Tiering& tiering) {
+std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& job, const SubtreeEmitter& main) {
     std::vector<TreeletNode> nodes;
     collect_kd_treelet(tree, job.node, job.cell, nodes);
     std::vector<EmissionJob> out;
-    for (const TreeletNode& n : nodes) {
+    for (TreeletNode& n : nodes) {
         if (n.kind != TreeletNode::Lod) continue;
-        const std::uint32_t tier = tiering.tier_of(format::cell_radius(n.cell.extent()));
+        if (main.errors() != nullptr) {
+            n.error = main.errors()[n.kd_node];
+            main.code_error(n);
+        }
+        const std::uint32_t tier = main.tier_below(n);
         for (int side = 0; side < 2; ++side) {
             if ((n.empty & (side == 0 ? format::kLeftEmpty : format::kRightEmpty)) != 0) continue;
             const std::uint32_t kd = side == 0 ? n.kd_left : n.kd_right;
@@ -51,7 +55,7 @@ std::vector<EmissionJob> child_treelets(const KdTree& tree, const EmissionJob& j
 
 }  // namespace
 
-std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const Tiering& tiering) {
+std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const SubtreeEmitter& main) {
     // Each job ends in a partly filled triangle block (its blocks close on their own), so
     // jobs are not made smaller than ~100 full blocks' worth of references.
     constexpr std::uint64_t kMinJob = 1 << 18;
@@ -59,7 +63,7 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
     constexpr std::size_t kMaxJobs = 512;  // ...within this many jobs
     const std::uint64_t total = subtree_references(tree, 0);
     if (total < 2 * kMinJob) return {};  // smaller parts emit on one thread
-    std::vector<EmissionJob> jobs = child_treelets(tree, {0, cell, level, 0, total}, tiering);
+    std::vector<EmissionJob> jobs = child_treelets(tree, {0, cell, level, 0, total}, main);
     std::vector<bool> final(jobs.size(), false);  // no child treelets: cannot be split
     while (jobs.size() < kMaxJobs) {
         std::size_t biggest = jobs.size();
@@ -68,7 +72,7 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
             if (biggest == jobs.size() || jobs[i].references > jobs[biggest].references) biggest = i;
         }
         if (biggest == jobs.size()) break;
-        std::vector<EmissionJob> below = child_treelets(tree, jobs[biggest], tiering);
+        std::vector<EmissionJob> below = child_treelets(tree, jobs[biggest], main);
         if (below.empty()) {
             final[biggest] = true;
             continue;
@@ -86,7 +90,7 @@ std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std:
 Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource& src, const Box3f& cell,
                   std::size_t level, std::uint32_t tier, const ModelWriterParams& params, ProgressCounter& counter,
                   unsigned lanes) {
-    const std::vector<EmissionJob> jobs = choose_jobs(tree, cell, level, main.tiering());
+    const std::vector<EmissionJob> jobs = choose_jobs(tree, cell, level, main);
     if (jobs.empty()) return main.emit_kd_treelet(0, cell, level, tier);
     const std::size_t n = jobs.size();
     main.stats.emission_jobs += n;
@@ -102,7 +106,7 @@ Pending emit_part(SubtreeEmitter& main, const KdTree& tree, const TriangleSource
                 buffers[i].push_back({block_tier, std::move(block)});
             },
             true);
-        parts[i]->bind(&tree, src);
+        parts[i]->bind(&tree, src, main.errors());
         job_of.emplace(jobs[i].node, i);
     }
     auto run = [&](std::size_t i) {

@@ -30,7 +30,8 @@ struct EmissionJob {
 // its child treelets until none holds more than 1/32 of the part's leaf references (and
 // 2^18 at least), or it has no child treelets. Empty when the part is too small to be
 // worth it.
-std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const Tiering& tiering);
+// The jobs' tiers are `main`'s (bound to the part).
+std::vector<EmissionJob> choose_jobs(const KdTree& tree, const Box3f& cell, std::size_t level, const SubtreeEmitter& main);
 
 // Emits the whole part through `main` (bound to the part), returns its root treelet;
 // `tier` is the root treelet's (that of the LOD node above the part).

@@ -35,6 +35,18 @@ std::uint32_t SubtreeEmitter::reference(std::uint32_t tier, std::uint32_t block)
     return block_ref(tier, block);
 }
 
+void SubtreeEmitter::code_error(TreeletNode& lod) const {
+    if (!voxel_errors()) return;
+    const float radius = format::cell_radius(lod.cell.extent());
+    const float floor = radius * std::clamp(p_.voxel_error_floor, 0.0f, 1.0f);
+    lod.error_code = format::lod_error_code_for(radius, std::max(std::min(lod.error, radius), floor));
+}
+
+float SubtreeEmitter::lod_key(const TreeletNode& lod) const {
+    const float radius = format::cell_radius(lod.cell.extent());
+    return voxel_errors() ? format::lod_error(radius, lod.error_code) : radius;
+}
+
 void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::size_t level, Pending& self) {
     const FaceSamples s = sample_voxel(node.cell, a ? &a->proxies : nullptr, b ? &b->proxies : nullptr,
                                        p_.voxel_rays_per_axis);
@@ -44,7 +56,11 @@ void SubtreeEmitter::finish_lod(TreeletNode& node, Pending* a, Pending* b, std::
     (q.count == 1 ? stats.voxels_one : stats.voxels_six)++;
     stats.voxels_packed += q.count == 4 ? 1 : 0;
     self.proxies.push_back({node.cell, q.seen});
-    const std::uint32_t tier = tier_below(node.cell);
+    if (voxel_errors()) {
+        stats.lod_errors_below_radius += node.error_code < format::kErrorCodeMax ? 1 : 0;
+        stats.lod_error_ratio_sum += static_cast<double>(node.error_code + 1) / 256.0;
+    }
+    const std::uint32_t tier = tier_below(node);
     if (defer_) {
         Unit u{level + 1, tier, {}};
         // One allocation each (this runs for every LOD node of a job).
@@ -79,6 +95,12 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
     std::vector<TreeletNode>& treelet = treelets_[depth_];
     treelet.clear();
     collect_kd_treelet(*tree_, root, cell, treelet);
+    if (errors_ != nullptr) {
+        for (TreeletNode& n : treelet) {
+            n.error = errors_[n.kd_node];
+            if (n.kind == TreeletNode::Lod) code_error(n);
+        }
+    }
     Pending self;
     std::size_t proxies = 0;  // one per LOD node and leaf; as many patches at most
     for (const TreeletNode& n : treelet) proxies += n.kind == TreeletNode::Basic ? 0 : 1;
@@ -97,7 +119,7 @@ Pending SubtreeEmitter::emit_kd_treelet(std::uint32_t root, const Box3f& cell, s
     for (TreeletNode& n : treelet) {
         if (n.kind == TreeletNode::Lod) {
             const bool has_l = (n.empty & kLeftEmpty) == 0, has_r = (n.empty & kRightEmpty) == 0;
-            const std::uint32_t below = tier_below(n.cell);
+            const std::uint32_t below = tier_below(n);
             Pending l, r;
             if (has_l) l = child(n.kd_left, child_cell(n.cell, n.axis, n.split, 0), below);
             if (has_r) r = child(n.kd_right, child_cell(n.cell, n.axis, n.split, 1), below);
@@ -218,6 +240,8 @@ void SubtreeEmitter::merge(SubtreeEmitter& part, std::vector<BufferedBlock>& tri
     stats.voxels_one += s.voxels_one;
     stats.voxels_six += s.voxels_six;
     stats.voxels_packed += s.voxels_packed;
+    stats.lod_errors_below_radius += s.lod_errors_below_radius;
+    stats.lod_error_ratio_sum += s.lod_error_ratio_sum;
     stats.references += s.references;
     stats.stored_triangles += s.stored_triangles;
     stats.stored_vertices += s.stored_vertices;

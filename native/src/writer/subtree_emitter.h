@@ -53,11 +53,14 @@ class SubtreeEmitter {
 public:
     SubtreeEmitter(const ModelWriterParams& params, ProgressCounter& counter, BlockStream out, bool defer);
 
-    // The part whose kd-tree is being emitted (kept by the caller meanwhile).
-    void bind(const KdTree* tree, const TriangleSource& source) {
+    // The part whose kd-tree is being emitted (kept by the caller meanwhile), and the
+    // surface errors of its nodes (kd_errors; null when the model keeps none).
+    void bind(const KdTree* tree, const TriangleSource& source, const float* errors = nullptr) {
         tree_ = tree;
         src_ = source;
+        errors_ = errors;
     }
+    const float* errors() const { return errors_; }
 
     // Emits the treelet rooted at kd node `root` and everything below it; `tier` is the
     // tier of its leaves (that of the LOD node above it). `jobs`, when given, is asked
@@ -74,12 +77,23 @@ public:
 
     // Lays out a finished treelet into `out`.
     void serialise(std::vector<TreeletNode>& treelet, Pending& out) {
-        serialise_treelet(treelet, stats, out, p_.kd.quantized_splits, packed_treelets());
+        serialise_treelet(treelet, stats, out, p_.kd.quantized_splits, packed_treelets(), voxel_errors());
     }
     // FLAG_PACKED_TREELETS: with quantized splits only (their nodes are multiples of 4).
     bool packed_treelets() const { return p_.kd.quantized_splits && p_.packed_treelets; }
+    // FLAG_VOXEL_ERRORS: likewise (a LOD node's split goes in as a step).
+    bool voxel_errors() const { return p_.kd.quantized_splits && p_.voxel_errors; }
 
-    // The tier of the units below a LOD node (or a part's root) whose cell is `cell`.
+    // Sets the error code of a LOD node whose `error` (its cell's surface error) is set.
+    void code_error(TreeletNode& lod) const;
+    // What a LOD node's test compares: its coded error, or its radius without errors.
+    float lod_key(const TreeletNode& lod) const;
+
+    // The tier of the units below a LOD node: by its key (the error a ray refuses before
+    // it needs them).
+    std::uint32_t tier_below(const TreeletNode& lod) const { return tiering_.tier_of(lod_key(lod)); }
+    // The tier of the units below a part's root, by the radius of the LOD node above it
+    // (`cell`), whose error is not known while the part is emitted: a tier no finer.
     std::uint32_t tier_below(const Box3f& cell) const { return tiering_.tier_of(format::cell_radius(cell.extent())); }
     const Tiering& tiering() const { return tiering_; }
 
@@ -116,6 +130,7 @@ private:
     std::uint64_t unreported_ = 0;  // leaf references not yet added to counter_
     const KdTree* tree_ = nullptr;
     TriangleSource src_;
+    const float* errors_ = nullptr;
 
 public:
     ModelWriterStats stats;

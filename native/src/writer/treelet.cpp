@@ -25,9 +25,9 @@ void collect(const KdTree& tree, std::uint32_t index, const Box3f& cell, int dep
     const KdNode& k = tree.nodes[index];
     TreeletNode n;
     n.cell = cell;
+    n.kd_node = index;
     if (k.is_leaf()) {
         n.kind = TreeletNode::Leaf;
-        n.kd_node = index;
         nodes.push_back(n);
         return;
     }
@@ -83,10 +83,11 @@ std::uint32_t lod_word_of(const TreeletNode& n, std::size_t voxel_off, bool pack
 }  // namespace
 
 void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized,
-                       bool packed) {
+                       bool packed, bool voxel_errors) {
     const std::size_t basic_size = quantized ? 4 : 8;
     out.nodes = static_cast<std::uint32_t>(nodes.size());
     out.voxels = 0;
+    out.error = nodes.empty() ? std::numeric_limits<float>::infinity() : nodes[0].error;
     std::size_t cursor = 0;
     for (TreeletNode& n : nodes) {
         n.offset = cursor;
@@ -131,7 +132,15 @@ void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats,
             case TreeletNode::Lod: {
                 out.voxels++;
                 put(n.offset, lod_word_of(n, voxel_at[i] - n.offset, packed));
-                put(n.offset + 4, float_bits(n.split));
+                if (voxel_errors) {
+                    std::uint32_t q = 0;
+                    if (!split_step(n.cell.lo[n.axis], n.cell.hi[n.axis], n.split, q)) {
+                        throw std::logic_error("a split plane is not on its cell's quantization grid");
+                    }
+                    put(n.offset + 4, lod_split_word(q, n.error_code));
+                } else {
+                    put(n.offset + 4, float_bits(n.split));
+                }
                 if (!quantized) put(n.offset + 8, float_bits(n.radius));  // quantized: derived from the cell
                 put(n.offset + lod_child_block_at(quantized), n.child_block);
                 if (n.unit >= 0) out.patches.push_back({static_cast<std::uint32_t>(n.offset), n.unit});

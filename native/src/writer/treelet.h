@@ -4,6 +4,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <limits>
 #include <vector>
 
 #include "vastray/format.h"
@@ -28,6 +29,9 @@ struct Pending {
     std::vector<Proxy> proxies;       // what the LOD node above samples its voxel from
     std::vector<Patch> patches;       // ids to resolve when a parallel part is merged
     std::uint32_t nodes = 0, voxels = 0;  // what the level table counts where it is placed
+    // The surface error of the treelet root's cell (voxel_errors.h; infinity when no
+    // errors are kept): what an out-of-core treelet above combines its LOD nodes' from.
+    float error = std::numeric_limits<float>::infinity();
 };
 
 struct TreeletNode {
@@ -45,7 +49,11 @@ struct TreeletNode {
     std::uint32_t child_block = 0, child_off = 0, right_from_left = 0;
     std::uint32_t voxel[6] = {};  // the voxel's words (format::voxel_words)
     int voxel_words = 0;
-    std::uint32_t kd_node = 0;  // leaf (in-core): its kd node
+    std::uint32_t kd_node = 0;  // (in-core) its kd node
+    // The surface error of the cell (voxel_errors.h) and, for a LOD node, the code word 1
+    // stores (FLAG_VOXEL_ERRORS).
+    float error = std::numeric_limits<float>::infinity();
+    std::uint32_t error_code = format::kErrorCodeMax;
     std::uint32_t tri_block = 0, first = 0, count = 0;  // tri_block: a block reference
     int unit = -1;  // LOD (deferred placement): the children's placement unit
     std::size_t offset = 0;
@@ -72,8 +80,10 @@ void collect_kd_treelet(const KdTree& tree, std::uint32_t root, const Box3f& cel
 // their split as a step of their cell's grid (FLAG_QUANTIZED_SPLITS); a split off that
 // grid is a logic error. `packed` (FLAG_PACKED_TREELETS, only with `quantized`): padded
 // to 4 bytes instead, with LOD words in 4-byte units.
+// `voxel_errors` (FLAG_VOXEL_ERRORS, only with `quantized`): a LOD node's word 1 is its
+// split's step and its error code instead of the split in f32.
 void serialise_treelet(std::vector<TreeletNode>& nodes, ModelWriterStats& stats, Pending& out, bool quantized = false,
-                       bool packed = false);
+                       bool packed = false, bool voxel_errors = false);
 
 
 }  // namespace vastray::writer
