@@ -15,12 +15,14 @@ one run:
   PoE > 0, each other variant's frame time and working set at the same PSNR,
   interpolated along its PoE curve, and their ratios (NAME.png plots the curves).
 
-    python bench/lod_error.py bench/.cache/plant-1e8-s1.ply --poes 2,3,4,6,0 --name lod-error-plant-1e8
+    python bench/lod_error.py bench/.cache/plant-1e8-s1.ply --floors 0.5,0.25 --views overview \\
+        --cache 10G --name lod-error-plant-1e8   # 3 models of 4 GB, each needing 2 GiB at PoE 0
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import statistics
 import sys
@@ -48,10 +50,16 @@ def label(variant: str) -> str:
 
 
 def build(src: Path, out: Path, variant: str, memory: int) -> dict[str, Any]:
+    """Builds `out` (or, with --keep, reuses it and the report saved beside it)."""
+    saved = out.with_suffix(".json")
+    if out.exists() and saved.exists():
+        return json.loads(saved.read_text())
     errors = {"voxel_errors": False} if variant == RADIUS else {"voxel_error_floor": float(variant)}
     start = time.perf_counter()
     report = build_model(src, out, BuildOptions(memory=memory, overwrite=True, **errors))
-    return {"seconds": time.perf_counter() - start, "report": report}
+    result = {"seconds": time.perf_counter() - start, "report": report}
+    saved.write_text(json.dumps(result, default=str))
+    return result
 
 
 def plot(curves: dict[tuple[str, str], list[tuple[float, float, float, float]]], variants: list[str],
@@ -93,6 +101,9 @@ def main() -> None:
     ap.add_argument(
         "--scratch", type=Path, default=None, help="where the models go (default: a temporary folder)"
     )
+    ap.add_argument(
+        "--keep", type=Path, default=None, help="build the models here and keep them; reuse them if there"
+    )
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)
     ap.add_argument("--name", default=None, help="write NAME.md and NAME.png to --out (default: print only)")
     args = ap.parse_args()
@@ -102,7 +113,11 @@ def main() -> None:
     full = min(poes)
     width, height = (int(v) for v in args.image.split("x"))
     scratch = tempfile.TemporaryDirectory(dir=args.scratch)
-    files = {v: Path(scratch.name) / f"{v}.vast" for v in variants}
+    folder = Path(scratch.name)
+    if args.keep is not None:
+        args.keep.mkdir(parents=True, exist_ok=True)
+        folder = args.keep
+    files = {v: folder / f"{args.input.stem}-{v}.vast" for v in variants}
     builds = {}
     for v in variants:
         builds[v] = build(args.input, files[v], v, parse_bytes(args.memory))
@@ -112,19 +127,17 @@ def main() -> None:
     models = {v: OutOfCoreModel(files[v], cache) for v in variants}
     cameras = {k: c for k, c in views(models[RADIUS], width, height).items() if k in args.views.split(",")}
     ms: dict[tuple[str, str, float], list[float]] = {}
-    last: dict[tuple[str, str, float], Any] = {}
-    working_set: dict[tuple[str, str, float], int] = {}
+    last: dict[tuple[str, str, float], Any] = {}  # each variant's complete frame: its image and counts
+    incomplete = 0  # timed frames that found data missing (the cache is too small for all variants)
     for view, camera in cameras.items():
         for poe in poes:
             for v in variants:
-                working_set[v, view, poe] = (
-                    models[v].render_complete(camera, pixels_of_error=poe).stats.working_set_bytes
-                )
+                last[v, view, poe] = models[v].render_complete(camera, pixels_of_error=poe)
             for _ in range(args.frames):  # alternating, so load falls on every variant alike
                 for v in variants:
                     f = models[v].render(camera, pixels_of_error=poe)
                     ms.setdefault((v, view, poe), []).append(f.stats.milliseconds)
-                    last[v, view, poe] = f
+                    incomplete += not f.stats.complete
             print(f"  {view} PoE {poe:g} done", file=sys.stderr, flush=True)
     for m in models.values():
         m.close()
@@ -144,7 +157,7 @@ def main() -> None:
         for poe in poes:
             for v in variants:
                 f = last[v, view, poe]
-                t, mib = statistics.median(ms[v, view, poe]), working_set[v, view, poe] / 2**20
+                t, mib = statistics.median(ms[v, view, poe]), f.stats.working_set_bytes / 2**20
                 q = psnr(f.image, reference.image)
                 if poe > full:
                     curves.setdefault((v, view), []).append((poe, q, t, mib))
@@ -185,6 +198,8 @@ def main() -> None:
         + [h for v in variants[1:] for h in (f"{label(v)}: ms", "ratio", "MiB", "ratio")],
         same_rows,
     )
+    if incomplete:
+        print(f"warning: {incomplete} timed frames were incomplete: raise --cache", file=sys.stderr)
     print(files_table)
     print(table)
     print(same_table)
@@ -195,7 +210,8 @@ def main() -> None:
             "",
             __doc__.split("\n\n")[1].replace("\n", " "),
             "",
-            f"Every frame is {width}x{height}, complete, 2 threads, the kernels' {isa_path()} path. The "
+            f"Every frame is {width}x{height}, complete ({incomplete} timed frames were not), 2 threads, "
+            f"the kernels' {isa_path()} path. The "
             f"image columns compare each frame with the radius build's full-detail (PoE {full:g}) frame of "
             "the view (the trees are the same, so every build's full-detail frame is that one).",
             "",

@@ -498,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="LOD nodes keep a bound on how far their voxel's box lies from its triangles, and "
         "the LOD test compares that instead of the box's radius: a box around a thin pipe stands "
         "in for it sooner; on unless --no-voxel-errors (format version 8, with quantized splits; "
-        "at the same accuracy 0.6-0.8x the working set of a 10^7-10^8 overview, docs/FORMAT.md)",
+        "at the same accuracy 0.61-0.85x the working set of the 10^8 plant's overview, docs/FORMAT.md)",
     )
     b.set_defaults(func=_cmd_build)
 

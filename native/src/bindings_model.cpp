@@ -717,7 +717,7 @@ void bind_model(py::module_& m) {
              py::arg("vertex_steps") = py::none(), py::arg("tier_width") = 0.0, py::arg("tier_coarse_octaves") = 4,
              py::arg("root_cell") = py::none(), py::arg("compact_triangles") = false, py::arg("packed_voxels") = true,
              py::arg("packed_treelets") = true, py::arg("lz4_hc_level") = 0, py::arg("voxel_errors") = false,
-             py::arg("voxel_error_floor") = 0.25f)
+             py::arg("voxel_error_floor") = 0.5f)
         .def("add_subtree", &PyModelWriter::add_subtree, py::arg("records"), py::arg("lo"), py::arg("hi"),
              py::arg("level"), py::arg("lod_parent") = py::none())
         .def("add_inner_treelet", &PyModelWriter::add_inner_treelet, py::arg("level"), py::arg("lo"), py::arg("hi"),

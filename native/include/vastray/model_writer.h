@@ -56,7 +56,7 @@ struct ModelWriterParams {
     // the radius R, never below `voxel_error_floor` * R (0 ... 1; 1 keeps the radius, so
     // that no voxel is taken while it covers more than the PoE allows a voxel's size).
     bool voxel_errors = false;
-    float voxel_error_floor = 0.25f;
+    float voxel_error_floor = 0.5f;
     // Blocks compressed with LZ4 HC at this level (1 ... 12) instead of the fast
     // compressor (0): the same format and decoding, smaller blocks, a slower build.
     int lz4_hc_level = 0;
