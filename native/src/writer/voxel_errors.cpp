@@ -130,14 +130,55 @@ float distance2(const Vec3f& p, const Vec3f* v) {
 
 float point_triangle_distance(const Vec3f& p, const Vec3f* v) { return std::sqrt(distance2(p, v)); }
 
+namespace {
+
+// The squared distances from the 8 corners (cx, cy, cz) of a box to the triangle v, all
+// at once and without branches, which the compiler runs in SIMD (this file builds with
+// -fno-trapping-math so that it may): the distance to the plane where a corner lies over
+// the triangle (its three edge tests pass), else to the nearest edge as a segment. The
+// same distances as distance2, up to rounding, for the leaf's first triangle, which
+// every corner is measured against.
+void corner_distances2(const float (&cx)[8], const float (&cy)[8], const float (&cz)[8], const Vec3f* v,
+                       float (&out)[8]) {
+    const Vec3f n = cross(v[1] - v[0], v[2] - v[0]);
+    const float nn = dot(n, n);
+    const float inv_nn = nn > 0 ? 1.0f / nn : 0.0f;
+    float best[8], over[8], h[8];
+    for (int c = 0; c < 8; ++c) {
+        best[c] = std::numeric_limits<float>::max();
+        over[c] = nn > 0 ? 1.0f : 0.0f;
+        h[c] = (cx[c] - v[0].x) * n.x + (cy[c] - v[0].y) * n.y + (cz[c] - v[0].z) * n.z;
+    }
+    for (int i = 0; i < 3; ++i) {
+        const Vec3f a = v[i], e = v[i == 2 ? 0 : i + 1] - v[i];
+        const Vec3f m = cross(n, e);  // points into the triangle from edge i, in its plane
+        const float ee = dot(e, e);
+        const float inv_ee = ee > 0 ? 1.0f / ee : 0.0f;
+        for (int c = 0; c < 8; ++c) {
+            const float px = cx[c] - a.x, py = cy[c] - a.y, pz = cz[c] - a.z;
+            over[c] = px * m.x + py * m.y + pz * m.z >= 0 ? over[c] : 0.0f;
+            const float t = std::min(std::max((px * e.x + py * e.y + pz * e.z) * inv_ee, 0.0f), 1.0f);
+            const float qx = px - t * e.x, qy = py - t * e.y, qz = pz - t * e.z;
+            best[c] = std::min(best[c], qx * qx + qy * qy + qz * qz);
+        }
+    }
+    for (int c = 0; c < 8; ++c) out[c] = over[c] > 0 ? h[c] * h[c] * inv_nn : best[c];
+}
+
+}  // namespace
+
 float leaf_error(const TriangleSource& src, const std::uint32_t* tris, std::uint32_t count, const Box3f& cell,
                  float enough) {
     if (count == 0) return kInf;
     Vec3f corner[8];
+    float cx[8], cy[8], cz[8];
     float magnitude = 0;
     for (int c = 0; c < 8; ++c) {
         corner[c] = Vec3f((c & 1) ? cell.hi.x : cell.lo.x, (c & 2) ? cell.hi.y : cell.lo.y,
                           (c & 4) ? cell.hi.z : cell.lo.z);
+        cx[c] = corner[c].x;
+        cy[c] = corner[c].y;
+        cz[c] = corner[c].z;
         for (int a = 0; a < 3; ++a) magnitude = std::max(magnitude, std::abs(corner[c][a]));
     }
     const Vec3f centre = (cell.lo + cell.hi) * 0.5f, half = (cell.hi - cell.lo) * 0.5f;
@@ -172,7 +213,17 @@ float leaf_error(const TriangleSource& src, const std::uint32_t* tris, std::uint
         ++tried;
         float worst2 = 0;
         int at = far;
-        for (int k = 0; k < 8 && worst2 < best2; ++k) {
+        if (j == 0) {
+            float d2[8];
+            corner_distances2(cx, cy, cz, v, d2);
+            for (int c = 0; c < 8; ++c) {
+                if (d2[c] > worst2) {
+                    worst2 = d2[c];
+                    at = c;
+                }
+            }
+        }
+        for (int k = 0; j > 0 && k < 8 && worst2 < best2; ++k) {
             const int c = (far + k) & 7;
             const float d2 = distance2(corner[c], v);
             if (d2 > worst2) {
