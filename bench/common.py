@@ -347,6 +347,14 @@ def command_and_machine(info: dict[str, str]) -> list[str]:
     return ["## Command", "", "```sh", info["command"], "```", "", "## Machine", "", *machine]
 
 
+def markdown_sections(*sections: tuple[str, str, str]) -> list[str]:
+    """Report lines for (heading, intro, table) sections; an empty intro is left out."""
+    out: list[str] = []
+    for heading, intro, table in sections:
+        out += [f"## {heading}", "", *([intro, ""] if intro else []), table, ""]
+    return out
+
+
 def markdown_table(headers: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     """A GitHub-flavoured markdown table; numbers right-aligned."""
     body = [[str(c) for c in row] for row in rows]

@@ -34,7 +34,16 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, command_and_machine, fmt, machine_info, markdown_table, pyplot, save_figure
+from common import (
+    RESULTS_DIR,
+    command_and_machine,
+    fmt,
+    machine_info,
+    markdown_sections,
+    markdown_table,
+    pyplot,
+    save_figure,
+)
 from tradeoff import isa_path, psnr, ssim, views
 from tree_cost import time_at_accuracy as at_accuracy  # any value along a (PSNR, value) curve
 
@@ -216,23 +225,18 @@ def main() -> None:
             "the view (the trees are the same, so every build's full-detail frame is that one).",
             "",
             *command_and_machine(info),
-            "## Files",
-            "",
-            files_table,
-            "",
-            "## Frames and images",
-            "",
-            table,
-            "",
-            "## The same accuracy",
-            "",
-            "Each radius frame at PoE > 0 (its PSNR against full detail), and each errors build's frame "
-            "time and working set at that PSNR, linear between its two PoEs around it (n/a: none of its "
-            "PoEs reached or passed it). Ratios under 1: the same accuracy for less. The curves: "
-            f"{args.name}.png.",
-            "",
-            same_table,
-            "",
+            *markdown_sections(
+                ("Files", "", files_table),
+                ("Frames and images", "", table),
+                (
+                    "The same accuracy",
+                    "Each radius frame at PoE > 0 (its PSNR against full detail), and each errors "
+                    "build's frame time and working set at that PSNR, linear between its two PoEs around "
+                    "it (n/a: none of its PoEs reached or passed it). Ratios under 1: the same accuracy "
+                    f"for less. The curves: {args.name}.png.",
+                    same_table,
+                ),
+            ),
         ]
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.md").write_text("\n".join(text))

@@ -37,7 +37,16 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, command_and_machine, fmt, machine_info, markdown_table, pyplot, save_figure
+from common import (
+    RESULTS_DIR,
+    command_and_machine,
+    fmt,
+    machine_info,
+    markdown_sections,
+    markdown_table,
+    pyplot,
+    save_figure,
+)
 from tradeoff import isa_path, psnr, ssim, views
 
 from vastray.build import BuildOptions, build_model
@@ -224,23 +233,18 @@ def main() -> None:
             "the view.",
             "",
             *command_and_machine(info),
-            "## Files",
-            "",
-            files_table,
-            "",
-            "## Frames and images",
-            "",
-            table,
-            "",
-            "## The same accuracy",
-            "",
-            f"Each cost-{ref_cost:g} frame at PoE > 0 (its PSNR against the cost-{ref_cost:g} full-detail "
-            "frame), and the other trees' frame time at that PSNR, linear between their two PoEs "
-            "around it (n/a: none of their PoEs reached or passed it). A ratio under 1: the coarser "
-            f"tree gives the same accuracy faster. The curves: {args.name}.png.",
-            "",
-            same_table,
-            "",
+            *markdown_sections(
+                ("Files", "", files_table),
+                ("Frames and images", "", table),
+                (
+                    "The same accuracy",
+                    f"Each cost-{ref_cost:g} frame at PoE > 0 (its PSNR against the cost-{ref_cost:g} "
+                    "full-detail frame), and the other trees' frame time at that PSNR, linear between "
+                    "their two PoEs around it (n/a: none of their PoEs reached or passed it). A ratio "
+                    f"under 1: the coarser tree gives the same accuracy faster. The curves: {args.name}.png.",
+                    same_table,
+                ),
+            ),
         ]
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / f"{args.name}.md").write_text("\n".join(text))
