@@ -8,10 +8,11 @@ Checked here: the bound against a float64 brute force over points of the box sur
 every triangle below (an algorithm of its own: the plane inside the triangle, else the
 nearest edge); the same tree and full-detail frames as a build without errors; a floor
 of 1 codes every node as its radius and gives the same frames at every PoE; the coarser
-cut it is for; and the flag's refusals in every reader."""
+cut it is for; and the flag's refusals in every reader, and a damaged LOD word 1's."""
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,12 +20,13 @@ import numpy as np
 import pytest
 from modelwalk import Node, Walker, WalkError
 from test_build import SMALL_MEMORY, rewrite_version, run_cli
+from test_compact_triangles import replace_block
 from test_packed_voxels import complete_frames
 from test_tiers import refused, rewrite_header
 
 from vastray import native
 from vastray.build import BuildOptions, build_model
-from vastray.modelfile import FLAG_QUANTIZED_SPLITS, FLAG_VOXEL_ERRORS, VERSION, ModelFile
+from vastray.modelfile import FLAG_QUANTIZED_SPLITS, FLAG_VOXEL_ERRORS, VERSION, ModelError, ModelFile
 
 SOURCES = {
     # Pipes, beams and gratings: long thin cells, whose boxes lie close to their triangles.
@@ -233,3 +235,21 @@ def test_the_cli(tmp_path: Path) -> None:
     assert "voxel errors" not in run_cli("inspect", str(off), cwd=tmp_path).stdout
     with ModelFile(on) as a, ModelFile(off) as b:
         assert a.voxel_errors and not b.voxel_errors
+
+
+def test_a_damaged_split_word_is_refused(built: Callable[[str], Built], tmp_path: Path) -> None:
+    """Bits above the error code set in a LOD node's word 1: the full decoder and the
+    walker say so instead of reading a split off the grid."""
+    errors = built("plant")["errors"]
+    lod = next(n for n in nodes(errors) if n.kind == "lod")
+    with ModelFile(errors) as model:
+        raw = bytearray(model.read_block(lod.block))
+    word1 = struct.unpack_from("<I", raw, lod.offset + 4)[0]
+    struct.pack_into("<I", raw, lod.offset + 4, word1 | 1 << 28)
+    damaged = tmp_path / "damaged.vast"
+    replace_block(errors, damaged, lod.block, bytes(raw))
+    with ModelFile(damaged) as model, pytest.raises(ModelError, match="LOD split word out of range"):
+        model.to_scene()
+    with ModelFile(damaged) as model, pytest.raises(WalkError, match=r"LOD split word .* out of range"):
+        for _ in Walker(model).walk():
+            pass

@@ -80,7 +80,7 @@ private:
             split = dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], basic_split_step(w));
         } else if (is_lod(w) && in_.voxel_errors) {
             const std::uint32_t word1 = word(block, off + 4);
-            if ((word1 >> (kErrorShift + 8)) != 0 || lod_split_step(word1) == 0) {
+            if (lod_split_word_overflows(word1) || lod_split_step(word1) == 0) {
                 bad(block, "LOD split word out of range at offset " + std::to_string(off));
             }
             split = dequantize_split(cell.lo[axis_of(w)], cell.hi[axis_of(w)], lod_split_step(word1));

@@ -234,14 +234,16 @@ inline std::uint32_t with_child_offset(std::uint32_t w, std::size_t child_off, b
 // far the voxel's box surface lies from the triangles it stands in for, or R when that
 // is no smaller (c = 255; docs/FORMAT.md §8 and §15). (c + 1) / 256 is exact in f32, so
 // e is one rounding of one product, the same in every reader, and e = R at c = 255.
-constexpr int kErrorShift = kSplitBits;
-constexpr std::uint32_t kErrorCodeMax = 255;
+constexpr int kErrorShift = kSplitBits, kErrorBits = 8;
+constexpr std::uint32_t kErrorCodeMax = (1u << kErrorBits) - 1;
 inline std::uint32_t lod_split_word(std::uint32_t step, std::uint32_t code) { return step | (code << kErrorShift); }
 inline std::uint32_t lod_split_step(std::uint32_t word1) { return word1 & (kSplitSteps - 1); }
 inline std::uint32_t lod_error_code(std::uint32_t word1) { return (word1 >> kErrorShift) & kErrorCodeMax; }
 inline float lod_error(float radius, std::uint32_t code) {
     return radius * (static_cast<float>(code + 1) * (1.0f / 256.0f));
 }
+// Word 1 with anything in the bits above the code (a damaged node).
+inline bool lod_split_word_overflows(std::uint32_t word1) { return (word1 >> (kErrorShift + kErrorBits)) != 0; }
 // The smallest code whose error is at least `error` (kErrorCodeMax when none below is).
 inline std::uint32_t lod_error_code_for(float radius, float error) {
     if (!(error < radius) || !(radius > 0)) return kErrorCodeMax;

@@ -159,16 +159,20 @@ inline float split_of(bool quantized, bool voxel_errors, const NodeRef& node, st
     return format::bits_float(load<std::uint32_t>(node.block + node.off + 4));
 }
 
+// What the LOD test of the LOD node at `node` compares: its radius, or with
+// FLAG_VOXEL_ERRORS the error its word 1 codes.
+inline float lod_test_error(bool voxel_errors, const std::uint8_t* node, float radius) {
+    return voxel_errors ? format::lod_error(radius, format::lod_error_code(load<std::uint32_t>(node + 4))) : radius;
+}
+
 // A LOD node's voxel: its samples, its radius (a quantized model derives it from the
-// cell instead of storing it) and its error (FLAG_VOXEL_ERRORS: word 1's code).
+// cell instead of storing it) and its error (lod_test_error).
 inline Voxel voxel_of(bool quantized, bool packed, bool voxel_errors, const NodeRef& node, std::uint32_t w) {
     const float radius =
         quantized ? format::cell_radius(Vec3f(node.hi[0] - node.lo[0], node.hi[1] - node.lo[1], node.hi[2] - node.lo[2]))
                   : format::bits_float(load<std::uint32_t>(node.block + node.off + 8));
-    const float error =
-        voxel_errors ? format::lod_error(radius, format::lod_error_code(load<std::uint32_t>(node.block + node.off + 4)))
-                     : radius;
-    return {node.block + node.off + format::lod_offsets(w, packed).voxel, radius, error};
+    return {node.block + node.off + format::lod_offsets(w, packed).voxel, radius,
+            lod_test_error(voxel_errors, node.block + node.off, radius)};
 }
 
 // The stream a block reference of `level` names: its first block, and one past its last
@@ -664,9 +668,7 @@ public:
                     } else {
                         radius = bits_float(load<std::uint32_t>(block + off + 8));
                     }
-                    const float error = Quantized && lane.voxel_errors
-                                            ? lod_error(radius, lod_error_code(load<std::uint32_t>(block + off + 4)))
-                                            : radius;
+                    const float error = lod_test_error(Quantized && lane.voxel_errors, block + off, radius);
                     const Voxel here{block + off + lod_offsets(w, Quantized && lane.packed_treelets).voxel, radius, error};
                     const float reach = cone_t0 + tmin;
                     if (error <= reach * cone) {
