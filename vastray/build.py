@@ -904,6 +904,7 @@ class _Builder:
         self.dup = 1.5
         steps = native.vertex_grid_steps(lo.tolist(), hi.tolist()) if self.opt.quantized_vertices else None
         self.threads_used = self.opt.writer_threads(max((p.count for p in parts), default=0))
+        voxel_errors = self.opt.voxel_errors and self.opt.quantized_splits  # only with quantized splits
         writer = native.ModelWriter(
             has_colours=self.src.has_colours,
             # Every block goes into the model file as it is made (model_assembly.py).
@@ -925,7 +926,7 @@ class _Builder:
             packed_voxels=self.opt.packed_voxels,
             packed_treelets=self.opt.packed_treelets,
             lz4_hc_level=self.opt.lz4_hc_level,
-            voxel_errors=self.opt.voxel_errors and self.opt.quantized_splits,
+            voxel_errors=voxel_errors,
             voxel_error_floor=self.opt.voxel_error_floor,
         )
         self.report("build", 0, self.build_total)
@@ -949,7 +950,7 @@ class _Builder:
             | (modelfile.FLAG_QUANTIZED_VERTICES if self.opt.quantized_vertices else 0)
             | (modelfile.FLAG_COMPACT_TRIANGLES if self.opt.compact_triangles else 0)
             | (modelfile.FLAG_PACKED_TREELETS if packed_treelets else 0)
-            | (modelfile.FLAG_VOXEL_ERRORS if self.opt.voxel_errors and self.opt.quantized_splits else 0),
+            | (modelfile.FLAG_VOXEL_ERRORS if voxel_errors else 0),
             "centre": tuple(float(x) for x in centre),
             "cell_lo": tuple(float(x) for x in lo),
             "cell_hi": tuple(float(x) for x in hi),

@@ -315,7 +315,8 @@ class BuildOptionsIn(Strict):
         None,
         description="LOD nodes keep a bound on how far their voxel's box lies from its triangles, "
         "which their LOD test compares instead of the box's radius (default on, with quantized "
-        "splits): at the same accuracy 0.6-0.8x the working set of a large model's overview",
+        "splits): at the same accuracy 0.61-0.85x the working set of the 10^8 plant's overview, "
+        "up to 1.09x in nearer views of the 10^7 one (docs/FORMAT.md, Measured choices)",
     )
 
 
