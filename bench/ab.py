@@ -15,7 +15,10 @@ Workloads, one thread each:
 * `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
 * `sun`: the same frame with shading='sun' (a shadow ray per lit pixel facing the sun);
 * `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
-  with `--ooc`, complete, its own clock; `ooc-sun`: the same with shadow rays.
+  with `--ooc`, complete, its own clock; `ooc-sun`: the same with shadow rays;
+  `ooc-single`: with single rays (`packets=1`); `ooc-section`: with a section plane
+  through the model's centre, which takes single rays too (packets are off with
+  sections).
 
 Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
 
@@ -51,8 +54,8 @@ from common import (
 
 from build import build_baseline, snapshot_vastray, use_snapshot
 
-WORKLOADS = ("batch", "ao", "frame", "sun", "ooc", "ooc-sun")
-OOC_WORKLOADS = ("ooc", "ooc-sun")
+WORKLOADS = ("batch", "ao", "frame", "sun", "ooc", "ooc-sun", "ooc-single", "ooc-section")
+OOC_WORKLOADS = ("ooc", "ooc-sun", "ooc-single", "ooc-section")
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -108,7 +111,16 @@ class Child:
             if workload in OOC_WORKLOADS:
                 model, camera = self.ooc[label]
                 shading = "sun" if workload == "ooc-sun" else "headlight"
-                frame = model.render_complete(camera, pixels_of_error=poe, shading=shading, threads=1)
+                fields: dict[str, Any] = {}
+                if workload == "ooc-single":
+                    fields["packets"] = 1
+                elif workload == "ooc-section":
+                    lo, hi = model.bounds
+                    centre_x = 0.5 * (float(lo[0]) + float(hi[0]))
+                    fields["sections"] = [(1.0, 0.0, 0.0, -centre_x)]  # keeps x >= centre_x
+                frame = model.render_complete(
+                    camera, pixels_of_error=poe, shading=shading, threads=1, **fields
+                )
                 seconds = float(frame.stats.milliseconds) / 1e3
                 check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
             else:

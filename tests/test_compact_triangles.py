@@ -120,10 +120,10 @@ def test_same_scene_and_frames(models: dict[Key, Path], name: str) -> None:
 def test_walks_in_flight_read_compact_leaves_alike(
     models: dict[Key, Path], name: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Walks in flight (single rays always; packets on large models, forced here with
-    VASTRAY_INTERLEAVE_BYTES=0) stop before each of a compact leaf's record, group headers,
-    corner fields and vertices, decoding what has arrived to ask for the next: every packet
-    size gives the plain model's frame, at full detail and with voxels."""
+    """Packets in flight (on large models, forced here with VASTRAY_INTERLEAVE_BYTES=0)
+    stop before each of a compact leaf's record, group headers, corner fields and
+    vertices, decoding what has arrived to ask for the next: every packet size, and single
+    rays, give the plain model's frame, at full detail and with voxels."""
     monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
     for kind in KINDS:
         cache = make_cache(256 << 20, 1)

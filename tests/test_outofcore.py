@@ -734,9 +734,9 @@ def test_full_detail_equals_in_core(built: Callable[[str], Built], name: str, sh
 def test_interleaved_walks_answer_like_one_ray_at_a_time(
     built: Callable[[str], Built], name: str, interleave_from: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Single-ray frames keep several walks in flight per thread, and on a large model
-    (forced here: VASTRAY_INTERLEAVE_BYTES=0) so do 2x2 and 4x4 packets: each stops where
-    it would wait for memory and another goes on. The hits must be those of the batch
+    """On a large model (forced here: VASTRAY_INTERLEAVE_BYTES=0) 2x2 and 4x4 packets keep
+    several walks in flight per thread: each stops where it would wait for memory and
+    another goes on. Their hits, and the single-ray frame's, must be those of the batch
     query, which walks each ray from the root to its end before the next: the same
     triangle at the same distance for every pixel. With level of detail (voxels in the
     image) every packet size gives the single rays' frame."""

@@ -376,7 +376,7 @@ private:
 namespace lod_detail {
 
 // A leaf's triangles asked for from memory, one wait at a time, by a walk that stops
-// for memory and runs other walks meanwhile (Walker, PacketWalker). Each wait asks for
+// for memory and runs other walks meanwhile (PacketWalker). Each wait asks for
 // what the previous one's lines tell where to find: in a plain block the list entries,
 // the triangle records, the vertices; in a compact one the leaf record, the group
 // headers, the groups' corner fields, the vertices (one wait more, as a compact
@@ -545,17 +545,13 @@ private:
 // position is kept as loose scalars rather than NodeRefs, which the compiler would copy
 // whole (and read back as vectors right after writing single fields) at every step.
 //
-// With Yield = false, run() goes to the end of the walk. With Yield = true it also stops
-// where the walk is about to wait for memory it cannot have in cache, having asked for
-// it: on entering a child treelet (its first lines) and on reaching a leaf (the triangle
-// block's header and the leaf's list entries). A caller with several walks in flight
-// (lod_trace_stream) runs the others meanwhile, so their misses overlap instead of
-// following one another. Either way every ray does exactly the same arithmetic.
-template <bool AnyHit, bool Quantized, bool Yield>
+// A single ray walks to its end in one go. It used to stop where it would wait for
+// memory (a child treelet, a leaf's triangle data), so that 8 walks in flight could
+// overlap their misses as the packets' do; for single rays the stops cost more than
+// they hid (docs/out-of-core-rendering.md, "How a ray walks").
+template <bool AnyHit, bool Quantized>
 class Walker {
 public:
-    enum class Stop { Done, Treelet, Leaf };
-
     void start(const LodRay& lray, const ShearedRay& sheared, const NodeRef& at, float tmin, float tmax,
                int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
         lray_ = &lray;
@@ -580,30 +576,15 @@ public:
         entry_axis_ = entry_axis;
         voxel_ = voxel;
         top_ = 0;
-        leaf_.stage = 0;
     }
 
-    // Queues a subtree to walk after the start node's, as if the walk had put it aside
-    // itself (a packet hands over the far children it kept for this ray, bottom of its
-    // stack first).
-    void push(const NodeRef& at, float tmin, float tmax, int entry_axis, Voxel voxel) {
-        if (top_ >= kStack) return;
-        if constexpr (Quantized) {
-            for (int a = 0; a < 3; ++a) {
-                cells_[top_][a] = at.lo[a];
-                cells_[top_][3 + a] = at.hi[a];
-            }
-        }
-        stack_[top_++] = {at.block, at.off, at.level, tmin, tmax, entry_axis, voxel};
-    }
-
-    // Walks on to the next stop. After Stop::Done, finished() is the walk's answer: true
-    // when the ray is finished (its hit can no longer change), false when the subtree is
-    // done and cells beyond it may still hold a nearer hit.
-    // (Every exit goes through the labels at the end rather than through lambdas that
+    // Walks to the end. finished() is then the walk's answer: true when the ray is
+    // finished (its hit can no longer change), false when the subtree is done and cells
+    // beyond it may still hold a nearer hit.
+    // (Every exit goes through the label at the end rather than through lambdas that
     // capture the position by reference: a captured local lives in memory, and the
     // compiler then loads and stores tmin, tmax and the rest at every step.)
-    Stop run(LodLane& lane) {
+    void run(LodLane& lane) {
         using namespace format;
         const Ray& ray = lray_->ray;
         const float cone = lray_->cone, cone_t0 = lray_->cone_t0;
@@ -622,29 +603,14 @@ public:
             }
         }
         std::uint64_t node_visits = 0;
-        Stop why = Stop::Done;
         bool finished = true;
         Voxel stand_in{nullptr, 0.0f, 0.0f};  // the voxel a finished ray hits, at tmin
-
-        if constexpr (Yield) {
-            if (leaf_.waiting()) {
-                leaf_.next(lane, block + off);
-                return Stop::Leaf;
-            }
-        }
-        bool leaf = leaf_.stage != 0;
-        leaf_.stage = 0;
+        bool leaf = false;
         for (;;) {
             while (!leaf) {
                 const std::uint32_t w = load<std::uint32_t>(block + off);
                 if (!is_inner(w)) {
                     leaf = true;
-                    if constexpr (Yield) {
-                        if (leaf_.start(lane, block + off)) {
-                            why = Stop::Leaf;
-                            goto yield;
-                        }
-                    }
                     break;
                 }
                 ++node_visits;
@@ -739,17 +705,6 @@ public:
                 block = child_block;
                 off = to_first ? first_off : second_off;
                 level = child_level;
-                if constexpr (Yield) {
-                    if (lod) {
-                        // A treelet pair is stored back to back: ask for the lines of both.
-                        const std::uint32_t first = std::min(l_off, r_off);
-                        const std::size_t span =
-                            std::min<std::size_t>(std::max(l_off, r_off) - first + 128, kBlockSize - first);
-                        for (std::size_t b = 0; b < span; b += 64) __builtin_prefetch(child_block + first + b);
-                        why = Stop::Treelet;
-                        goto yield;
-                    }
-                }
             }
             if (leaf) {
                 leaf = false;
@@ -806,26 +761,7 @@ public:
             ++lane.voxel_hits;
         }
         finished_ = finished;
-        why = Stop::Done;
-    yield: __attribute__((unused));  // reached only where Yield
         lane.node_visits += node_visits;
-        if constexpr (Yield) {
-            block_ = block;
-            off_ = off;
-            level_ = level;
-            tmin_ = tmin;
-            tmax_ = tmax;
-            entry_axis_ = entry_axis;
-            voxel_ = voxel;
-            top_ = top;
-            if constexpr (Quantized) {
-                for (int a = 0; a < 3; ++a) {
-                    lo_[a] = lo[a];
-                    hi_[a] = hi[a];
-                }
-            }
-        }
-        return why;
     }
 
     bool finished() const { return finished_; }
@@ -853,7 +789,6 @@ private:
     int entry_axis_ = 0;
     Voxel voxel_{nullptr, 0.0f, 0.0f};
     int top_ = 0;
-    LeafPrefetch leaf_;
     bool finished_ = false;
     Entry stack_[kStack];
     float cells_[Quantized ? kStack : 1][6];  // the entries' cells (quantized models only)
@@ -862,7 +797,7 @@ private:
 template <bool AnyHit, bool Quantized>
 inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const NodeRef& start, float tmin,
                  float tmax, int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
-    Walker<AnyHit, Quantized, false> walker;
+    Walker<AnyHit, Quantized> walker;
     walker.start(lray, sheared, start, tmin, tmax, entry_axis, voxel, hit, skip);
     walker.run(lane);
     return walker.finished();
@@ -876,7 +811,7 @@ inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, c
 // Returns true when the ray is finished (its hit can no longer change: a voxel stood in,
 // a hit lies inside its cell, an any-hit ray hit, or a node is damaged), false when the
 // subtree is done and cells beyond it may still hold a nearer hit. lod_traverse() walks
-// from the root; the packets hand their last live ray to it mid-tree.
+// from the root.
 template <bool AnyHit>
 inline bool lod_walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const lod_detail::NodeRef& node,
                      float tmin, float tmax, int entry_axis, lod_detail::Voxel voxel, LodHit& hit,
@@ -904,48 +839,13 @@ inline bool lod_traverse(LodLane& lane, const Box3f& root_cell, const LodRay& lr
     return hit.prim != kNoHit;
 }
 
-namespace lod_detail {
-
-template <bool Quantized, int G>
-inline void trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits, int n) {
-    using W = Walker<false, Quantized, true>;
-    W walkers[G];
-    int next = 0;
-    // Starts the next ray that enters the model in walker g; false when none is left.
-    auto launch = [&](int g) {
-        while (next < n) {
-            const int i = next++;
-            const Ray& ray = rays[i].ray;
-            LodHit& hit = hits[i];
-            hit.t = ray.tmax;
-            hit.prim = kNoHit;
-            float tmin, tmax;
-            int entry_axis;
-            if (!clip_with_axis(ray, root_cell, tmin, tmax, entry_axis)) continue;
-            const std::uint8_t* root = lane.lookup(lane.level_first[0], 0.0f);
-            if (!root) continue;
-            walkers[g].start(rays[i], ShearedRay(ray.dir), root_ref(root, root_cell), tmin, tmax, entry_axis,
-                             {nullptr, 0.0f, 0.0f}, hit, kNoHit);
-            return true;
-        }
-        return false;
-    };
-    walks_in_flight<G>(launch, [&](int g) { return walkers[g].run(lane) == W::Stop::Done; });
-}
-
-}  // namespace lod_detail
-
-// Closest hits of n independent rays, several walks in flight at once (lod_detail::
-// Walker with Yield): while one waits for a treelet or a triangle block from memory, the
-// others go on. hits[i] is exactly what lod_traverse<false> gives rays[i].
+// Closest hits of n independent rays: hits[i] is what lod_traverse<false> gives rays[i].
+// One ray after another. Eight walks in flight per thread, each stopping for a child
+// treelet and a leaf's triangle data as the packets do, measured 1.07x this on 2
+// December and 0.61-0.86x on 5 December, once the tiers and voxel errors had made the
+// views' working sets smaller (docs/out-of-core-rendering.md, "How a ray walks").
 inline void lod_trace_stream(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits, int n) {
-    // 8 walks in flight: 1.07x one at a time on a 10^8 overview (4: 1.05x, 16: 1.05x).
-    constexpr int kInFlight = 8;
-    if (lane.quantized_splits) {
-        lod_detail::trace_stream<true, kInFlight>(lane, root_cell, rays, hits, n);
-    } else {
-        lod_detail::trace_stream<false, kInFlight>(lane, root_cell, rays, hits, n);
-    }
+    for (int i = 0; i < n; ++i) lod_traverse<false>(lane, root_cell, rays[i], hits[i]);
 }
 
 VASTRAY_KERNEL_END
