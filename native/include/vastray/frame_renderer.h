@@ -148,10 +148,8 @@ public:
 
     FrameShader(const Backend& backend, const RenderParams& params, const Camera& camera, int packets, Frame& frame,
                 IndirectTerms* indirect, const LocalSections& sections)
-        : backend_(backend), params_(params), packets_(sections.empty() ? packets : 1), frame_(frame),
-          indirect_(indirect), sections_(sections), sun_(Vec3f(normalize(params.sun_direction))),
-          up_(Vec3f(camera.up)) {
-        // (Sectioned rays go singly: each has its own segment, which packets do not expect.)
+        : backend_(backend), params_(params), packets_(packets), frame_(frame), indirect_(indirect),
+          sections_(sections), sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)) {
         up_ = normalize(up_);
     }
 
@@ -204,12 +202,17 @@ private:
         for (int i = 0; i < N; ++i) {
             b.x[i] = x + i % side;
             b.y[i] = y + i / side;
-            b.entered[i] = -1;  // (no sections: packets are off when there are any)
         }
         if (side == 4) {
             for (int r = 0; r < 4; ++r) backend_.primary_rays4(x, y + r, b.ray + 4 * r);
         } else {
             for (int i = 0; i < N; ++i) b.ray[i] = backend_.primary_ray(b.x[i], b.y[i]);
+        }
+        // Section planes narrow each ray to its own segment on the kept side, which the
+        // packet walks take lane by lane as single rays do. A ray left with nothing gets
+        // an empty segment: it enters no cell, and its pixel stays background.
+        for (int i = 0; i < N; ++i) {
+            if (!clip(b.ray[i], b.entered[i])) base(b.ray[i]).tmin = std::numeric_limits<float>::infinity();
         }
     }
 
