@@ -552,54 +552,36 @@ private:
 template <bool AnyHit, bool Quantized>
 class Walker {
 public:
-    void start(const LodRay& lray, const ShearedRay& sheared, const NodeRef& at, float tmin, float tmax,
-               int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
-        lray_ = &lray;
-        sheared_ = sheared;
-        hit_ = &hit;
-        skip_ = skip;
+    Walker(const LodRay& lray, const ShearedRay& sheared, LodHit& hit, std::uint32_t skip)
+        : lray_(&lray), sheared_(sheared), hit_(&hit), skip_(skip) {
         const Ray& ray = lray.ray;
         for (int a = 0; a < 3; ++a) {
             org_[a] = ray.org[a];
             inv_[a] = 1.0f / ray.dir[a];
             dir_negative_[a] = std::signbit(ray.dir[a]);
         }
-        block_ = at.block;
-        off_ = at.off;
-        level_ = at.level;
-        for (int a = 0; a < 3; ++a) {
-            lo_[a] = at.lo[a];
-            hi_[a] = at.hi[a];
-        }
-        tmin_ = tmin;
-        tmax_ = tmax;
-        entry_axis_ = entry_axis;
-        voxel_ = voxel;
-        top_ = 0;
     }
 
-    // Walks to the end. finished() is then the walk's answer: true when the ray is
-    // finished (its hit can no longer change), false when the subtree is done and cells
-    // beyond it may still hold a nearer hit.
+    // Walks the subtree at `at` to the end, entered with the segment [tmin, tmax] by the
+    // face on `entry_axis`, below `voxel`. True when the ray is finished (its hit can no
+    // longer change), false when the subtree is done and cells beyond it may still hold a
+    // nearer hit.
     // (Every exit goes through the label at the end rather than through lambdas that
     // capture the position by reference: a captured local lives in memory, and the
     // compiler then loads and stores tmin, tmax and the rest at every step.)
-    void run(LodLane& lane) {
+    bool run(LodLane& lane, const NodeRef& at, float tmin, float tmax, int entry_axis, Voxel voxel) {
         using namespace format;
         const Ray& ray = lray_->ray;
         const float cone = lray_->cone, cone_t0 = lray_->cone_t0;
         LodHit& hit = *hit_;
-        const std::uint8_t* block = block_;
-        std::uint32_t off = off_, level = level_;
-        float tmin = tmin_, tmax = tmax_;
-        int entry_axis = entry_axis_;
-        Voxel voxel = voxel_;
-        int top = top_;
+        const std::uint8_t* block = at.block;
+        std::uint32_t off = at.off, level = at.level;
+        int top = 0;
         float lo[3], hi[3];
         if constexpr (Quantized) {
             for (int a = 0; a < 3; ++a) {
-                lo[a] = lo_[a];
-                hi[a] = hi_[a];
+                lo[a] = at.lo[a];
+                hi[a] = at.hi[a];
             }
         }
         std::uint64_t node_visits = 0;
@@ -760,11 +742,9 @@ public:
             if (tmin < hit.t) hit_voxel(stand_in, entry_axis, ray, tmin, hit);
             ++lane.voxel_hits;
         }
-        finished_ = finished;
         lane.node_visits += node_visits;
+        return finished;
     }
-
-    bool finished() const { return finished_; }
 
 private:
     static constexpr int kStack = 64;
@@ -782,14 +762,6 @@ private:
     std::uint32_t skip_ = kNoHit;
     float org_[3], inv_[3];
     bool dir_negative_[3];
-    const std::uint8_t* block_ = nullptr;
-    std::uint32_t off_ = 0, level_ = 0;
-    float lo_[3], hi_[3];
-    float tmin_ = 0, tmax_ = 0;
-    int entry_axis_ = 0;
-    Voxel voxel_{nullptr, 0.0f, 0.0f};
-    int top_ = 0;
-    bool finished_ = false;
     Entry stack_[kStack];
     float cells_[Quantized ? kStack : 1][6];  // the entries' cells (quantized models only)
 };
@@ -797,10 +769,7 @@ private:
 template <bool AnyHit, bool Quantized>
 inline bool walk(LodLane& lane, const LodRay& lray, const ShearedRay& sheared, const NodeRef& start, float tmin,
                  float tmax, int entry_axis, Voxel voxel, LodHit& hit, std::uint32_t skip) {
-    Walker<AnyHit, Quantized> walker;
-    walker.start(lray, sheared, start, tmin, tmax, entry_axis, voxel, hit, skip);
-    walker.run(lane);
-    return walker.finished();
+    return Walker<AnyHit, Quantized>(lray, sheared, hit, skip).run(lane, start, tmin, tmax, entry_axis, voxel);
 }
 
 }  // namespace lod_detail
