@@ -341,6 +341,37 @@ def ao_rays_from_hits(
 # ----------------------------------------------------------------------------- output
 
 
+K = TypeVar("K")
+FrameKey = tuple[K, str, float]  # (model key, view, PoE)
+
+
+def alternating_frames(
+    models: dict[K, Any], cameras: dict[str, Any], poes: Sequence[float], frames: int
+) -> tuple[dict[FrameKey[K], list[float]], dict[FrameKey[K], Any], dict[FrameKey[K], Any], int]:
+    """Out-of-core frames of several builds side by side. For each view and PoE, every
+    model's complete frame (render_complete), then `frames` timed frames of each, the
+    models taking turns so that the machine's load falls on all alike. Returns, keyed by
+    (model key, view, PoE), the timed frames' milliseconds, the complete frames and the
+    last timed frames, and how many timed frames found data missing (a cache too small
+    for all the models)."""
+    ms: dict[FrameKey[K], list[float]] = {}
+    complete: dict[FrameKey[K], Any] = {}
+    last: dict[FrameKey[K], Any] = {}
+    incomplete = 0
+    for view, camera in cameras.items():
+        for poe in poes:
+            for key, model in models.items():
+                complete[key, view, poe] = model.render_complete(camera, pixels_of_error=poe)
+            for _ in range(frames):
+                for key, model in models.items():
+                    f = model.render(camera, pixels_of_error=poe)
+                    ms.setdefault((key, view, poe), []).append(f.stats.milliseconds)
+                    last[key, view, poe] = f
+                    incomplete += not f.stats.complete
+            print(f"  {view} PoE {poe:g} done", file=sys.stderr, flush=True)
+    return ms, complete, last, incomplete
+
+
 def command_and_machine(info: dict[str, str]) -> list[str]:
     """The report sections that say how a benchmark was run and on what."""
     machine = [f"- {k}: {v}" for k, v in info.items() if k != "command"]

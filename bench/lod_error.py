@@ -36,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (
     RESULTS_DIR,
+    alternating_frames,
     command_and_machine,
     fmt,
     machine_info,
@@ -135,19 +136,8 @@ def main() -> None:
     cache = make_cache(parse_bytes(args.cache), 2)
     models = {v: OutOfCoreModel(files[v], cache) for v in variants}
     cameras = {k: c for k, c in views(models[RADIUS], width, height).items() if k in args.views.split(",")}
-    ms: dict[tuple[str, str, float], list[float]] = {}
-    last: dict[tuple[str, str, float], Any] = {}  # each variant's complete frame: its image and counts
-    incomplete = 0  # timed frames that found data missing (the cache is too small for all variants)
-    for view, camera in cameras.items():
-        for poe in poes:
-            for v in variants:
-                last[v, view, poe] = models[v].render_complete(camera, pixels_of_error=poe)
-            for _ in range(args.frames):  # alternating, so load falls on every variant alike
-                for v in variants:
-                    f = models[v].render(camera, pixels_of_error=poe)
-                    ms.setdefault((v, view, poe), []).append(f.stats.milliseconds)
-                    incomplete += not f.stats.complete
-            print(f"  {view} PoE {poe:g} done", file=sys.stderr, flush=True)
+    # `last`: each variant's complete frame, for its image and counts.
+    ms, last, _, incomplete = alternating_frames(models, cameras, poes, args.frames)
     for m in models.values():
         m.close()
 

@@ -39,6 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import (
     RESULTS_DIR,
+    alternating_frames,
     command_and_machine,
     fmt,
     machine_info,
@@ -149,20 +150,8 @@ def main() -> None:
     cache = make_cache(parse_bytes(args.cache), 2)
     models = {c: OutOfCoreModel(files[c], cache) for c in costs}
     cameras = views(models[costs[0]], width, height)
-    frames: dict[tuple[float, str, float], list[float]] = {}
-    last: dict[tuple[float, str, float], Any] = {}
-    working_set: dict[tuple[float, str, float], int] = {}
-    for view, camera in cameras.items():
-        for poe in poes:
-            for c in costs:
-                done = models[c].render_complete(camera, pixels_of_error=poe)
-                working_set[c, view, poe] = done.stats.working_set_bytes
-            for _ in range(args.frames):  # alternating, so load falls on every tree alike
-                for c in costs:
-                    f = models[c].render(camera, pixels_of_error=poe)
-                    frames.setdefault((c, view, poe), []).append(f.stats.milliseconds)
-                    last[c, view, poe] = f
-            print(f"  {view} PoE {poe:g} done", file=sys.stderr, flush=True)
+    frames, complete, last, _ = alternating_frames(models, cameras, poes, args.frames)
+    working_set = {k: f.stats.working_set_bytes for k, f in complete.items()}
     for m in models.values():
         m.close()
 
