@@ -63,6 +63,12 @@ PROCEDURAL = ("plant", "mandelbulb")
 # ----------------------------------------------------------------------------- child
 
 
+def section_through_centre(bounds: Any) -> list[tuple[float, float, float, float]]:
+    """The section workloads' plane: through the model's centre, keeping x at and above it."""
+    lo, hi = bounds
+    return [(1.0, 0.0, 0.0, -0.5 * (float(lo[0]) + float(hi[0])))]
+
+
 class Child:
     """A build's side of the run: its scenes, rays and built models, and the workloads."""
 
@@ -116,9 +122,7 @@ class Child:
                 if workload == "ooc-single":
                     fields["packets"] = 1
                 elif workload == "ooc-section":
-                    lo, hi = model.bounds
-                    centre_x = 0.5 * (float(lo[0]) + float(hi[0]))
-                    fields["sections"] = [(1.0, 0.0, 0.0, -centre_x)]  # keeps x >= centre_x
+                    fields["sections"] = section_through_centre(model.bounds)
                 frame = model.render_complete(
                     camera, pixels_of_error=poe, shading=shading, threads=1, **fields
                 )
@@ -137,9 +141,7 @@ class Child:
                     seconds = time.perf_counter() - start
                     check = int(np.count_nonzero(blocked))
                 elif workload == "section":
-                    lo, hi = scene.bounds
-                    centre_x = 0.5 * (float(lo[0]) + float(hi[0]))
-                    planes = [(1.0, 0.0, 0.0, -centre_x)]  # keeps x >= centre_x
+                    planes = section_through_centre(scene.bounds)
                     frame = trace(scene, camera, shading="headlight", sections=planes, threads=1)
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
