@@ -19,9 +19,15 @@ Workloads, one thread each:
 * `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
   with `--ooc`, complete, its own clock; `ooc-sun`: the same with shadow rays;
   `ooc-single`: with single rays (`packets=1`); `ooc-section`: with a section plane
-  through the model's centre (which took single rays until packets learnt sections).
+  through the model's centre (which took single rays until packets learnt sections);
+  `ooc-ao` and `ooc-indirect`: the AO and indirect shading modes.
 
 Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
+
+`--images` is for a change that is meant to change the out-of-core images at PoE > 0
+(a LOD metric, say): the builds' answers may then differ, and the table gives each
+build's working set and its image's PSNR and mean absolute error against its own
+full-detail (PoE 0) frame of the same view and mode, whose answers must still agree.
 
     python bench/ab.py --baseline HEAD --models stanford-bunny,plant --sizes 1e6
     python bench/ab.py --baseline HEAD --models plant --sizes 1e7 --ooc plant-1e7.vast
@@ -55,8 +61,17 @@ from common import (
 
 from build import build_baseline, snapshot_vastray, use_snapshot
 
-WORKLOADS = ("batch", "ao", "frame", "sun", "section", "ooc", "ooc-sun", "ooc-single", "ooc-section")
-OOC_WORKLOADS = ("ooc", "ooc-sun", "ooc-single", "ooc-section")
+# The out-of-core workloads' shading modes.
+OOC_SHADING = {
+    "ooc": "headlight",
+    "ooc-sun": "sun",
+    "ooc-single": "headlight",
+    "ooc-section": "headlight",
+    "ooc-ao": "ao",
+    "ooc-indirect": "indirect",
+}
+OOC_WORKLOADS = tuple(OOC_SHADING)
+WORKLOADS = ("batch", "ao", "frame", "sun", "section", *OOC_WORKLOADS)
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -79,6 +94,7 @@ class Child:
         self.scenes: dict[str, Any] = {}
         self.cache: Any = None
         self.ooc: dict[str, Any] = {}
+        self.references: dict[tuple[str, str], np.ndarray] = {}
 
     def load(self, label: str, npz: str) -> dict[str, Any]:
         from common import ao_rays_from_hits
@@ -110,14 +126,15 @@ class Child:
         self.ooc[path] = (model, camera)
         return {"triangles": int(model.triangle_count)}
 
-    def run(self, workload: str, label: str, reps: int, poe: float) -> dict[str, Any]:
+    def run(self, workload: str, label: str, reps: int, poe: float, images: bool = False) -> dict[str, Any]:
         from vastray.renderer import trace
 
         best, check = float("inf"), 0
+        extra: dict[str, Any] = {}
         for _ in range(reps):
             if workload in OOC_WORKLOADS:
                 model, camera = self.ooc[label]
-                shading = "sun" if workload == "ooc-sun" else "headlight"
+                shading = OOC_SHADING[workload]
                 fields: dict[str, Any] = {}
                 if workload == "ooc-single":
                     fields["packets"] = 1
@@ -128,6 +145,8 @@ class Child:
                 )
                 seconds = float(frame.stats.milliseconds) / 1e3
                 check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
+                if images:
+                    extra = self.image_error(workload, label, frame, fields)
             else:
                 scene, camera, o, d, ao_o, ao_d, ao_tmax = self.scenes[label]
                 if workload == "batch":
@@ -151,7 +170,27 @@ class Child:
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
             best = min(best, seconds)
-        return {"seconds": best, "check": check}
+        return {"seconds": best, "check": check, **extra}
+
+    def image_error(self, workload: str, label: str, frame: Any, fields: dict[str, Any]) -> dict[str, Any]:
+        """The frame's working set, and its error against the full-detail frame of the same
+        view and mode (rendered once), with that frame's checksum."""
+        model, camera = self.ooc[label]
+        key = (workload, label)
+        if key not in self.references:
+            full = model.render_complete(
+                camera, pixels_of_error=0.0, shading=OOC_SHADING[workload], threads=0, **fields
+            )
+            self.references[key] = full.image.astype(np.float64)
+        reference = self.references[key]
+        diff = frame.image.astype(np.float64) - reference
+        mse = float(np.mean(diff * diff))
+        return {
+            "working_set_mib": float(frame.stats.working_set_bytes) / 2**20,
+            "psnr": 10.0 * np.log10(255.0**2 / mse) if mse > 0 else float("inf"),
+            "mae": float(np.mean(np.abs(diff))),
+            "reference_check": int(reference.sum()),
+        }
 
 
 def child_main(snapshot: str) -> int:
@@ -253,27 +292,42 @@ def main(argv: list[str] | None = None) -> int:
             jobs = [(w, label) for w in workloads if w not in OOC_WORKLOADS for label, _ in meshes]
             jobs += [(w, path) for w in workloads if w in OOC_WORKLOADS for path in ooc]
             best: dict[tuple[str, str, str], float] = {}
+            quality: dict[tuple[str, str, str], dict[str, Any]] = {}
             for r in range(args.rounds):
                 order = builds if r % 2 == 0 else builds[::-1]
                 for workload, label in jobs:
+                    images = args.images and workload in OOC_WORKLOADS
                     checks = {}
                     for b in order:
-                        reply = b.ask("run", workload=workload, label=label, reps=args.reps, poe=args.poe)
+                        reply = b.ask(
+                            "run", workload=workload, label=label, reps=args.reps, poe=args.poe, images=images
+                        )
                         key = (workload, label, b.name)
                         best[key] = min(best.get(key, float("inf")), reply["seconds"])
-                        checks[b.name] = reply["check"]
+                        checks[b.name] = reply["reference_check" if images else "check"]
+                        if images:
+                            quality[key] = reply
                     if len(set(checks.values())) != 1:
-                        raise SystemExit(f"{workload} {label}: the builds' answers differ ({checks})")
+                        what = "full-detail answers" if images else "answers"
+                        raise SystemExit(f"{workload} {label}: the builds' {what} differ ({checks})")
                 print(f"round {r + 1}/{args.rounds} done", flush=True)
         finally:
             for b in builds:
                 b.close()
     rows, ratios = [], []
+    header = ["workload", "model", "baseline ms", "now ms", "baseline / now"]
+    if quality:
+        header += ["working set MiB (baseline, now)", "PSNR dB (baseline, now)", "MAE (baseline, now)"]
     for workload, label in jobs:
         now, base = best[(workload, label, "now")], best[(workload, label, "baseline")]
         ratios.append(base / now)
         name = Path(label).name if workload in OOC_WORKLOADS else label
-        rows.append([workload, name, f"{base * 1e3:.1f}", f"{now * 1e3:.1f}", f"{base / now:.3f}x"])
+        row = [workload, name, f"{base * 1e3:.1f}", f"{now * 1e3:.1f}", f"{base / now:.3f}x"]
+        if quality:
+            pair = [quality.get((workload, label, side)) for side in ("baseline", "now")]
+            columns = (("working_set_mib", ".0f"), ("psnr", ".2f"), ("mae", ".2f"))
+            row += [", ".join(f"{q[k]:{fmt}}" for q in pair if q) for k, fmt in columns]
+        rows.append(row)
     info = machine_info({"now": now_desc, "baseline": base_desc, "ISA path (both)": builds[0].isa})
     lines = [
         "# Two builds side by side",
@@ -283,9 +337,14 @@ def main(argv: list[str] | None = None) -> int:
         *(f"- {k}: {v}" for k, v in info.items()),
         "",
         f"Best of {args.rounds} rounds x {args.reps} runs per build, alternating; one thread; "
-        "the answers of both builds were equal in every run.",
+        + (
+            "images may differ (--images): PSNR and MAE (0-255) are each build's against its own "
+            "full-detail frame, and those were equal."
+            if args.images
+            else "the answers of both builds were equal in every run."
+        ),
         "",
-        markdown_table(["workload", "model", "baseline ms", "now ms", "baseline / now"], rows),
+        markdown_table(header, rows),
         "",
         f"Geometric mean: {geometric_mean(ratios):.3f}x",
     ]
@@ -304,6 +363,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--workloads", default="batch,ao,frame,ooc", help=f"of {', '.join(WORKLOADS)}")
     ap.add_argument("--ooc", action="append", default=[], help="a built model (.vast) for 'ooc' (repeatable)")
     ap.add_argument("--poe", type=float, default=2.0, help="pixels of error of the out-of-core frames")
+    ap.add_argument(
+        "--images",
+        action="store_true",
+        help="the out-of-core images may differ: report each build's error against full detail",
+    )
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--reps", type=int, default=2, help="runs per build per round (the best is kept)")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)

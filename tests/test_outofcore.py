@@ -879,6 +879,26 @@ def test_image_error_falls_with_the_pixels_of_error(built: Callable[[str], Built
     assert by_poe[16.0][4] < by_poe[0.0][4]
 
 
+def test_diffuse_rays_read_no_finer_than_the_view(built: Callable[[str], Built]) -> None:
+    """The indirect mode's diffuse rays start their cone at the primary ray's footprint,
+    so near their origin they look the model up no finer than the primary rays did: at
+    PoE > 0 the indirect frame reads about the blocks the headlight frame reads (the
+    sun's shadow rays add a few), where rays started as a point went down to the leaves
+    around every hit. At PoE 0 nothing changes (tested with the in-core renderer)."""
+    plant = built("big-plant")
+    camera = plant.camera(width=320, height=240)
+    blocks = {}
+    with OutOfCoreModel(plant.path, make_cache(BIG)) as model:
+        for shading in ("headlight", "sun", "indirect"):
+            frame = model.render_complete(camera, pixels_of_error=2.0, shading=shading)
+            assert frame.complete
+            blocks[shading] = frame.stats.working_set_blocks
+        full = model.render_complete(camera, pixels_of_error=0.0).stats.working_set_blocks
+    print(blocks, "full detail", full)
+    assert blocks["headlight"] < full  # the view is coarser than full detail
+    assert blocks["indirect"] <= blocks["sun"] * 1.1 + 2, blocks
+
+
 def test_first_frame_is_instant_and_refines_in_place(built: Callable[[str], Built]) -> None:
     """The first frame of a freshly opened model is drawn from the preloaded coarse levels
     without waiting for anything: incomplete, made of voxels that cover every pixel the

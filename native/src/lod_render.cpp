@@ -180,7 +180,14 @@ public:
     // surface: a triangle's ray skips what a cone of this footprint would accept around
     // its origin, a voxel's ray starts outside the voxel (offset grows with its size).
     // Shadow rays continue the cone of the ray that found the hit (PoE metric for a
-    // primary ray's); AO and diffuse rays start their own (solid-angle metric).
+    // primary ray's); AO and diffuse rays have cones of their own (solid-angle metric).
+    // A diffuse ray's cone starts at the incoming ray's footprint at the hit: near its
+    // origin it sees the model no finer than the ray that found the hit. Started as a
+    // point, every diffuse ray went down to the leaves around its origin: at the 10^8
+    // overview that read 2 GiB where the view reads 256 MiB, for the same image error
+    // (docs/out-of-core-rendering.md, "Frames and modes"). AO rays still start as a
+    // point: they measure the occlusion close to their origin, and the footprint made
+    // AO visibly lighter there.
     Secondary secondary_ray(const Ray& incoming, const Hit& hit, const Vec3f& n, const Vec3f& dir, float tmax,
                             SecondaryRay kind) const {
         Secondary s;
@@ -190,6 +197,9 @@ public:
         const bool shadow = kind == SecondaryRay::Shadow;
         r.cone = shadow ? incoming.cone : ao_cone_;
         r.cone_t0 = shadow ? incoming.cone_t0 + hit.t : 0.0f;
+        if (kind == SecondaryRay::Diffuse && r.cone > 0) {
+            r.cone_t0 = incoming.cone * (incoming.cone_t0 + hit.t) / r.cone;  // footprint radius / cone slope
+        }
         if (hit.prim == kVoxelPrim) {
             r.ray.org = incoming.ray.org + incoming.ray.dir * hit.t + n * (2.0f * hit.voxel_radius);
             r.ray.tmin = 0;
