@@ -8,7 +8,8 @@
   every path. The renderer's own tests (test_render, test_extremes, test_watertight) run
   again on every other path, in a subprocess with VASTRAY_ISA set.
 * Packets change speed, never answers: secondary rays (shadow and AO rays in packets
-  that share a direction or an origin) give the same images as single rays, in core and
+  that share a direction or an origin, out of core the diffuse rays of a pixel block in
+  packets whose directions agree in sign) give the same images as single rays, in core and
   out of core at full detail and with LOD; the batch occlusion query, which packs rays
   from one origin, answers as it does for the same rays one by one.
 * The indirect mode: deterministic; identical in and out of core at full detail; an open

@@ -245,8 +245,53 @@ public:
         for (int j = 0; j < count; ++j) blocked[j] = mask[j] ? occluded<N>(lane, rays[j], mask[j], group) : 0u;
     }
 
-    void trace_secondary(Lane& lane, const Secondary& s, Hit& hit) const {
-        lod_traverse<false>(lane, root_, s.ray, hit, s.skip);
+    // Closest hits of the rays in `mask` (a block's diffuse rays): those whose direction
+    // components agree in sign go as packets of up to 8 (lod_packet_walk, SharedSigns:
+    // each ray still meets its cells in its own order, so its hit is the single ray's),
+    // the rest singly. The rays of neighbouring pixels start close together, so a
+    // packet's walk down to their origins is shared.
+    template <int N>
+    void trace_secondary(Lane& lane, const Secondary* rays, Hit* hits, std::uint32_t mask) const {
+        constexpr int kPacket = 8;
+        auto single = [&](int i) { lod_traverse<false>(lane, root_, rays[i].ray, hits[i], rays[i].skip); };
+        if constexpr (N < 4) {
+            for (; mask; mask &= mask - 1) single(__builtin_ctz(mask));
+        } else {
+            std::uint32_t octant[8] = {};
+            for (; mask; mask &= mask - 1) {
+                const int i = __builtin_ctz(mask);
+                const Vec3f& d = rays[i].ray.ray.dir;
+                if (d.x == 0.0f || d.y == 0.0f || d.z == 0.0f) {
+                    single(i);
+                    continue;
+                }
+                octant[(d.x < 0.0f ? 1 : 0) | (d.y < 0.0f ? 2 : 0) | (d.z < 0.0f ? 4 : 0)] |= 1u << i;
+            }
+            for (std::uint32_t rest : octant) {
+                while (rest) {
+                    if (__builtin_popcount(rest) == 1) {
+                        single(__builtin_ctz(rest));
+                        break;
+                    }
+                    LodRay r[kPacket];
+                    LodHit h[kPacket];
+                    std::uint32_t skip[kPacket];
+                    int index[kPacket], n = 0;
+                    for (; rest && n < kPacket; rest &= rest - 1, ++n) {
+                        index[n] = __builtin_ctz(rest);
+                        r[n] = rays[index[n]].ray;
+                        skip[n] = rays[index[n]].skip;
+                    }
+                    for (int k = n; k < kPacket; ++k) {  // lanes outside the mask copy a traced ray
+                        r[k] = r[0];
+                        skip[k] = skip[0];
+                    }
+                    lod_packet_walk<kPacket, false, LodPacketOrder::SharedSigns>(lane, root_, r, h, skip,
+                                                                                 (1u << n) - 1);
+                    for (int k = 0; k < n; ++k) hits[index[k]] = h[k];
+                }
+            }
+        }
     }
 
     float ao_distance() const { return ao_distance_; }

@@ -182,8 +182,13 @@ public:
         for (int j = 0; j < count; ++j) blocked[j] = mask[j] ? occluded<N>(lane, rays[j], mask[j], group) : 0u;
     }
 
-    void trace_secondary(Lane& lane, const Secondary& s, Hit& hit) const {
-        traverse<false>(scene_.tree(), scene_.tri_vertices(), s.ray, hit, lane, s.skip);
+    // Closest hits of the rays in `mask`, one after the other.
+    template <int N>
+    void trace_secondary(Lane& lane, const Secondary* rays, Hit* hits, std::uint32_t mask) const {
+        for (; mask; mask &= mask - 1) {
+            const int i = __builtin_ctz(mask);
+            traverse<false>(scene_.tree(), scene_.tri_vertices(), rays[i].ray, hits[i], lane, rays[i].skip);
+        }
     }
 
     float ao_distance() const { return ao_distance_; }

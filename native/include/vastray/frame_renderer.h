@@ -28,7 +28,10 @@
 //                                        std::uint32_t* blocked, int count, RayGroup group) const;
 //       // count such queries (a mask may be 0: nothing blocked), which the backend may keep
 //       // in flight together; blocked[j] as occluded would return for query j
-//   void trace_secondary(Lane&, const Secondary&, Hit&) const;       // closest hit (diffuse)
+//   template <int N> void trace_secondary(Lane&, const Secondary* rays, Hit* hits,
+//                                        std::uint32_t mask) const;
+//       // closest hits (diffuse rays) of the rays selected by mask (N <= 32), whatever their
+//       // origins and directions: hits[i] as a single ray would find it
 //   float ao_distance() const;
 //
 // Both backends trace the same rays (CameraRays) and shade them with the same terms,
@@ -54,7 +57,8 @@
 VASTRAY_KERNEL_BEGIN
 
 // Shadow rays continue the cone of the ray that found the hit (PoE metric); AO and
-// diffuse rays start their own (solid-angle metric).
+// diffuse rays have their own (solid-angle metric), a diffuse ray's starting at the
+// footprint of the ray that found the hit.
 enum class SecondaryRay { Shadow, AmbientOcclusion, Diffuse };
 // How the rays of one occlusion query relate.
 enum class RayGroup { SharedOrigin, SharedDirection };
@@ -522,6 +526,10 @@ private:
         Secondary shadow[P * D];
         std::uint32_t facing[(P * D + 31) / 32] = {};
         const float inf = std::numeric_limits<float>::infinity();
+        // The block's diffuse rays go to the backend together, which may trace those that
+        // agree in direction as packets.
+        static_assert(P * D <= 32, "diffuse rays per block are a 32-bit mask");
+        std::uint32_t traced = 0;
         for (int i = 0; i < P; ++i) {
             if (!(b.lit >> i & 1u)) continue;
             const shading::Basis basis(b.n[i]);
@@ -530,11 +538,16 @@ private:
                 const Vec3f dir = shading::ao_direction(basis, b.x[i], b.y[i], D * params_.sample_index + k,
                                                         shading::kDiffuseSalt);
                 diffuse[j] = backend_.secondary_ray(b.ray[i], b.hit[i], b.n[i], dir, inf, SecondaryRay::Diffuse);
-                if (clip_secondary(diffuse[j])) {
-                    backend_.trace_secondary(lane, diffuse[j], bounce[j]);
-                } else {
-                    bounce[j].prim = kNoHit;  // cut away: it sees the sky
-                }
+                bounce[j].prim = kNoHit;  // stays so when cut away: it sees the sky
+                if (clip_secondary(diffuse[j])) traced |= 1u << j;
+            }
+        }
+        backend_.template trace_secondary<P * D>(lane, diffuse, bounce, traced);
+        for (int i = 0; i < P; ++i) {
+            if (!(b.lit >> i & 1u)) continue;
+            for (int k = 0; k < D; ++k) {
+                const int j = D * i + k;
+                const Vec3f& dir = direction(diffuse[j].ray);
                 ++rays.secondary;
                 if (bounce[j].prim == kNoHit) {
                     bounce_light[j] = shading::sky(dir, up_);
