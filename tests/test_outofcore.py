@@ -763,6 +763,34 @@ def test_interleaved_walks_answer_like_one_ray_at_a_time(
             np.testing.assert_array_equal(frame.image, lod[0].image)
 
 
+@pytest.mark.parametrize("tile_size", [4, 16])
+def test_tiles_that_miss_the_model_are_background(built: Callable[[str], Built], tile_size: int) -> None:
+    """A tile whose rays all miss the model's box is not traced: its pixels are drawn as
+    background at once. Every pixel must still be what a walk of its own ray finds (the
+    batch query), at tiles of 4 pixels (many of them along the box's outline) and of 16,
+    with single rays and packets, out of core and in core; and every ray counts."""
+    model_built = built("plant")
+    camera = model_built.camera(width=120, height=80, direction=(0.9, 0.35, 0.5))
+    origins, directions = camera.primary_rays()
+    with OutOfCoreModel(model_built.path, make_cache(BIG)) as model:
+        hits = model.pick(origins, directions)
+        expected = hits.prim.reshape(camera.height, camera.width)
+        background = expected < 0
+        tiles = background.reshape(camera.height // 4, 4, camera.width // 4, 4).all(axis=(1, 3))
+        assert 0.2 < tiles.mean() < 0.9  # the outline crosses the image
+        for packets in (1, 16):
+            frame = model.render_complete(camera, pixels_of_error=0.0, packets=packets, tile_size=tile_size)
+            np.testing.assert_array_equal(frame.prim, expected)
+            assert frame.stats.primary_rays == camera.width * camera.height
+            in_core = render_camera(model_built.decoded, camera, packets=packets, tile_size=tile_size)
+            np.testing.assert_array_equal(in_core.image, frame.image)
+            assert in_core.stats.primary_rays == camera.width * camera.height
+        # Background pixels carry the background's colours, row by row.
+        top, bottom = frame.image[0][background[0]], frame.image[-1][background[-1]]
+        assert len(top) and len(bottom) and (top == top[0]).all() and (bottom == bottom[0]).all()
+        assert tuple(top[0]) != tuple(bottom[0])
+
+
 @pytest.mark.parametrize("name", ["plant", "bunny"])
 def test_full_detail_agrees_with_the_mesh_kd_tree(
     built: Callable[[str], Built], bunny_mesh: ModelMesh, name: str

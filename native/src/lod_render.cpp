@@ -124,6 +124,7 @@ public:
     }
 
     Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
+    Box3f bounds() const { return root_; }
     void primary_rays4(int x0, int y, Ray* out) const {
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);

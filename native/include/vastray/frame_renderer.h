@@ -7,6 +7,7 @@
 //                                       // and triangle_tests counters
 //   using Secondary = ...;              // a secondary ray: has `ray`, a Ray
 //   Ray primary_ray(int x, int y) const;
+//   Box3f bounds() const;                                           // the model's box, in the rays' frame
 //   void primary_rays4(int x0, int y, Ray* out) const;              // primary_ray of (x0 + k, y), k < 4
 //   void trace(Lane&, const Ray&, Hit&) const;                       // closest hit
 //   void trace_stream(Lane&, const Ray*, Hit*, int n) const;        // n closest hits, as trace
@@ -158,6 +159,15 @@ public:
     }
 
     void render_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
+        if (!may_enter_model(x0, y0, x1, y1)) {
+            // Every ray of the tile misses the model: its pixels are background, as the
+            // walks would have found ray by ray.
+            for (int y = y0; y < y1; ++y) {
+                for (int x = x0; x < x1; ++x) shading::background(y, frame_.height, frame_.rgb.data() + 3 * pixel(x, y));
+            }
+            rays.primary += static_cast<std::uint64_t>(x1 - x0) * static_cast<std::uint64_t>(y1 - y0);
+            return;
+        }
         if (packets_ == 1) {
             stream_tile(x0, y0, x1, y1, lane, rays);
             return;
@@ -335,6 +345,45 @@ private:
     }
 
     std::size_t pixel(int x, int y) const { return static_cast<std::size_t>(y) * frame_.width + x; }
+
+    // False when no primary ray of the tile [x0, x1) x [y0, y1) can enter the model's box.
+    // The tile's rays leave the eye through the rectangle of its corner pixels, so they lie
+    // in the pyramid of the four corner rays; the tile is out when the whole box lies
+    // beyond one side of that pyramid by a margin far wider than the float error of the
+    // rays' directions (relative 1e-4 of each corner's distance) and the walks' slack.
+    // (The rays of an overview that miss the model cost the frame loop ray set-up, a
+    // packet start and shading, pixel by pixel.)
+    bool may_enter_model(int x0, int y0, int x1, int y1) const {
+        const Box3f box = backend_.bounds();
+        if (box.empty() || !all_finite(box.lo) || !all_finite(box.hi)) return true;
+        const Ray corner_rays[4] = {backend_.primary_ray(x0, y0), backend_.primary_ray(x1 - 1, y0),
+                                    backend_.primary_ray(x1 - 1, y1 - 1), backend_.primary_ray(x0, y1 - 1)};
+        const Vec3d eye(origin(corner_rays[0]));
+        Vec3d dirs[4], centre(0, 0, 0);
+        for (int i = 0; i < 4; ++i) {
+            dirs[i] = Vec3d(direction(corner_rays[i]));
+            centre += dirs[i];
+        }
+        Vec3d to_corner[8];
+        double slack[8];
+        const double margin = 1e-4 * length(Vec3d(box.hi) - Vec3d(box.lo));
+        for (int k = 0; k < 8; ++k) {
+            const Vec3d c((k & 1) ? box.hi.x : box.lo.x, (k & 2) ? box.hi.y : box.lo.y, (k & 4) ? box.hi.z : box.lo.z);
+            to_corner[k] = c - eye;
+            slack[k] = 1e-4 * length(to_corner[k]) + margin;
+        }
+        for (int i = 0; i < 4; ++i) {
+            Vec3d side = cross(dirs[i], dirs[(i + 1) % 4]);
+            const double len = length(side);
+            if (!(len > 0)) continue;  // a tile one pixel wide or high: no side here
+            side = side / len;
+            if (dot(side, centre) < 0) side = -side;  // pointing into the pyramid
+            bool beyond = true;
+            for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner[k]) < -slack[k];
+            if (beyond) return false;
+        }
+        return true;
+    }
 
     template <int P>
     void shade(Block<P>& b, Lane& lane, LaneRays& rays) const {
@@ -591,6 +640,11 @@ private:
     }
 
     static const Vec3f& direction(const vastray::Ray& r) { return r.dir; }
+    static const Vec3f& origin(const vastray::Ray& r) { return r.org; }
+    template <typename R>
+    static const Vec3f& origin(const R& r) {
+        return r.ray.org;
+    }
     template <typename R>
     static const Vec3f& direction(const R& r) {
         return r.ray.dir;
