@@ -29,6 +29,7 @@ Built models are read back through an independent pure-Python walker
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import os
 import re
@@ -270,12 +271,10 @@ def built(
     workdir: Path, ooc_ply: Path, models_folder: Path, load_model: Callable[[Path], ModelMesh]
 ) -> Callable[[str], Case]:
     """Builds each case once per module, on first use."""
-    cache: dict[str, Case] = {}
     inputs = workdir / "inputs"
 
+    @functools.cache
     def get(name: str) -> Case:
-        if name in cache:
-            return cache[name]
         options = BuildOptions()
         incore: str | None
         source: Path | str
@@ -299,8 +298,7 @@ def built(
         events: list[BuildProgress] = []
         path = workdir / f"{name}.vast"
         report = build_model(source, path, options, progress=events.append)
-        cache[name] = Case(name, source, corners, colours, path, report, events, incore)
-        return cache[name]
+        return Case(name, source, corners, colours, path, report, events, incore)
 
     return get
 

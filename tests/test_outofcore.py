@@ -34,6 +34,7 @@ model's own root.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import re
@@ -165,7 +166,6 @@ def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
     bunny       the Stanford bunny, no colours (from a float64 PLY)
     out-of-core a 60k plant built with the smallest memory budget (split on disk)
     tiles       three separate tiles (60k triangles) for views with disjoint blocks"""
-    cache: dict[str, Built] = {}
     sources: dict[str, tuple[Callable[[], str | Path], BuildOptions]] = {
         "plant": (lambda: "scene:plant:60000:3", BuildOptions()),
         "big-plant": (lambda: "scene:plant:200000:3", BuildOptions()),
@@ -178,12 +178,11 @@ def built(workdir: Path, bunny_mesh: ModelMesh) -> Callable[[str], Built]:
         "tiles": (lambda: write_tiles(workdir / "tiles.f32"), BuildOptions()),
     }
 
+    @functools.cache
     def get(name: str) -> Built:
-        if name not in cache:
-            source, options = sources[name]
-            path = workdir / f"{name}.vast"
-            cache[name] = Built(name, path, build_model(source(), path, options))
-        return cache[name]
+        source, options = sources[name]
+        path = workdir / f"{name}.vast"
+        return Built(name, path, build_model(source(), path, options))
 
     return get
 

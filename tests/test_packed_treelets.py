@@ -11,6 +11,7 @@ both readers."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 
@@ -46,18 +47,16 @@ Pair = tuple[Path, Path]  # packed (version 7), the same build in version 6's la
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Pair]:
     folder = tmp_path_factory.mktemp("treelets")
-    cache: dict[str, Pair] = {}
 
+    @functools.cache
     def get(name: str) -> Pair:
-        if name not in cache:
-            source, memory, options = SOURCES[name]
-            packed, padded = folder / f"{name}.vast", folder / f"{name}-v6.vast"
-            # Without voxel errors (version 8's): the padded copy is relabelled as version 6.
-            build_model(source, packed, BuildOptions(memory=memory, voxel_errors=False, **options))
-            padded_options = BuildOptions(memory=memory, packed_treelets=False, voxel_errors=False, **options)
-            build_model(source, padded, padded_options)
-            cache[name] = (packed, padded)
-        return cache[name]
+        source, memory, options = SOURCES[name]
+        packed, padded = folder / f"{name}.vast", folder / f"{name}-v6.vast"
+        # Without voxel errors (version 8's): the padded copy is relabelled as version 6.
+        build_model(source, packed, BuildOptions(memory=memory, voxel_errors=False, **options))
+        padded_options = BuildOptions(memory=memory, packed_treelets=False, voxel_errors=False, **options)
+        build_model(source, padded, padded_options)
+        return (packed, padded)
 
     return get
 

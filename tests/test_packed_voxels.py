@@ -9,6 +9,7 @@ by the specification from random samples."""
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
 import zlib
@@ -40,20 +41,18 @@ Built = tuple[Path, Path, dict]  # packed, unpacked, the packed build's report
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Built]:
     folder = tmp_path_factory.mktemp("packed")
-    cache: dict[str, Built] = {}
 
+    @functools.cache
     def get(name: str) -> Built:
-        if name not in cache:
-            source, memory = SOURCES[name]
-            packed, unpacked = folder / f"{name}.vast", folder / f"{name}-six.vast"
-            # Treelets in version 6's layout (FLAG_PACKED_TREELETS is version 7's, voxel
-            # errors version 8's): the files relabelled as version 5 below must hold
-            # nothing of a later version.
-            options = {"memory": memory, "packed_treelets": False, "voxel_errors": False}
-            report = build_model(source, packed, BuildOptions(**options))
-            build_model(source, unpacked, BuildOptions(packed_voxels=False, **options))
-            cache[name] = (packed, unpacked, report)
-        return cache[name]
+        source, memory = SOURCES[name]
+        packed, unpacked = folder / f"{name}.vast", folder / f"{name}-six.vast"
+        # Treelets in version 6's layout (FLAG_PACKED_TREELETS is version 7's, voxel
+        # errors version 8's): the files relabelled as version 5 below must hold
+        # nothing of a later version.
+        options = {"memory": memory, "packed_treelets": False, "voxel_errors": False}
+        report = build_model(source, packed, BuildOptions(**options))
+        build_model(source, unpacked, BuildOptions(packed_voxels=False, **options))
+        return (packed, unpacked, report)
 
     return get
 

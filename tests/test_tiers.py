@@ -22,6 +22,7 @@ coarse streams. Checked here, through the independent walker (tests/modelwalk.py
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import struct
@@ -65,16 +66,14 @@ def pair(workdir: Path) -> Callable[[str], Pair]:
         "plant": ("scene:plant:200000:3", {}),
         "out-of-core": ("scene:plant:100000:2", {"memory": SMALL_MEMORY}),
     }
-    built: dict[str, Pair] = {}
 
+    @functools.cache
     def get(name: str) -> Pair:
-        if name not in built:
-            source, options = sources[name]
-            tiered, untiered = workdir / f"{name}.vast", workdir / f"{name}-untiered.vast"
-            report = build_model(source, tiered, BuildOptions(**options))
-            build_model(source, untiered, BuildOptions(tier_width=0, **options))
-            built[name] = Pair(tiered, untiered, report)
-        return built[name]
+        source, options = sources[name]
+        tiered, untiered = workdir / f"{name}.vast", workdir / f"{name}-untiered.vast"
+        report = build_model(source, tiered, BuildOptions(**options))
+        build_model(source, untiered, BuildOptions(tier_width=0, **options))
+        return Pair(tiered, untiered, report)
 
     return get
 

@@ -12,6 +12,7 @@ cut it is for; and the flag's refusals in every reader, and a damaged LOD word 1
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -40,18 +41,16 @@ Built = dict[str, Path]  # "errors", "radius" (voxel_errors=False), "floor1" (vo
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Built]:
     folder = tmp_path_factory.mktemp("errors")
-    cache: dict[str, Built] = {}
 
+    @functools.cache
     def get(name: str) -> Built:
-        if name not in cache:
-            source, memory = SOURCES[name]
-            variants = {"errors": {}, "radius": {"voxel_errors": False}, "floor1": {"voxel_error_floor": 1.0}}
-            cache[name] = {}
-            for variant, options in variants.items():
-                path = folder / f"{name}-{variant}.vast"
-                build_model(source, path, BuildOptions(memory=memory, **options))
-                cache[name][variant] = path
-        return cache[name]
+        source, memory = SOURCES[name]
+        variants = {"errors": {}, "radius": {"voxel_errors": False}, "floor1": {"voxel_error_floor": 1.0}}
+        paths = {}
+        for variant, options in variants.items():
+            paths[variant] = folder / f"{name}-{variant}.vast"
+            build_model(source, paths[variant], BuildOptions(memory=memory, **options))
+        return paths
 
     return get
 
