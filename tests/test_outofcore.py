@@ -34,6 +34,7 @@ model's own root.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import math
@@ -788,6 +789,14 @@ def test_tiles_that_miss_the_model_are_background(built: Callable[[str], Built],
         top, bottom = frame.image[0][background[0]], frame.image[-1][background[-1]]
         assert len(top) and len(bottom) and (top == top[0]).all() and (bottom == bottom[0]).all()
         assert tuple(top[0]) != tuple(bottom[0])
+        # Turned away (the box behind the eye): every tile is background, as every walk finds.
+        eye, target = np.asarray(camera.eye), np.asarray(camera.target)
+        away = dataclasses.replace(camera, target=tuple(2 * eye - target))
+        assert (model.pick(*away.primary_rays()).prim < 0).all()
+        turned = model.render_complete(away, pixels_of_error=0.0, tile_size=tile_size)
+        assert (turned.prim < 0).all() and turned.stats.node_visits == 0
+        assert (turned.image == turned.image[:, :1]).all()  # each row one colour
+        assert tuple(turned.image[0, 0]) == tuple(top[0]) and tuple(turned.image[-1, 0]) == tuple(bottom[0])
 
 
 @pytest.mark.parametrize("name", ["plant", "bunny"])

@@ -349,8 +349,9 @@ private:
     // False when no primary ray of the tile [x0, x1) x [y0, y1) can enter the model's box.
     // The tile's rays leave the eye through the rectangle of its corner pixels, so they lie
     // in the pyramid of the four corner rays; the tile is out when the whole box lies
-    // beyond one side of that pyramid by a margin far wider than the float error of the
-    // rays' directions (relative 1e-4 of each corner's distance) and the walks' slack.
+    // beyond one side of that pyramid, or behind the eye, by a margin far wider than the
+    // float error of the rays' directions (relative 1e-4 of each corner's distance) and
+    // the walks' slack.
     // (The rays of an overview that miss the model cost the frame loop ray set-up, a
     // packet start and shading, pixel by pixel.)
     bool may_enter_model(int x0, int y0, int x1, int y1) const {
@@ -372,6 +373,14 @@ private:
             to_corner[k] = c - eye;
             slack[k] = 1e-4 * length(to_corner[k]) + margin;
         }
+        // Behind the eye: the rays go forward from it (t >= 0), so when every corner ray
+        // leaves at under 90 degrees from their mean, so does every ray of the tile, and a box
+        // wholly behind the plane through the eye across that mean is out of reach.
+        bool forward = true;
+        for (const Vec3d& d : dirs) forward = forward && dot(centre, d) > 0;
+        bool behind = forward;
+        for (int k = 0; k < 8 && behind; ++k) behind = dot(centre, to_corner[k]) < -slack[k] * length(centre);
+        if (behind) return false;
         for (int i = 0; i < 4; ++i) {
             Vec3d side = cross(dirs[i], dirs[(i + 1) % 4]);
             const double len = length(side);
