@@ -7,7 +7,7 @@ then waits. The parent then asks the two children in turn, round after round, th
 order swapped every round, so that a busy machine slows both alike; each child reports
 its time and a checksum of its answers, and the run stops if the answers differ.
 
-Workloads, one thread each:
+Workloads, one thread each (`--threads` for more):
 
 * `batch`: closest hits of the primary rays (1024x768) through `Scene.intersect`;
 * `ao`: 8 AO rays per facing primary hit, 0.2 x the diagonal, through `Scene.occluded`
@@ -126,7 +126,9 @@ class Child:
         self.ooc[path] = (model, camera)
         return {"triangles": int(model.triangle_count)}
 
-    def run(self, workload: str, label: str, reps: int, poe: float, images: bool = False) -> dict[str, Any]:
+    def run(
+        self, workload: str, label: str, reps: int, poe: float, images: bool = False, threads: int = 1
+    ) -> dict[str, Any]:
         from vastray.renderer import trace
 
         best, check = float("inf"), 0
@@ -141,7 +143,7 @@ class Child:
                 elif workload == "ooc-section":
                     fields["sections"] = section_through_centre(model.bounds)
                 frame = model.render_complete(
-                    camera, pixels_of_error=poe, shading=shading, threads=1, **fields
+                    camera, pixels_of_error=poe, shading=shading, threads=threads, **fields
                 )
                 seconds = float(frame.stats.milliseconds) / 1e3
                 check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
@@ -151,22 +153,22 @@ class Child:
                 scene, camera, o, d, ao_o, ao_d, ao_tmax = self.scenes[label]
                 if workload == "batch":
                     start = time.perf_counter()
-                    hits = scene.intersect(o, d, threads=1)
+                    hits = scene.intersect(o, d, threads=threads)
                     seconds = time.perf_counter() - start
                     check = int(np.asarray(hits["prim"], dtype=np.int64).sum())
                 elif workload == "ao":
                     start = time.perf_counter()
-                    blocked = scene.occluded(ao_o, ao_d, 0.0, ao_tmax, threads=1)
+                    blocked = scene.occluded(ao_o, ao_d, 0.0, ao_tmax, threads=threads)
                     seconds = time.perf_counter() - start
                     check = int(np.count_nonzero(blocked))
                 elif workload == "section":
                     planes = section_through_centre(scene.bounds)
-                    frame = trace(scene, camera, shading="headlight", sections=planes, threads=1)
+                    frame = trace(scene, camera, shading="headlight", sections=planes, threads=threads)
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
                 else:
                     shading = "sun" if workload == "sun" else "normal"
-                    frame = trace(scene, camera, shading=shading, threads=1)
+                    frame = trace(scene, camera, shading=shading, threads=threads)
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
             best = min(best, seconds)
@@ -300,7 +302,13 @@ def main(argv: list[str] | None = None) -> int:
                     checks = {}
                     for b in order:
                         reply = b.ask(
-                            "run", workload=workload, label=label, reps=args.reps, poe=args.poe, images=images
+                            "run",
+                            workload=workload,
+                            label=label,
+                            reps=args.reps,
+                            poe=args.poe,
+                            images=images,
+                            threads=args.threads,
                         )
                         key = (workload, label, b.name)
                         best[key] = min(best.get(key, float("inf")), reply["seconds"])
@@ -336,7 +344,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *(f"- {k}: {v}" for k, v in info.items()),
         "",
-        f"Best of {args.rounds} rounds x {args.reps} runs per build, alternating; one thread; "
+        f"Best of {args.rounds} rounds x {args.reps} runs per build, alternating; "
+        + ("one thread; " if args.threads == 1 else f"{args.threads} threads; ")
         + (
             "images may differ (--images): PSNR and MAE (0-255) are each build's against its own "
             "full-detail frame, and those were equal."
@@ -368,6 +377,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         action="store_true",
         help="the out-of-core images may differ: report each build's error against full detail",
     )
+    ap.add_argument("--threads", type=int, default=1, help="threads of every workload (default 1)")
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--reps", type=int, default=2, help="runs per build per round (the best is kept)")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)

@@ -69,10 +69,11 @@ inline std::vector<TriangleRange> to_ranges(const py::object& ranges) {
     return out;
 }
 // Hands a vector to numpy without a copy; the capsule frees it with the array.
-template <typename T>
-py::array_t<T> to_numpy(std::vector<T>&& v, std::vector<py::ssize_t> shape) {
-    auto* heap = new std::vector<T>(std::move(v));
-    py::capsule owner(heap, [](void* p) { delete static_cast<std::vector<T>*>(p); });
+template <typename T, typename Allocator>
+py::array_t<T> to_numpy(std::vector<T, Allocator>&& v, std::vector<py::ssize_t> shape) {
+    using Vector = std::vector<T, Allocator>;
+    auto* heap = new Vector(std::move(v));
+    py::capsule owner(heap, [](void* p) { delete static_cast<Vector*>(p); });
     return py::array_t<T>(shape, heap->data(), owner);
 }
 

@@ -335,7 +335,7 @@ Frame render_model(BlockCache& cache, CachedModel& model, const Camera& camera, 
     params.validate();
     const FrameClock clock;
     Frame frame;
-    shading::blank_frame(frame, camera);
+    shading::blank_frame(frame, camera, params.threads);
     const ModelBackend backend(model.index(), camera, params);
     const std::uint32_t tick = cache.begin_frame(frame.stats.cache);
     std::vector<LodLane> lanes = make_lanes(cache, model, tick);

@@ -240,7 +240,7 @@ Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams&
     params.validate();
     const FrameClock clock;
     Frame frame;
-    shading::blank_frame(frame, camera);
+    shading::blank_frame(frame, camera, params.threads);
     const SceneBackend backend(scene, camera, params);
     std::vector<TraversalCounters> lanes(ThreadPool::global().lanes());
     trace_frame(backend, camera, params, params.packets_or(16), lanes, frame);

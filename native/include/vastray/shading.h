@@ -155,13 +155,20 @@ inline Vec3f offset_origin(const Vec3f* v, const Hit& hit, const Vec3f& n) {
 }
 
 // A frame of the camera's size: black, depth inf, prim -1 everywhere.
-inline void blank_frame(Frame& frame, const Camera& camera) {
+inline void blank_frame(Frame& frame, const Camera& camera, unsigned threads) {
     frame.width = camera.width;
     frame.height = camera.height;
     const std::size_t pixels = static_cast<std::size_t>(camera.width) * camera.height;
-    frame.rgb.assign(3 * pixels, 0);
-    frame.depth.assign(pixels, std::numeric_limits<float>::infinity());
-    frame.prim.assign(pixels, -1);
+    frame.rgb.resize(3 * pixels);  // (uninitialised: written below, a band per lane)
+    frame.depth.resize(pixels);
+    frame.prim.resize(pixels);
+    constexpr std::size_t kBand = 64 * 1024;  // pixels
+    ThreadPool::global().parallel_for((pixels + kBand - 1) / kBand, [&](std::size_t band, unsigned) {
+        const std::size_t p0 = band * kBand, p1 = std::min(pixels, p0 + kBand);
+        std::fill(frame.rgb.begin() + 3 * p0, frame.rgb.begin() + 3 * p1, std::uint8_t{0});
+        std::fill(frame.depth.begin() + p0, frame.depth.begin() + p1, std::numeric_limits<float>::infinity());
+        std::fill(frame.prim.begin() + p0, frame.prim.begin() + p1, std::int32_t{-1});
+    }, threads);
 }
 
 // Runs fn(x0, y0, x1, y1, lane) over the image's tiles on the global pool.
