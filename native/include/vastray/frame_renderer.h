@@ -156,6 +156,19 @@ public:
         : backend_(backend), params_(params), packets_(packets), frame_(frame), indirect_(indirect),
           sections_(sections), sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)) {
         up_ = normalize(up_);
+        // The model's box seen from the eye, for may_enter_model: the same for every tile.
+        const Box3f box = backend_.bounds();
+        cull_tiles_ = !box.empty() && all_finite(box.lo) && all_finite(box.hi);
+        if (cull_tiles_) {
+            const Vec3d eye(origin(backend_.primary_ray(0, 0)));
+            const double margin = 1e-4 * length(Vec3d(box.hi) - Vec3d(box.lo));
+            for (int k = 0; k < 8; ++k) {
+                const Vec3d c((k & 1) ? box.hi.x : box.lo.x, (k & 2) ? box.hi.y : box.lo.y,
+                              (k & 4) ? box.hi.z : box.lo.z);
+                to_corner_[k] = c - eye;
+                corner_slack_[k] = 1e-4 * length(to_corner_[k]) + margin;
+            }
+        }
     }
 
     void render_tile(int x0, int y0, int x1, int y1, Lane& lane, LaneRays& rays) const {
@@ -355,24 +368,16 @@ private:
     // (The rays of an overview that miss the model cost the frame loop ray set-up, a
     // packet start and shading, pixel by pixel.)
     bool may_enter_model(int x0, int y0, int x1, int y1) const {
-        const Box3f box = backend_.bounds();
-        if (box.empty() || !all_finite(box.lo) || !all_finite(box.hi)) return true;
+        if (!cull_tiles_) return true;
         const Ray corner_rays[4] = {backend_.primary_ray(x0, y0), backend_.primary_ray(x1 - 1, y0),
                                     backend_.primary_ray(x1 - 1, y1 - 1), backend_.primary_ray(x0, y1 - 1)};
-        const Vec3d eye(origin(corner_rays[0]));
         Vec3d dirs[4], centre(0, 0, 0);
         for (int i = 0; i < 4; ++i) {
             dirs[i] = Vec3d(direction(corner_rays[i]));
             centre += dirs[i];
         }
-        Vec3d to_corner[8];
-        double slack[8];
-        const double margin = 1e-4 * length(Vec3d(box.hi) - Vec3d(box.lo));
-        for (int k = 0; k < 8; ++k) {
-            const Vec3d c((k & 1) ? box.hi.x : box.lo.x, (k & 2) ? box.hi.y : box.lo.y, (k & 4) ? box.hi.z : box.lo.z);
-            to_corner[k] = c - eye;
-            slack[k] = 1e-4 * length(to_corner[k]) + margin;
-        }
+        const Vec3d* to_corner = to_corner_;
+        const double* slack = corner_slack_;
         // Behind the eye: the rays go forward from it (t >= 0), so when every corner ray
         // leaves at under 90 degrees from their mean, so does every ray of the tile, and a box
         // wholly behind the plane through the eye across that mean is out of reach.
@@ -671,6 +676,9 @@ private:
     IndirectTerms* indirect_;
     const LocalSections& sections_;
     Vec3f sun_, up_;
+    bool cull_tiles_ = false;   // the model's box is finite: may_enter_model can test tiles against it
+    Vec3d to_corner_[8];        // the box's corners from the eye
+    double corner_slack_[8];    // how far beyond a side each must lie for the test to count it
 };
 
 // The indirect mode's pixels once every pixel is traced: the diffuse light filtered,
