@@ -12,6 +12,7 @@
 
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <utility>
 #include <vector>
 
@@ -66,7 +67,11 @@ struct alignas(64) LodLane {
     std::uint64_t lookups = 0, hits = 0, missing = 0, bad = 0, ws_blocks = 0, ws_bytes = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0, voxel_hits = 0;
 
-    const std::uint8_t* lookup(std::uint32_t block, float priority) {
+    // `priority` is the fetch priority of a missing block: a float, or a callable that
+    // gives it, called only when the block is missing (a packet's priority takes a
+    // reduction over its lanes, wasted on the blocks that are there).
+    template <typename Priority>
+    const std::uint8_t* lookup(std::uint32_t block, const Priority& priority) {
         ++lookups;
         // Blocks are published and evicted only between frames, and a lane lives for one
         // frame, so a block found once stays where it is: neighbouring rays cross into the
@@ -89,13 +94,21 @@ struct alignas(64) LodLane {
         ++missing;
         if (slot == CachedModel::kBad) {
             ++bad;
-        } else if (model->request(block, priority)) {
+        } else if (model->request(block, priority_value(priority))) {
             requests.emplace_back(model, block);
         }
         return nullptr;
     }
 
 private:
+    template <typename Priority>
+    static float priority_value(const Priority& priority) {
+        if constexpr (std::is_invocable_v<const Priority&>) {
+            return priority();
+        } else {
+            return priority;
+        }
+    }
     static constexpr std::uint32_t kSeen = 64;
     struct Seen {
         std::uint32_t block = ~0u;  // no block id is that large (the index holds fewer)
@@ -187,7 +200,8 @@ inline std::pair<std::uint64_t, std::uint64_t> referenced_stream(const LodLane& 
 
 // The block holding a LOD node's child treelets, or null when it is not cached (then it
 // is requested) or the node is damaged (points outside the next level).
-inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, float priority) {
+template <typename Priority>
+inline const std::uint8_t* lod_child_block(LodLane& lane, const NodeRef& node, const Priority& priority) {
     if (node.level + 1 >= lane.tri_level) return nullptr;  // no node level below: damaged
     const auto [block, end] = referenced_stream(
         lane, node.level + 1, load<std::uint32_t>(node.block + node.off + format::lod_child_block_at(lane.quantized_splits)));
@@ -241,9 +255,11 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
 // damaged header ends the walk with `missing()` true. A compact block (format.h) is
 // read the same way through its leaf record; a record that is damaged ends the walk
 // like a missing block, since the entries after a bad one cannot be found.
+// `Priority` as in LodLane::lookup.
+template <typename Priority = float>
 class LeafTriangles {
 public:
-    LeafTriangles(LodLane& lane, const std::uint8_t* leaf_node, float priority)
+    LeafTriangles(LodLane& lane, const std::uint8_t* leaf_node, Priority priority)
         : lane_(lane), priority_(priority) {
         const std::uint32_t w = load<std::uint32_t>(leaf_node);
         left_ = format::leaf_count(w);
@@ -356,7 +372,7 @@ private:
     }
 
     LodLane& lane_;
-    float priority_;
+    Priority priority_;
     const std::uint8_t* block_ = nullptr;
     std::uint64_t block_id_ = 0, end_ = 0;
     std::uint32_t left_ = 0, entry_ = 0, entries_ = 0, tris_ = 0, verts_ = 0;

@@ -227,7 +227,8 @@ public:
                         rest |= active[v].bits();
                     }
                     if (!rest) break;
-                    child_block = lod_detail::lod_child_block(lane, node, here.error / std::max(nearest_of(active), 1e-30f));
+                    child_block = lod_detail::lod_child_block(
+                        lane, node, [&] { return here.error / std::max(nearest_of(active), 1e-30f); });
                     if (!child_block) {
                         for (int v = 0; v < K; ++v) {
                             if (const int a = active[v].bits(); a != 0) take_voxels(here, v, a);
@@ -307,7 +308,9 @@ public:
                 }
             }
             if (leaf) {
-                const float priority = voxel.samples ? voxel.error / std::max(nearest_of(active), 1e-30f) : 0.0f;
+                const auto priority = [&] {
+                    return voxel.samples ? voxel.error / std::max(nearest_of(active), 1e-30f) : 0.0f;
+                };
                 lod_detail::LeafTriangles triangles(lane, node.block + node.off, priority);
                 HitV<W> hv[K];
                 int act[K];
