@@ -177,6 +177,8 @@ class Child:
     def image_error(self, workload: str, label: str, frame: Any, fields: dict[str, Any]) -> dict[str, Any]:
         """The frame's working set, and its error against the full-detail frame of the same
         view and mode (rendered once), with that frame's checksum."""
+        from tradeoff import psnr  # (it imports vastray: here the child's snapshot is in place)
+
         model, camera = self.ooc[label]
         key = (workload, label)
         if key not in self.references:
@@ -185,12 +187,10 @@ class Child:
             )
             self.references[key] = full.image.astype(np.float64)
         reference = self.references[key]
-        diff = frame.image.astype(np.float64) - reference
-        mse = float(np.mean(diff * diff))
         return {
             "working_set_mib": float(frame.stats.working_set_bytes) / 2**20,
-            "psnr": 10.0 * np.log10(255.0**2 / mse) if mse > 0 else float("inf"),
-            "mae": float(np.mean(np.abs(diff))),
+            "psnr": psnr(frame.image, reference),
+            "mae": float(np.mean(np.abs(frame.image.astype(np.float64) - reference))),
             "reference_check": int(reference.sum()),
         }
 

@@ -376,15 +376,13 @@ private:
             dirs[i] = Vec3d(direction(corner_rays[i]));
             centre += dirs[i];
         }
-        const Vec3d* to_corner = to_corner_;
-        const double* slack = corner_slack_;
         // Behind the eye: the rays go forward from it (t >= 0), so when every corner ray
         // leaves at under 90 degrees from their mean, so does every ray of the tile, and a box
         // wholly behind the plane through the eye across that mean is out of reach.
         bool forward = true;
         for (const Vec3d& d : dirs) forward = forward && dot(centre, d) > 0;
         bool behind = forward;
-        for (int k = 0; k < 8 && behind; ++k) behind = dot(centre, to_corner[k]) < -slack[k] * length(centre);
+        for (int k = 0; k < 8 && behind; ++k) behind = dot(centre, to_corner_[k]) < -corner_slack_[k] * length(centre);
         if (behind) return false;
         for (int i = 0; i < 4; ++i) {
             Vec3d side = cross(dirs[i], dirs[(i + 1) % 4]);
@@ -393,7 +391,7 @@ private:
             side = side / len;
             if (dot(side, centre) < 0) side = -side;  // pointing into the pyramid
             bool beyond = true;
-            for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner[k]) < -slack[k];
+            for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner_[k]) < -corner_slack_[k];
             if (beyond) return false;
         }
         return true;
