@@ -74,9 +74,8 @@ struct RenderParams {
     int tile_size = 16;
     // Primary rays per packet: 16 (4x4 blocks), 4 (2x2 quads), 1 (single rays), or 0
     // for each renderer's fastest: 4x4 SIMD packets in core and out of core (out of core
-    // they pay since they are SIMD and hand their last ray to the single-ray walk where
-    // rays part; bench/results/tradeoff-size.md). Secondary rays go in packets whatever
-    // this says.
+    // they pay even where rays part and most steps have one active lane;
+    // bench/results/tradeoff-size.md). Secondary rays go in packets whatever this says.
     int packets = 0;
     // Level of detail (out of core; an in-core scene always renders full detail).
     // Pixels of error: a voxel may stand in for its subtree once its projected

@@ -45,7 +45,8 @@ inline bool clip_ray_to_box(const Ray& ray, const Box3f& box, float& t0, float& 
 // true); `skip` is a triangle never reported (the surface a secondary ray starts on).
 // Returns true when the ray is finished (an any-hit ray hit, or a hit lies inside its
 // cell), false when the subtree is done and cells beyond it may still hold a nearer hit.
-// traverse() walks from the root; packets hand their last live ray to it mid-tree.
+// traverse() walks from the root. (Packets keep a lone ray: handing it over here cost
+// the AO query 0.82x, docs/native-core.md.)
 template <bool AnyHit>
 inline bool traverse_from(const KdTree& tree, const Vec3f* tri_vertices, const Ray& ray, const ShearedRay& sheared,
                           std::uint32_t index, float tmin, float tmax, Hit& hit, TraversalCounters& counters,
