@@ -202,14 +202,12 @@ public:
                 for (int v = 0; v < K; ++v) active[v] = live[v] & (tmin[v] <= tmax[v]);
             }
             while (!leaf) {
-                int any = 0;
                 std::uint32_t lanes = 0;
                 for (int v = 0; v < K; ++v) {
                     active[v] = live[v] & (tmin[v] <= tmax[v]);
-                    any |= active[v].bits();
                     lanes |= static_cast<std::uint32_t>(active[v].bits()) << (W * v);
                 }
-                if (!any) break;
+                if (!lanes) break;
                 if (lone_walks && (lanes & (lanes - 1)) == 0) {
                     walk_lone(lane, __builtin_ctz(lanes));
                     break;
