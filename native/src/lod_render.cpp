@@ -92,7 +92,9 @@ void triangle_of(const LodHit& hit, const ModelIndex& index, Vec3f* v) {
     }
     const auto l = format::TriangleBlockLayout::read(hit.tri_block, index.has_colours(), index.quantized_vertices());
     const std::uint8_t* corner = hit.tri_block + l.triangles + 6 * std::size_t{hit.local};
-    for (int k = 0; k < 3; ++k) v[k] = l.vertex(hit.tri_block, load<std::uint16_t>(corner + 2 * k), index.vertex_steps());
+    for (int k = 0; k < 3; ++k) {
+        v[k] = lod_detail::plain_vertex(l, hit.tri_block, load<std::uint16_t>(corner + 2 * k), index.vertex_steps());
+    }
 }
 
 // A secondary ray over a cached model: never reports the triangle it starts on.

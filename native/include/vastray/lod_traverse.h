@@ -256,6 +256,17 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
 // read the same way through its leaf record; a record that is damaged ends the walk
 // like a missing block, since the entries after a bad one cannot be found.
 // `Priority` as in LodLane::lookup.
+// Vertex i of a plain triangle block, for the kernels: out of line, but compiled for the
+// kernel's own ISA (flatten inlines the layout's reader into it). A plain call reaches the
+// one out-of-line copy of TriangleBlockLayout::vertex in the module, the SSE2 core's, and
+// on an Intel Xeon its legacy SSE code met dirty upper halves of the vector registers
+// where the packets of 4 call it: their frames ran 3.7-3.9x slower. Inlining it into the
+// walks instead cost 5 % at 10^7 (docs/native-core.md, "No calls out of the hot loops").
+[[gnu::noinline, gnu::flatten]] inline Vec3f plain_vertex(const format::TriangleBlockLayout& layout,
+                                                         const std::uint8_t* tb, std::size_t i, const Vec3f& steps) {
+    return layout.vertex(tb, i, steps);
+}
+
 template <typename Priority = float>
 class LeafTriangles {
 public:
@@ -294,9 +305,9 @@ public:
             const std::uint32_t i0 = load<std::uint16_t>(corner), i1 = load<std::uint16_t>(corner + 2),
                                 i2 = load<std::uint16_t>(corner + 4);
             if (i0 >= verts_ || i1 >= verts_ || i2 >= verts_) continue;
-            v0 = layout_.vertex(block_, i0, lane_.vertex_steps);
-            v1 = layout_.vertex(block_, i1, lane_.vertex_steps);
-            v2 = layout_.vertex(block_, i2, lane_.vertex_steps);
+            v0 = plain_vertex(layout_, block_, i0, lane_.vertex_steps);
+            v1 = plain_vertex(layout_, block_, i1, lane_.vertex_steps);
+            v2 = plain_vertex(layout_, block_, i2, lane_.vertex_steps);
             return true;
         }
         return false;
