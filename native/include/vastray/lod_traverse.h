@@ -249,6 +249,17 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
     return true;
 }
 
+// Vertex i of a plain triangle block, for the kernels: out of line, but compiled for the
+// kernel's own ISA (flatten inlines the layout's reader into it). A plain call reaches the
+// one out-of-line copy of TriangleBlockLayout::vertex in the module, the SSE2 core's, and
+// on an Intel Xeon its legacy SSE code met dirty upper halves of the vector registers
+// where the packets of 4 call it: their frames ran about 4x slower. Inlining it into the
+// walks instead cost 5 % at 10^7 (docs/native-core.md, "No calls out of the hot loops").
+[[gnu::noinline, gnu::flatten]] inline Vec3f plain_vertex(const format::TriangleBlockLayout& layout,
+                                                         const std::uint8_t* tb, std::size_t i, const Vec3f& steps) {
+    return layout.vertex(tb, i, steps);
+}
+
 // Walks the triangles of one leaf: its run of list entries in a triangle block and, for
 // leaves too big for one block, on into the following blocks. Entries that point
 // outside their block are skipped; a block that is missing (requested) or has a
@@ -256,17 +267,6 @@ inline bool clip_with_axis(const Ray& ray, const Box3f& box, float& t0, float& t
 // read the same way through its leaf record; a record that is damaged ends the walk
 // like a missing block, since the entries after a bad one cannot be found.
 // `Priority` as in LodLane::lookup.
-// Vertex i of a plain triangle block, for the kernels: out of line, but compiled for the
-// kernel's own ISA (flatten inlines the layout's reader into it). A plain call reaches the
-// one out-of-line copy of TriangleBlockLayout::vertex in the module, the SSE2 core's, and
-// on an Intel Xeon its legacy SSE code met dirty upper halves of the vector registers
-// where the packets of 4 call it: their frames ran 3.7-3.9x slower. Inlining it into the
-// walks instead cost 5 % at 10^7 (docs/native-core.md, "No calls out of the hot loops").
-[[gnu::noinline, gnu::flatten]] inline Vec3f plain_vertex(const format::TriangleBlockLayout& layout,
-                                                         const std::uint8_t* tb, std::size_t i, const Vec3f& steps) {
-    return layout.vertex(tb, i, steps);
-}
-
 template <typename Priority = float>
 class LeafTriangles {
 public:
