@@ -558,7 +558,9 @@ private:
         }
     }
 
-    static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
+    // Always inlined, as prefetch_leaf_vertices (traverse_packet.h) is: a call to a
+    // function that only prefetches is one GCC may drop.
+    [[gnu::always_inline]] static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
         bytes = std::min<std::size_t>(bytes, 6 * 64);
         for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
     }
