@@ -91,7 +91,8 @@ inline bool near_in_memory(const KdNode* from, const KdNode* to) {
 // Always inlined: GCC finds a function that does nothing but prefetch free of side
 // effects, and drops the calls to one it has not inlined yet (GCC 12 did so here, so
 // that the walks paused for vertices nobody had asked for).
-[[gnu::always_inline]] inline void prefetch_leaf_vertices(const KdTree& tree, const Vec3f* tri_vertices, const KdNode& leaf) {
+[[gnu::always_inline]] inline void prefetch_leaf_vertices(const KdTree& tree, const Vec3f* tri_vertices,
+                                                          const KdNode& leaf) {
     constexpr std::uint32_t kPrefetchTriangles = 8;
     const std::uint32_t* ids = tree.tri_ids.data() + leaf.first();
     const std::uint32_t count = std::min<std::uint32_t>(leaf.count(), kPrefetchTriangles);
