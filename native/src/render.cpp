@@ -15,6 +15,12 @@ VASTRAY_KERNEL_BEGIN
 
 namespace {
 
+// Primary packets in flight on a large tree: the renderer takes them in groups of up to 16
+// packets (a 16x16 tile), 8 in flight: 10^7 plant 4x4-packet frames 1.28x one packet at a
+// time in two series (4 in flight from groups of 4: 1.19-1.24x; 6 from 16: 1.24-1.27x; 8
+// from 8: 1.28x).
+constexpr int kPacketsInFlight = 8;
+
 // AO packets in flight on a large tree: 8 measured 1.32x one at a time, 4 1.27x (10^7 plant).
 constexpr int kOcclusionInFlight = 8;
 
@@ -197,10 +203,7 @@ public:
 
 private:
     static constexpr int kMaxGroup = 16;
-    // 8 in flight, from groups of up to 16 packets (a 16x16 tile): 10^7 plant 4x4-packet
-    // frames 1.28x one packet at a time in two series (4 in flight from groups of 4:
-    // 1.19-1.24x; 6 from 16: 1.24-1.27x; 8 from 8: 1.28x).
-    static constexpr int kInFlight = 8;
+    static constexpr int kInFlight = kPacketsInFlight;
 
     // The primary ray from the eye along world direction `dir`, in the scene's frame.
     Ray primary_along(const Vec3d& dir) const {
@@ -260,29 +263,84 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
     out.normal.assign(3 * n, 0.0f);
     ThreadPool& pool = ThreadPool::global();
     std::vector<TraversalCounters> lane_counters(pool.lanes());
+    // Runs of 16 rays from one origin whose directions share their signs (a row of camera
+    // rays) go as packets, several in flight on a large tree, as the renderer's do: the
+    // same walk and arithmetic per ray, so the same answers as one ray at a time. Other
+    // rays, and every ray when section planes cut the scene, go one at a time.
+    constexpr int kPacket = 16;
+    const bool interleave = interleaves(scene.tree().memory_bytes());
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned lane) {
         TraversalCounters& c = lane_counters[lane];
-        for (std::size_t i = b * kBatch; i < std::min(n, (b + 1) * kBatch); ++i) {
+        const std::size_t begin = b * kBatch, end = std::min(n, (b + 1) * kBatch);
+        auto store = [&](std::size_t i, const Hit& hit, const Ray& ray, int entered) {
+            Vec3f nrm = normalize(scene.normal(hit.prim));
+            double t = hit.t;
+            if (entered >= 0 && dot(nrm, ray.dir) > 0) {
+                // In a cut solid: its cap, on the plane.
+                t = ray.tmin;
+                nrm = -sections.normal(entered);
+            }
+            out.t[i] = t;
+            out.prim[i] = scene.input_id(hit.prim);
+            out.u[i] = hit.u;
+            out.v[i] = hit.v;
+            for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
+        };
+        auto trace_one = [&](std::size_t i) {
             const WorldRay wr = load_ray(origins, directions, tmin, tmax, i);
-            if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
+            if (!ray_is_valid(wr)) return;  // invalid rays report a miss
             Hit hit;
             Ray ray = scene.to_local(wr);
             int entered = -1;
-            if (!sections.empty() && !sections.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered)) continue;
-            if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) {
-                Vec3f nrm = normalize(scene.normal(hit.prim));
-                if (entered >= 0 && dot(nrm, ray.dir) > 0) {
-                    // In a cut solid: its cap, on the plane.
-                    hit.t = ray.tmin;
-                    nrm = -sections.normal(entered);
+            if (!sections.empty() && !sections.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered)) return;
+            if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) store(i, hit, ray, entered);
+        };
+        std::size_t i = begin;
+        if (sections.empty()) {
+            constexpr int kMaxPackets = static_cast<int>(kBatch) / kPacket;
+            Uninitialised<Ray, kBatch> ray_store;
+            Uninitialised<Hit, kBatch> hit_store;
+            Ray* rays = ray_store.data();
+            Hit* hits = hit_store.data();
+            const Ray* rays_of[kMaxPackets];
+            Hit* hits_of[kMaxPackets];
+            std::size_t first_of[kMaxPackets];
+            int m = 0;
+            for (; i + kPacket <= end; i += kPacket) {
+                Ray* r = rays + (i - begin);
+                bool packet = true;
+                for (int k = 0; k < kPacket && packet; ++k) {
+                    const std::size_t j = i + static_cast<std::size_t>(k);
+                    const WorldRay wr = load_ray(origins, directions, tmin, tmax, j);
+                    packet = ray_is_valid(wr) && origins[3 * j] == origins[3 * i] &&
+                             origins[3 * j + 1] == origins[3 * i + 1] && origins[3 * j + 2] == origins[3 * i + 2];
+                    if (packet) new (r + k) Ray(scene.to_local(wr));
                 }
-                out.t[i] = hit.t;
-                out.prim[i] = scene.input_id(hit.prim);
-                out.u[i] = hit.u;
-                out.v[i] = hit.v;
-                for (int a = 0; a < 3; ++a) out.normal[3 * i + static_cast<std::size_t>(a)] = nrm[a];
+                if (packet && packet_is_coherent(r, kPacket)) {
+                    Hit* h = hits + (i - begin);
+                    for (int k = 0; k < kPacket; ++k) new (h + k) Hit;
+                    rays_of[m] = r;
+                    hits_of[m] = h;
+                    first_of[m++] = i;
+                } else {
+                    for (int k = 0; k < kPacket; ++k) trace_one(i + static_cast<std::size_t>(k));
+                }
+            }
+            if (interleave) {
+                traverse_packets<kPacket, kPacketsInFlight>(scene.tree(), scene.tri_vertices(), rays_of, hits_of, m, c);
+            } else {
+                for (int j = 0; j < m; ++j) {
+                    traverse_packet<kPacket>(scene.tree(), scene.tri_vertices(), rays_of[j], hits_of[j], c);
+                }
+            }
+            for (int j = 0; j < m; ++j) {
+                for (int k = 0; k < kPacket; ++k) {
+                    const Hit& hit = hits_of[j][k];
+                    if (hit.prim != kNoHit) store(first_of[j] + static_cast<std::size_t>(k), hit, rays_of[j][k], -1);
+                }
             }
         }
+        for (; i < end; ++i) trace_one(i);
     }, threads);
     for (const auto& c : lane_counters) {
         out.counters.node_visits += c.node_visits;
