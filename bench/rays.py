@@ -568,9 +568,11 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
         "same triangle (or both miss). *peak RSS +MB* = growth of the process's peak resident "
         "memory during the build (small builds reuse heap freed by earlier models and can show 0; "
         "Embree's includes the float32 triangle copy embreex hands it). The renderer traces 4x4 "
-        "SIMD packets and `Scene.occluded` traces the rays of each point (consecutive rays from "
-        "one origin, as the renderer's AO makes them) as one any-hit packet, with the single-ray "
-        "answers; Embree traces every ray alone (embreex has no packet API).",
+        "SIMD packets, `Scene.intersect` 16 neighbours of a row (one origin, one direction "
+        "octant) as one packet (since 6 December; single rays before), and `Scene.occluded` the "
+        "rays of each point (consecutive rays from one origin, as the renderer's AO makes them) as "
+        "one any-hit packet, all with the single-ray answers; Embree traces every ray alone "
+        "(embreex has no packet API).",
         "",
     ]
     return "\n".join(parts)
