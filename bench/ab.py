@@ -12,6 +12,8 @@ Workloads, one thread each (`--threads` for more):
 * `batch`: closest hits of the primary rays (1024x768) through `Scene.intersect`;
 * `ao`: 8 AO rays per facing primary hit, 0.2 x the diagonal, through `Scene.occluded`
   (as bench/rays.py makes them);
+* `shadow`: a ray from each of those hit points along one direction (a distant light),
+  through `Scene.occluded`;
 * `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
 * `sun`: the same frame with shading='sun' (a shadow ray per lit pixel facing the sun);
 * `section`: the same frame with shading='headlight' and a section plane through the
@@ -71,7 +73,9 @@ OOC_SHADING = {
     "ooc-indirect": "indirect",
 }
 OOC_WORKLOADS = tuple(OOC_SHADING)
-WORKLOADS = ("batch", "ao", "frame", "sun", "section", *OOC_WORKLOADS)
+WORKLOADS = ("batch", "ao", "shadow", "frame", "sun", "section", *OOC_WORKLOADS)
+# The shadow workload's light: one direction for every hit point's ray, as the sun's.
+SHADOW_DIRECTION = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -159,6 +163,14 @@ class Child:
                 elif workload == "ao":
                     start = time.perf_counter()
                     blocked = scene.occluded(ao_o, ao_d, 0.0, ao_tmax, threads=threads)
+                    seconds = time.perf_counter() - start
+                    check = int(np.count_nonzero(blocked))
+                elif workload == "shadow":
+                    # Every hit point's ray towards a distant light (the AO rays' origins).
+                    points = ao_o[::8]
+                    towards = np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, points.shape))
+                    start = time.perf_counter()
+                    blocked = scene.occluded(points, towards, threads=threads)
                     seconds = time.perf_counter() - start
                     check = int(np.count_nonzero(blocked))
                 elif workload == "section":

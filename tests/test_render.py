@@ -339,6 +339,36 @@ def test_batch_packets_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch)
     assert visits[0] == visits[1] < 0.5 * single_visits
 
 
+def test_batch_shadow_packets_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`Scene.occluded` traces runs of up to 8 rays along one direction (shadow rays of
+    points towards a distant light) as any-hit packets, as it does runs from one origin.
+    Each ray's answer must be its own alone, one packet at a time and in flight, with
+    rays from one origin, along one direction and neither mixed in one batch."""
+    from vastray import scenes
+    from vastray.camera import frame_bounds
+
+    mesh = scenes.to_mesh("plant", 100_000, 2)
+    scene = native.Scene(mesh.vertices, mesh.faces)
+    eye, rays = frame_bounds(*scene.bounds, width=48, height=32).primary_rays()
+    hits = scene.intersect(eye, rays)
+    hit = np.flatnonzero(hits["prim"] >= 0)
+    diagonal = float(np.linalg.norm(np.ptp(scene.bounds, axis=0)))
+    points = eye[hit] + rays[hit] * hits["t"][hit, None] + 1e-4 * diagonal * hits["normal"][hit]
+    sun = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+    rng = np.random.default_rng(3)
+    origins = np.concatenate([points, np.repeat(points[:40], 8, axis=0), points[::-1]])
+    directions = np.concatenate(
+        [np.tile(sun, (len(points), 1)), rng.normal(size=(320, 3)), rng.normal(size=(len(points), 3))]
+    )
+    alone = np.array(
+        [scene.occluded(origins[i : i + 1], directions[i : i + 1])[0] for i in range(len(origins))]
+    )
+    assert 0.05 < alone[: len(points)].mean() < 0.95  # some points in shadow, some lit
+    for interleave in (str(2**62), "0"):
+        monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", interleave)
+        np.testing.assert_array_equal(scene.occluded(origins, directions), alone, err_msg=interleave)
+
+
 def _anon_huge_pages_kib() -> int:
     for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
         if line.startswith("AnonHugePages:"):

@@ -236,6 +236,11 @@ bool ray_is_valid(const WorldRay& r) {
 
 constexpr std::size_t kBatch = 1024;
 
+// Whether rays i and j of a batch have the same origin (or direction): `v` holds them.
+bool same_vector(const double* v, std::size_t i, std::size_t j) {
+    return v[3 * i] == v[3 * j] && v[3 * i + 1] == v[3 * j + 1] && v[3 * i + 2] == v[3 * j + 2];
+}
+
 }  // namespace
 
 Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams& params) {
@@ -312,8 +317,7 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
                 for (int k = 0; k < kPacket && packet; ++k) {
                     const std::size_t j = i + static_cast<std::size_t>(k);
                     const WorldRay wr = load_ray(origins, directions, tmin, tmax, j);
-                    packet = ray_is_valid(wr) && origins[3 * j] == origins[3 * i] &&
-                             origins[3 * j + 1] == origins[3 * i + 1] && origins[3 * j + 2] == origins[3 * i + 2];
+                    packet = ray_is_valid(wr) && same_vector(origins, i, j);
                     if (packet) new (r + k) Ray(scene.to_local(wr));
                 }
                 if (packet && packet_is_coherent(r, kPacket)) {
@@ -351,8 +355,9 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
 
 std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
                                          const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    // Runs of rays from one origin (the AO rays of a point) go as packets of up to 8; on a
-    // large tree a batch's packets go several in flight (occluded_packets).
+    // Runs of rays from one origin (the AO rays of a point) or along one direction (the
+    // shadow rays of points towards a distant light) go as packets of up to 8; on a large
+    // tree a batch's packets go several in flight (occluded_packets).
     constexpr int kPacket = 8;
     std::vector<std::uint8_t> out(n, 0);
     const bool interleave = interleaves(scene.tree().memory_bytes());
@@ -374,10 +379,13 @@ std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origi
             Packet& p = *new (packets + m) Packet;
             std::uint32_t mask = 0;
             int count = 0;
-            const Vec3d o(origins[3 * i], origins[3 * i + 1], origins[3 * i + 2]);
+            // The run's shared vector: the origin, else (the next ray starting elsewhere)
+            // the direction.
+            const bool along = i + 1 < end && !same_vector(origins, i, i + 1) && same_vector(directions, i, i + 1);
+            const double* shared = along ? directions : origins;
             for (; count < kPacket && i + static_cast<std::size_t>(count) < end; ++count) {
                 const std::size_t j = i + static_cast<std::size_t>(count);
-                if (origins[3 * j] != o.x || origins[3 * j + 1] != o.y || origins[3 * j + 2] != o.z) break;
+                if (!same_vector(shared, i, j)) break;
                 const WorldRay wr = load_ray(origins, directions, tmin, tmax, j);
                 if (!ray_is_valid(wr)) continue;  // invalid rays report a miss
                 p.rays[count] = scene.to_local(wr);
