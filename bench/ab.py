@@ -52,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (
     RESULTS_DIR,
+    SHADOW_DIRECTION,
     camera_rays,
     format_count,
     geometric_mean,
@@ -74,8 +75,6 @@ OOC_SHADING = {
 }
 OOC_WORKLOADS = tuple(OOC_SHADING)
 WORKLOADS = ("batch", "ao", "shadow", "frame", "sun", "section", *OOC_WORKLOADS)
-# The shadow workload's light: one direction for every hit point's ray, as the sun's.
-SHADOW_DIRECTION = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
 PROCEDURAL = ("plant", "mandelbulb")
 
 

@@ -311,6 +311,11 @@ def facing_normals(tri: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     return n, ok
 
 
+# The benchmarks' distant light: the direction of every shadow ray (bench/rays.py's shadow
+# table, bench/ab.py's shadow workload).
+SHADOW_DIRECTION = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+
+
 def ao_rays_from_hits(
     vertices: np.ndarray,
     faces: np.ndarray,

@@ -11,6 +11,8 @@ For every real mesh in ../shared/models ($VASTRAY_MODELS) and for procedural sce
 * ambient-occlusion rays: 8 cosine-weighted directions about the facing normal of every
   primary hit, length 0.2 x the scene diagonal: vastray `occluded` against Embree's
   occlusion query;
+* shadow rays: one from each AO origin along one direction (a distant light), unbounded,
+  the same way;
 
 each on one thread and on all hardware threads, best of N runs, with vastray and Embree
 interleaved in the same loop so a busy machine slows both alike. The key number is
@@ -43,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (  # bench/ is a folder of scripts, not a package
     RESULTS_DIR,
+    SHADOW_DIRECTION,
     Best,
     PeakRss,
     ao_rays_from_hits,
@@ -365,6 +368,37 @@ def bench_model(
         f"agree {row.get('ao_agree_pct', math.nan):.3f}%",
         flush=True,
     )
+    # --- shadow rays: one from each AO origin (a hit point pushed off its surface) towards
+    # one distant light, the rays of a `sun` view; Scene.occluded takes runs of them as
+    # packets, as it does the AO rays of a point.
+    sh_origins = np.ascontiguousarray(ao_origins[:: max(1, args.ao_samples)])
+    sh_dirs = np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, sh_origins.shape))
+    sh_o32, sh_d32 = sh_origins.astype(np.float32), sh_dirs.astype(np.float32)
+    sh_tmax32 = np.full(sh_origins.shape[0], np.inf, dtype=np.float32)
+    n_sh = sh_origins.shape[0]
+    steps = []
+    for tag, threads in thread_settings:
+        steps.append((f"sh_{tag}", wall(lambda t=threads: scene.occluded(sh_origins, sh_dirs, threads=t))))
+        if embree is not None:
+            steps.append(
+                (f"esh_{tag}", wall(lambda t=threads, e=embree: e.occluded(sh_o32, sh_d32, sh_tmax32, t)))
+            )
+    sh_t = Timings()
+    last = interleave(args.ao_reps, steps, sh_t, args.min_time)
+    vsh = np.asarray(last["sh_1t"], dtype=bool)
+    row.update(shadow_rays=n_sh, shadow_occluded_pct=100.0 * float(vsh.mean()) if n_sh else math.nan)
+    for tag, _ in thread_settings:
+        row[f"shadow_{tag}"] = sh_t.rate(f"sh_{tag}", n_sh)
+        row[f"eshadow_{tag}"] = sh_t.rate(f"esh_{tag}", n_sh) if embree else math.nan
+        row[f"ratio_shadow_{tag}"] = row[f"shadow_{tag}"] / row[f"eshadow_{tag}"]
+    if embree is not None and n_sh:
+        row["shadow_agree_pct"] = 100.0 * float(np.mean(np.asarray(last["esh_1t"], dtype=bool) == vsh))
+    print(
+        f"   shadow ({n_sh:,} rays) 1T Mrays/s: vastray {row['shadow_1t']:.2f}  "
+        f"Embree {row['eshadow_1t']:.2f} | all: vastray {row['shadow_nt']:.2f}  "
+        f"Embree {row['eshadow_nt']:.2f} | agree {row.get('shadow_agree_pct', math.nan):.3f}%",
+        flush=True,
+    )
     # Traversal cost of AO rays as the renderer shoots them (its own sampling, skipping the
     # start triangle): kd-tree node visits and triangle tests per AO ray. Not timed.
     ao_frame = trace(scene, cam, shading="ao", ao_samples=args.ao_samples, threads=0).stats.as_dict()
@@ -398,7 +432,7 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
         "",
         f"vastray kernels on the **{isa_path()}** path. "
         "Same rays through both engines in one process, interleaved, best of at least "
-        f"{args.reps} (primary) / {args.ao_reps} (AO) runs (cheap ones repeated for "
+        f"{args.reps} (primary) / {args.ao_reps} (AO and shadow) runs (cheap ones repeated for "
         f"{args.min_time:g} s). Mrays/s = million rays per second. "
         f"1T = one thread; {nt}T = all {nt} hardware threads. Ratios are vastray / Embree "
         "(above 1: vastray faster). The machine is shared and noisy: read the ratios, "
@@ -431,6 +465,11 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
                         "AO rays, occluded vs rtcOccluded1",
                         ratio(geometric_mean(r["ratio_ao_1t"] for r in ok)),
                         ratio(geometric_mean(r["ratio_ao_nt"] for r in ok)),
+                    ],
+                    [
+                        "shadow rays (one direction), occluded vs rtcOccluded1",
+                        ratio(geometric_mean(r["ratio_shadow_1t"] for r in ok)),
+                        ratio(geometric_mean(r["ratio_shadow_nt"] for r in ok)),
                     ],
                 ],
             ),
@@ -516,6 +555,38 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
                     fmt(r["ao_nodes_per_ray"], 1),
                     fmt(r["ao_tris_per_ray"], 1),
                     fmt(r.get("ao_agree_pct", math.nan), 3),
+                ]
+                for r in rows
+            ],
+        ),
+        "",
+        "## Shadow rays (one from each AO origin, along one direction to a distant light, Mrays/s)",
+        "",
+        markdown_table(
+            [
+                "model",
+                "shadow rays",
+                "occluded %",
+                "vastray 1T",
+                "Embree 1T",
+                "**ratio 1T**",
+                f"vastray {nt}T",
+                f"Embree {nt}T",
+                f"ratio {nt}T",
+                "agree %",
+            ],
+            [
+                [
+                    r["model"],
+                    f"{r['shadow_rays']:,}",
+                    fmt(r["shadow_occluded_pct"], 1),
+                    fmt(r["shadow_1t"]),
+                    fmt(r.get("eshadow_1t", math.nan)),
+                    "**" + ratio(r.get("ratio_shadow_1t", math.nan)) + "**",
+                    fmt(r["shadow_nt"]),
+                    fmt(r.get("eshadow_nt", math.nan)),
+                    ratio(r.get("ratio_shadow_nt", math.nan)),
+                    fmt(r.get("shadow_agree_pct", math.nan), 3),
                 ]
                 for r in rows
             ],
