@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -243,6 +244,51 @@ def wall(fn: Callable[[], Any]) -> Callable[[], tuple[float, Any]]:
     return lambda: timed(fn)
 
 
+def measure_occlusion(
+    key: str,
+    scene: Any,
+    embree: Any,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    tmax: float,
+    args: argparse.Namespace,
+    thread_settings: list[tuple[str, int]],
+) -> dict[str, Any]:
+    """Any-hit rays through vastray's `occluded` and Embree's occlusion query, interleaved:
+    the fields KEY_1T/KEY_NT (Mrays/s), eKEY_* (Embree's), ratio_KEY_*, KEY_rays,
+    KEY_runs, KEY_occluded_pct and KEY_agree_pct of a result row."""
+    o32, d32 = origins.astype(np.float32), dirs.astype(np.float32)
+    tmax32 = np.full(origins.shape[0], tmax, dtype=np.float32)
+    n = origins.shape[0]
+    steps = []
+    for tag, threads in thread_settings:
+        steps.append((f"v_{tag}", wall(lambda t=threads: scene.occluded(origins, dirs, 0, tmax, threads=t))))
+        if embree is not None:
+            steps.append((f"e_{tag}", wall(lambda t=threads, e=embree: e.occluded(o32, d32, tmax32, t))))
+    timings = Timings()
+    last = interleave(args.ao_reps, steps, timings, args.min_time)
+    ours = np.asarray(last["v_1t"], dtype=bool)
+    out: dict[str, Any] = {
+        f"{key}_runs": len(timings.runs["v_1t"].values),
+        f"{key}_rays": n,
+        f"{key}_occluded_pct": 100.0 * float(ours.mean()) if n else math.nan,
+    }
+    for tag, _ in thread_settings:
+        out[f"{key}_{tag}"] = timings.rate(f"v_{tag}", n)
+        out[f"e{key}_{tag}"] = timings.rate(f"e_{tag}", n) if embree else math.nan
+        out[f"ratio_{key}_{tag}"] = out[f"{key}_{tag}"] / out[f"e{key}_{tag}"]
+    if embree is not None and n:
+        out[f"{key}_agree_pct"] = 100.0 * float(np.mean(np.asarray(last["e_1t"], dtype=bool) == ours))
+    print(
+        f"   {key} ({n:,} rays) 1T Mrays/s: vastray {out[f'{key}_1t']:.2f}  "
+        f"Embree {out[f'e{key}_1t']:.2f} | "
+        f"all: vastray {out[f'{key}_nt']:.2f}  Embree {out[f'e{key}_nt']:.2f} | "
+        f"agree {out.get(f'{key}_agree_pct', math.nan):.3f}%",
+        flush=True,
+    )
+    return out
+
+
 def bench_model(
     spec: ModelSpec, args: argparse.Namespace, pool: ThreadPoolExecutor | None, all_threads: int
 ) -> dict[str, Any]:
@@ -340,65 +386,16 @@ def bench_model(
     ao_origins, ao_dirs, ao_tmax = ao_rays_from_hits(
         vertices, faces, dirs, batch, args.ao_samples, rng, diagonal
     )
-    ao_o32, ao_d32 = ao_origins.astype(np.float32), ao_dirs.astype(np.float32)
-    ao_tmax32 = np.full(ao_origins.shape[0], ao_tmax, dtype=np.float32)
-    n_ao = ao_origins.shape[0]
-    steps = []
-    for tag, threads in thread_settings:
-        steps.append(
-            (f"occ_{tag}", wall(lambda t=threads: scene.occluded(ao_origins, ao_dirs, 0, ao_tmax, threads=t)))
-        )
-        if embree is not None:
-            steps.append(
-                (f"eocc_{tag}", wall(lambda t=threads, e=embree: e.occluded(ao_o32, ao_d32, ao_tmax32, t)))
-            )
-    ao_t = Timings()
-    last = interleave(args.ao_reps, steps, ao_t, args.min_time)
-    vocc = np.asarray(last["occ_1t"], dtype=bool)
-    row["ao_runs"] = len(ao_t.runs["occ_1t"].values)
-    row.update(ao_rays=n_ao, ao_occluded_pct=100.0 * float(vocc.mean()) if n_ao else math.nan)
-    for tag, _ in thread_settings:
-        row[f"ao_{tag}"] = ao_t.rate(f"occ_{tag}", n_ao)
-        row[f"eao_{tag}"] = ao_t.rate(f"eocc_{tag}", n_ao) if embree else math.nan
-    if embree is not None and n_ao:
-        row["ao_agree_pct"] = 100.0 * float(np.mean(np.asarray(last["eocc_1t"], dtype=bool) == vocc))
-    print(
-        f"   AO ({n_ao:,} rays) 1T Mrays/s: vastray {row['ao_1t']:.2f}  Embree {row['eao_1t']:.2f} | "
-        f"all: vastray {row['ao_nt']:.2f}  Embree {row['eao_nt']:.2f} | "
-        f"agree {row.get('ao_agree_pct', math.nan):.3f}%",
-        flush=True,
+    occlusion = partial(
+        measure_occlusion, scene=scene, embree=embree, args=args, thread_settings=thread_settings
     )
+    row.update(occlusion("ao", origins=ao_origins, dirs=ao_dirs, tmax=ao_tmax))
     # --- shadow rays: one from each AO origin (a hit point pushed off its surface) towards
     # one distant light, the rays of a `sun` view; Scene.occluded takes runs of them as
     # packets, as it does the AO rays of a point.
     sh_origins = np.ascontiguousarray(ao_origins[:: max(1, args.ao_samples)])
     sh_dirs = np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, sh_origins.shape))
-    sh_o32, sh_d32 = sh_origins.astype(np.float32), sh_dirs.astype(np.float32)
-    sh_tmax32 = np.full(sh_origins.shape[0], np.inf, dtype=np.float32)
-    n_sh = sh_origins.shape[0]
-    steps = []
-    for tag, threads in thread_settings:
-        steps.append((f"sh_{tag}", wall(lambda t=threads: scene.occluded(sh_origins, sh_dirs, threads=t))))
-        if embree is not None:
-            steps.append(
-                (f"esh_{tag}", wall(lambda t=threads, e=embree: e.occluded(sh_o32, sh_d32, sh_tmax32, t)))
-            )
-    sh_t = Timings()
-    last = interleave(args.ao_reps, steps, sh_t, args.min_time)
-    vsh = np.asarray(last["sh_1t"], dtype=bool)
-    row.update(shadow_rays=n_sh, shadow_occluded_pct=100.0 * float(vsh.mean()) if n_sh else math.nan)
-    for tag, _ in thread_settings:
-        row[f"shadow_{tag}"] = sh_t.rate(f"sh_{tag}", n_sh)
-        row[f"eshadow_{tag}"] = sh_t.rate(f"esh_{tag}", n_sh) if embree else math.nan
-        row[f"ratio_shadow_{tag}"] = row[f"shadow_{tag}"] / row[f"eshadow_{tag}"]
-    if embree is not None and n_sh:
-        row["shadow_agree_pct"] = 100.0 * float(np.mean(np.asarray(last["esh_1t"], dtype=bool) == vsh))
-    print(
-        f"   shadow ({n_sh:,} rays) 1T Mrays/s: vastray {row['shadow_1t']:.2f}  "
-        f"Embree {row['eshadow_1t']:.2f} | all: vastray {row['shadow_nt']:.2f}  "
-        f"Embree {row['eshadow_nt']:.2f} | agree {row.get('shadow_agree_pct', math.nan):.3f}%",
-        flush=True,
-    )
+    row.update(occlusion("shadow", origins=sh_origins, dirs=sh_dirs, tmax=np.inf))
     # Traversal cost of AO rays as the renderer shoots them (its own sampling, skipping the
     # start triangle): kd-tree node visits and triangle tests per AO ray. Not timed.
     ao_frame = trace(scene, cam, shading="ao", ao_samples=args.ao_samples, threads=0).stats.as_dict()
@@ -409,7 +406,6 @@ def bench_model(
     for tag, _ in thread_settings:
         row[f"ratio_batch_{tag}"] = row[f"batch_{tag}"] / row[f"embree_{tag}"]
         row[f"ratio_render_{tag}"] = row[f"render_{tag}"] / row[f"embree_{tag}"]
-        row[f"ratio_ao_{tag}"] = row[f"ao_{tag}"] / row[f"eao_{tag}"]
     return row
 
 
@@ -423,6 +419,24 @@ def isa_path() -> str:
 
 def ratio(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{x:.2f}x"
+
+
+def occlusion_table(rows: list[dict[str, Any]], key: str, rays: str, nt: int, per_ray: bool = False) -> str:
+    """The table of measure_occlusion's fields `key` (with the renderer's node visits and
+    triangle tests per ray where `per_ray`)."""
+    counts = ["nodes/ray", "tris/ray"] if per_ray else []
+    headers = ["model", rays, "occluded %", "vastray 1T", "Embree 1T", "**ratio 1T**"]
+    headers += [f"vastray {nt}T", f"Embree {nt}T", f"ratio {nt}T", *counts, "agree %"]
+    table = []
+    for r in rows:
+        line = [r["model"], f"{r[f'{key}_rays']:,}", fmt(r[f"{key}_occluded_pct"], 1), fmt(r[f"{key}_1t"])]
+        line += [fmt(r.get(f"e{key}_1t", math.nan)), "**" + ratio(r.get(f"ratio_{key}_1t", math.nan)) + "**"]
+        line += [fmt(r[f"{key}_nt"]), fmt(r.get(f"e{key}_nt", math.nan))]
+        line += [ratio(r.get(f"ratio_{key}_nt", math.nan))]
+        if per_ray:
+            line += [fmt(r[f"{key}_nodes_per_ray"], 1), fmt(r[f"{key}_tris_per_ray"], 1)]
+        table.append([*line, fmt(r.get(f"{key}_agree_pct", math.nan), 3)])
+    return markdown_table(headers, table)
 
 
 def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Namespace, nt: int) -> str:
@@ -526,71 +540,11 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
         "",
         f"## Ambient-occlusion rays ({args.ao_samples} per primary hit, tmax = 0.2 x diagonal, Mrays/s)",
         "",
-        markdown_table(
-            [
-                "model",
-                "AO rays",
-                "occluded %",
-                "vastray 1T",
-                "Embree 1T",
-                "**ratio 1T**",
-                f"vastray {nt}T",
-                f"Embree {nt}T",
-                f"ratio {nt}T",
-                "nodes/ray",
-                "tris/ray",
-                "agree %",
-            ],
-            [
-                [
-                    r["model"],
-                    f"{r['ao_rays']:,}",
-                    fmt(r["ao_occluded_pct"], 1),
-                    fmt(r["ao_1t"]),
-                    fmt(r.get("eao_1t", math.nan)),
-                    "**" + ratio(r.get("ratio_ao_1t", math.nan)) + "**",
-                    fmt(r["ao_nt"]),
-                    fmt(r.get("eao_nt", math.nan)),
-                    ratio(r.get("ratio_ao_nt", math.nan)),
-                    fmt(r["ao_nodes_per_ray"], 1),
-                    fmt(r["ao_tris_per_ray"], 1),
-                    fmt(r.get("ao_agree_pct", math.nan), 3),
-                ]
-                for r in rows
-            ],
-        ),
+        occlusion_table(rows, "ao", "AO rays", nt, per_ray=True),
         "",
         "## Shadow rays (one from each AO origin, along one direction to a distant light, Mrays/s)",
         "",
-        markdown_table(
-            [
-                "model",
-                "shadow rays",
-                "occluded %",
-                "vastray 1T",
-                "Embree 1T",
-                "**ratio 1T**",
-                f"vastray {nt}T",
-                f"Embree {nt}T",
-                f"ratio {nt}T",
-                "agree %",
-            ],
-            [
-                [
-                    r["model"],
-                    f"{r['shadow_rays']:,}",
-                    fmt(r["shadow_occluded_pct"], 1),
-                    fmt(r["shadow_1t"]),
-                    fmt(r.get("eshadow_1t", math.nan)),
-                    "**" + ratio(r.get("ratio_shadow_1t", math.nan)) + "**",
-                    fmt(r["shadow_nt"]),
-                    fmt(r.get("eshadow_nt", math.nan)),
-                    ratio(r.get("ratio_shadow_nt", math.nan)),
-                    fmt(r.get("shadow_agree_pct", math.nan), 3),
-                ]
-                for r in rows
-            ],
-        ),
+        occlusion_table(rows, "shadow", "shadow rays", nt),
         "",
         f"## Build ({nt} threads)",
         "",
