@@ -22,6 +22,8 @@ def test_the_core_example_runs_as_written(tmp_path: Path, monkeypatch: pytest.Mo
     assert isinstance(raw, (bytes, bytearray, memoryview)) and len(raw) > 0
     hits = names["hits"]
     assert np.count_nonzero(np.asarray(hits["prim"]) >= 0) > 0  # the mandelbulb is in view
+    shadowed = np.asarray(names["shadowed"])
+    assert shadowed.dtype == bool and 0 < shadowed.mean() < 1  # some of its hits lie in shadow
     frame, exact = names["frame"], names["exact"]
     assert frame.image.shape == (720, 1280, 3)  # the out-of-core overview
     assert exact.complete and exact.image.shape == (720, 1280, 3)
