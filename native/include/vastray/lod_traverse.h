@@ -19,6 +19,7 @@
 #include "vastray/block_cache.h"
 #include "vastray/format.h"
 #include "vastray/isa.h"
+#include "vastray/prefetch.h"
 #include "vastray/traverse.h"
 
 VASTRAY_KERNEL_BEGIN
@@ -427,12 +428,12 @@ struct LeafPrefetch {
         if (slot < 0) return false;
         block = lane.cache->slot_data(slot);
         const std::size_t first = format::leaf_first(load<std::uint32_t>(node));
-        __builtin_prefetch(block);
+        prefetch_line(block);
         if (lane.compact_triangles) {
-            __builtin_prefetch(block + first);
+            prefetch_line(block + first);
             last = 4;
         } else {
-            __builtin_prefetch(block + 16 + 2 * first);
+            prefetch_line(block + 16 + 2 * first);
             last = 3;
         }
         stage = 1;
@@ -558,11 +559,10 @@ private:
         }
     }
 
-    // Always inlined, as prefetch_leaf_vertices (traverse_packet.h) is: a call to a
-    // function that only prefetches is one GCC may drop.
+    // The lines of [p, p + bytes).
     [[gnu::always_inline]] static void prefetch_range(const std::uint8_t* p, std::size_t bytes) {
         bytes = std::min<std::size_t>(bytes, 6 * 64);
-        for (std::size_t b = 0; b < bytes + 63; b += 64) __builtin_prefetch(p + b);
+        for (std::size_t b = 0; b < bytes + 63; b += 64) prefetch_line(p + b);
     }
 
     std::uint32_t t_lo_ = 0, t_hi_ = 0;  // a compact leaf's first and last triangle (of its first entries)

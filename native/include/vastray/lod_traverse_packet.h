@@ -23,6 +23,7 @@
 #include <limits>
 
 #include "vastray/isa.h"
+#include "vastray/prefetch.h"
 #include "vastray/lod_traverse.h"
 #include "vastray/packet.h"
 
@@ -286,7 +287,7 @@ public:
                 const vf axis_v = vf::broadcast(static_cast<float>(axis));
                 if (any_near && any_far && top < 64) {
                     // The far child is needed later: start its load now, beside the near one's.
-                    __builtin_prefetch(child_block + far_off);
+                    prefetch_line(child_block + far_off);
                     Entry& e = stack[top++];
                     if constexpr (Quantized) e.node = node;  // (its cell; the rest is set below)
                     enter(e.node, !near_is_left, far_off);
@@ -314,7 +315,7 @@ public:
                         const std::uint32_t first = std::min(l_off, r_off);
                         const std::size_t span =
                             std::min<std::size_t>(std::max(l_off, r_off) - first + 128, kBlockSize - first);
-                        for (std::size_t b = 0; b < span; b += 64) __builtin_prefetch(child_block + first + b);
+                        for (std::size_t b = 0; b < span; b += 64) prefetch_line(child_block + first + b);
                         return false;
                     }
                 }

@@ -16,6 +16,7 @@
 #include <limits>
 
 #include "vastray/isa.h"
+#include "vastray/prefetch.h"
 #include "vastray/packet.h"
 #include "vastray/traverse.h"
 
@@ -88,9 +89,8 @@ inline bool near_in_memory(const KdNode* from, const KdNode* to) {
 
 // Asks for the vertices of a leaf's first triangles (leaves hold a few), whose ids are
 // at hand: what a walk in flight does before it pauses for a leaf's tests.
-// Always inlined: GCC finds a function that does nothing but prefetch free of side
-// effects, and drops the calls to one it has not inlined yet (GCC 12 did so here, so
-// that the walks paused for vertices nobody had asked for).
+// (GCC 12 once dropped every call to it, so that the walks paused for vertices nobody
+// had asked for: prefetch.h says why, and why it cannot happen again.)
 [[gnu::always_inline]] inline void prefetch_leaf_vertices(const KdTree& tree, const Vec3f* tri_vertices,
                                                           const KdNode& leaf) {
     constexpr std::uint32_t kPrefetchTriangles = 8;
@@ -98,8 +98,8 @@ inline bool near_in_memory(const KdNode* from, const KdNode* to) {
     const std::uint32_t count = std::min<std::uint32_t>(leaf.count(), kPrefetchTriangles);
     for (std::uint32_t i = 0; i < count; ++i) {
         const char* p = reinterpret_cast<const char*>(tri_vertices + 3 * static_cast<std::size_t>(ids[i]));
-        __builtin_prefetch(p);
-        __builtin_prefetch(p + 3 * sizeof(Vec3f) - 1);
+        prefetch_line(p);
+        prefetch_line(p + 3 * sizeof(Vec3f) - 1);
     }
 }
 
@@ -220,7 +220,7 @@ public:
                             stack_[top].node = far_child;
                             ++top;
                             // Wanted when the near subtree is done: its line arrives meanwhile.
-                            if constexpr (Yield) __builtin_prefetch(nodes + far_child);
+                            if constexpr (Yield) prefetch_line(nodes + far_child);
                         }
                         for (int v = 0; v < K; ++v) tmax[v] = near_tmax[v];
                         index = near_child;
@@ -234,14 +234,14 @@ public:
                     node = nodes + index;
                     if constexpr (Yield) {
                         if (!near_in_memory(nodes + from, node)) {
-                            __builtin_prefetch(node);
+                            prefetch_line(node);
                             return pause(Stage::Descend);
                         }
                     }
                 }
                 if (at_leaf) {
                     if constexpr (Yield) {
-                        __builtin_prefetch(tree.tri_ids.data() + node->first());
+                        prefetch_line(tree.tri_ids.data() + node->first());
                         return pause(Stage::LeafIds);
                     }
                     stage_ = Stage::LeafTest;
@@ -486,7 +486,7 @@ public:
                             e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
                             e.tmax[v] = select(seg.far_in[v], seg.far_hi[v], v_neg_inf);
                         }
-                        if constexpr (Yield) __builtin_prefetch(nodes + far_child);
+                        if constexpr (Yield) prefetch_line(nodes + far_child);
                     }
                     const vf* lo_v = any_near ? seg.near_lo : seg.far_lo;
                     const vf* hi_v = any_near ? seg.near_hi : seg.far_hi;
@@ -500,14 +500,14 @@ public:
                     node = nodes + index;
                     if constexpr (Yield) {
                         if (!near_in_memory(nodes + from, node)) {
-                            __builtin_prefetch(node);
+                            prefetch_line(node);
                             return pause(LeafStage::None);
                         }
                     }
                 }
                 if (leaf) {
                     if constexpr (Yield) {
-                        __builtin_prefetch(tree.tri_ids.data() + node->first());
+                        prefetch_line(tree.tri_ids.data() + node->first());
                         return pause(LeafStage::Ids);
                     }
                 }

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <limits>
 
+#include "vastray/prefetch.h"
 #include "vastray/thread_pool.h"
 #include "writer/triangle_blocks.h"
 
@@ -72,8 +73,8 @@ private:
         const KdNode& k = tree_.nodes[leaf];
         const std::uint32_t* tris = tree_.tri_ids.data() + k.first();
         for (std::uint32_t t = 0; t < k.count(); ++t) {
-            __builtin_prefetch(src_.corners(tris[t]));
-            __builtin_prefetch(src_.facets + tris[t]);
+            prefetch_line(src_.corners(tris[t]));
+            prefetch_line(src_.facets + tris[t]);
         }
     }
 
