@@ -52,7 +52,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (
     RESULTS_DIR,
-    SHADOW_DIRECTION,
     camera_rays,
     format_count,
     geometric_mean,
@@ -60,6 +59,7 @@ from common import (
     markdown_table,
     models_dir,
     parse_count,
+    shadow_rays_from,
 )
 
 from build import build_baseline, snapshot_vastray, use_snapshot
@@ -165,9 +165,7 @@ class Child:
                     seconds = time.perf_counter() - start
                     check = int(np.count_nonzero(blocked))
                 elif workload == "shadow":
-                    # Every hit point's ray towards a distant light (the AO rays' origins).
-                    points = ao_o[::8]
-                    towards = np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, points.shape))
+                    points, towards = shadow_rays_from(ao_o, 8)
                     start = time.perf_counter()
                     blocked = scene.occluded(points, towards, threads=threads)
                     seconds = time.perf_counter() - start

@@ -311,9 +311,16 @@ def facing_normals(tri: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.nd
     return n, ok
 
 
-# The benchmarks' distant light: the direction of every shadow ray (bench/rays.py's shadow
-# table, bench/ab.py's shadow workload).
+# The benchmarks' distant light: the direction of every shadow ray.
 SHADOW_DIRECTION = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
+
+
+def shadow_rays_from(ao_origins: np.ndarray, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """The shadow rays of the benchmarks (bench/rays.py's shadow table, bench/ab.py's shadow
+    workload): one from each hit point of ao_rays_from_hits (which repeats a point for its
+    `samples` rays), unbounded, along SHADOW_DIRECTION. Returns origins, directions."""
+    origins = np.ascontiguousarray(ao_origins[:: max(1, samples)])
+    return origins, np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, origins.shape))
 
 
 def ao_rays_from_hits(

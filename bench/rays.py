@@ -46,7 +46,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import (  # bench/ is a folder of scripts, not a package
     RESULTS_DIR,
-    SHADOW_DIRECTION,
     Best,
     PeakRss,
     ao_rays_from_hits,
@@ -61,6 +60,7 @@ from common import (  # bench/ is a folder of scripts, not a package
     pin_native,
     pyplot,
     save_figure,
+    shadow_rays_from,
     timed,
 )
 
@@ -393,8 +393,7 @@ def bench_model(
     # --- shadow rays: one from each AO origin (a hit point pushed off its surface) towards
     # one distant light, the rays of a `sun` view; Scene.occluded takes runs of them as
     # packets, as it does the AO rays of a point.
-    sh_origins = np.ascontiguousarray(ao_origins[:: max(1, args.ao_samples)])
-    sh_dirs = np.ascontiguousarray(np.broadcast_to(SHADOW_DIRECTION, sh_origins.shape))
+    sh_origins, sh_dirs = shadow_rays_from(ao_origins, args.ao_samples)
     row.update(occlusion("shadow", origins=sh_origins, dirs=sh_dirs, tmax=np.inf))
     # Traversal cost of AO rays as the renderer shoots them (its own sampling, skipping the
     # start triangle): kd-tree node visits and triangle tests per AO ray. Not timed.

@@ -302,17 +302,26 @@ def test_packets_in_flight_change_speed_not_answers(monkeypatch: pytest.MonkeyPa
         render_view(scene, *args, packets=16)
 
 
-def test_batch_packets_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.fixture(scope="module")
+def plant_scene() -> native.Scene:
+    """A 10^5-triangle plant: thin pipes at all angles, whose rays part early."""
+    from vastray import scenes
+
+    mesh = scenes.to_mesh("plant", 100_000, 2)
+    return native.Scene(mesh.vertices, mesh.faces)
+
+
+def test_batch_packets_change_speed_not_answers(
+    plant_scene: native.Scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`Scene.intersect` traces runs of 16 rays from one origin whose directions share
     their signs (a row of camera rays) as packets, in flight on a large tree, and every
     other ray alone. Each ray's answer must be what it gets alone in a batch of one, bit
     for bit, with packets one at a time and in flight; a run with an invalid ray, another
     origin or a direction of another sign goes one ray at a time."""
-    from vastray import scenes
     from vastray.camera import frame_bounds
 
-    mesh = scenes.to_mesh("plant", 100_000, 2)
-    scene = native.Scene(mesh.vertices, mesh.faces)
+    scene = plant_scene
     origins, directions = frame_bounds(*scene.bounds, width=96, height=64).primary_rays()
     origins, directions = origins.copy(), directions.copy()
     directions[5 * 96 + 3] = np.nan  # an invalid ray: a miss, and its run alone
@@ -339,16 +348,16 @@ def test_batch_packets_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch)
     assert visits[0] == visits[1] < 0.5 * single_visits
 
 
-def test_batch_shadow_packets_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_batch_shadow_packets_change_speed_not_answers(
+    plant_scene: native.Scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`Scene.occluded` traces runs of up to 8 rays along one direction (shadow rays of
     points towards a distant light) as any-hit packets, as it does runs from one origin.
     Each ray's answer must be its own alone, one packet at a time and in flight, with
     rays from one origin, along one direction and neither mixed in one batch."""
-    from vastray import scenes
     from vastray.camera import frame_bounds
 
-    mesh = scenes.to_mesh("plant", 100_000, 2)
-    scene = native.Scene(mesh.vertices, mesh.faces)
+    scene = plant_scene
     eye, rays = frame_bounds(*scene.bounds, width=48, height=32).primary_rays()
     hits = scene.intersect(eye, rays)
     hit = np.flatnonzero(hits["prim"] >= 0)
