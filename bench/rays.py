@@ -323,6 +323,18 @@ def bench_model(
         f"{st['memory_bytes'] / MB:.1f} MB, peak RSS +{mem.delta / MB:.0f} MB",
         flush=True,
     )
+    # The wide BVH of any-hit rays is built on first use; build it here, timed, so the
+    # occlusion timings below compare structures that are both built.
+    with PeakRss() as amem:
+        any_s, any_hit = timed(scene.any_hit_stats)
+    row.update(
+        anyhit_build_s=any_s, anyhit_mb=any_hit.get("memory_bytes", 0) / MB, anyhit_rss_mb=amem.delta / MB
+    )
+    print(
+        f"   any-hit {any_hit['structure']} build {any_s:.2f} s, {any_hit.get('nodes', 0):,} nodes, "
+        f"{row['anyhit_mb']:.1f} MB, peak RSS +{amem.delta / MB:.0f} MB",
+        flush=True,
+    )
     embree: EmbreeTracer | None = None
     if pool is not None:
         with PeakRss() as emem:
@@ -396,7 +408,7 @@ def bench_model(
     sh_origins, sh_dirs = shadow_rays_from(ao_origins, args.ao_samples)
     row.update(occlusion("shadow", origins=sh_origins, dirs=sh_dirs, tmax=np.inf))
     # Traversal cost of AO rays as the renderer shoots them (its own sampling, skipping the
-    # start triangle): kd-tree node visits and triangle tests per AO ray. Not timed.
+    # start triangle): wide-BVH node visits and triangle tests per AO ray. Not timed.
     ao_frame = trace(scene, cam, shading="ao", ao_samples=args.ao_samples, threads=0).stats.as_dict()
     primary_stats = last_primary_stats
     secondary = max(1, int(ao_frame["secondary_rays"]))
@@ -559,6 +571,8 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
                 "depth",
                 "kd MB",
                 "peak RSS +MB",
+                "any-hit BVH s",
+                "any-hit MB",
                 "Embree build s",
                 "Embree RSS +MB",
             ],
@@ -574,6 +588,8 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
                     str(r["kd_depth"]),
                     fmt(r["kd_mb"], 1),
                     fmt(r["build_rss_mb"], 0),
+                    fmt(r.get("anyhit_build_s", math.nan), 3),
+                    fmt(r.get("anyhit_mb", math.nan), 1),
                     fmt(r.get("embree_build_s", math.nan), 3),
                     fmt(r.get("embree_rss_mb", math.nan), 0),
                 ]
@@ -581,22 +597,23 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
             ],
         ),
         "",
-        "Columns: *render* = vastray's tiled renderer, shading='normal', timed by its own clock "
-        "(ray generation + trace + shading, no Python); *batch* = `Scene.intersect` on the numpy "
-        "rays (float64 in, t/prim/u/v out), wall time; *Embree* = embreex `run(output=1)`, one "
+        "Columns: *render* = vastray's tiled renderer, shading='normal', timed by its own clock (ray "
+        "generation + trace + shading, no Python); *batch* = `Scene.intersect` on the numpy rays "
+        "(float64 in, t/prim/u/v out), wall time; *Embree* = embreex `run(output=1)`, one "
         "rtcIntersect1 per ray on float32 copies of the same rays (t/prim/u/v/Ng out), wall time; "
         "all-thread Embree splits the rays into chunks over a Python thread pool (embreex releases "
         "the GIL). *ratio* = batch / Embree. *nodes/ray*, *tris/ray* = vastray kd-tree node visits "
-        "and triangle tests per primary ray (in the AO table: per AO ray of the renderer's `ao` "
-        "shading, not timed). *agree prim %* = rays where both engines report the "
-        "same triangle (or both miss). *peak RSS +MB* = growth of the process's peak resident "
-        "memory during the build (small builds reuse heap freed by earlier models and can show 0; "
-        "Embree's includes the float32 triangle copy embreex hands it). The renderer traces 4x4 "
-        "SIMD packets, `Scene.intersect` 16 neighbours of a row (one origin, one direction "
-        "octant) as one packet (since 6 December; single rays before), and `Scene.occluded` the "
-        "rays of each point (consecutive rays from one origin, as the renderer's AO makes them) as "
-        "one any-hit packet, all with the single-ray answers; Embree traces every ray alone "
-        "(embreex has no packet API).",
+        "and triangle tests per primary ray (in the AO table: wide-BVH node visits and triangle tests"
+        " per AO ray of the renderer's `ao` shading, not timed). *agree prim %* = rays where both "
+        "engines report the same triangle (or both miss). *peak RSS +MB* = growth of the process's "
+        "peak resident memory during the build (small builds reuse heap freed by earlier models and "
+        "can show 0; Embree's includes the float32 triangle copy embreex hands it). The renderer "
+        "traces 4x4 SIMD packets, `Scene.intersect` 16 neighbours of a row (one origin, one direction"
+        " octant) as one packet (since 6 December; single rays before), all with the single-ray "
+        "answers. `Scene.occluded` walks an 8-wide BVH (since 6 December; kd-tree packets of each "
+        "point's rays before), one ray at a time (8 walks in flight on a tree from 128 MiB); *any-hit"
+        " BVH s* and *MB* are its build time and size (built on first use, not part of *build s*). "
+        "Embree traces every ray alone (embreex has no packet API).",
         "",
     ]
     return "\n".join(parts)

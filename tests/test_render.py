@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-from views import render_view
+from views import render_camera, render_view
 
 from vastray import native
 
@@ -351,13 +351,15 @@ def test_batch_packets_change_speed_not_answers(
 def test_batch_shadow_packets_change_speed_not_answers(
     plant_scene: native.Scene, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`Scene.occluded` traces runs of up to 8 rays along one direction (shadow rays of
-    points towards a distant light) as any-hit packets, as it does runs from one origin.
+    """On the kd-tree (VASTRAY_ANYHIT=kd), `Scene.occluded` traces runs of up to 8 rays
+    along one direction (shadow rays of points towards a distant light) as any-hit
+    packets, as it does runs from one origin.
     Each ray's answer must be its own alone, one packet at a time and in flight, with
     rays from one origin, along one direction and neither mixed in one batch."""
     from vastray.camera import frame_bounds
 
     scene = plant_scene
+    monkeypatch.setenv("VASTRAY_ANYHIT", "kd")  # the packets are the kd-tree's
     eye, rays = frame_bounds(*scene.bounds, width=48, height=32).primary_rays()
     hits = scene.intersect(eye, rays)
     hit = np.flatnonzero(hits["prim"] >= 0)
@@ -376,6 +378,62 @@ def test_batch_shadow_packets_change_speed_not_answers(
     for interleave in (str(2**62), "0"):
         monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", interleave)
         np.testing.assert_array_equal(scene.occluded(origins, directions), alone, err_msg=interleave)
+
+
+def test_any_hit_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
+    plant_scene: native.Scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Any-hit rays (`Scene.occluded`, the renderer's AO, sun and indirect-light shadow
+    rays) walk an 8-wide BVH built on first use. The kd-tree's walk (VASTRAY_ANYHIT=kd)
+    must answer the same rays alike: rays off the surface and rays starting exactly on it,
+    short and unbounded, axis-parallel with signed zeros; frames shaded with AO and sun
+    are the same images, with walks one after the other and in flight (as on a large
+    tree). The one allowed difference is a touch at t ~ 0 by a ray that
+    starts on a surface, which the kd walk may miss when a split plane passes through the
+    origin; such rays agree once tmin clears it."""
+    from vastray.camera import frame_bounds
+
+    scene = plant_scene
+    stats = scene.any_hit_stats()
+    assert stats["structure"] == "wide-bvh"
+    assert 1 <= stats["max_depth"] <= 58
+    assert stats["leaves"] >= scene.triangle_count / 2 and stats["nodes"] >= stats["leaves"] / 8
+    camera = frame_bounds(*scene.bounds, width=64, height=48)
+    eye, rays = camera.primary_rays()
+    hits = scene.intersect(eye, rays)
+    hit = np.flatnonzero(hits["prim"] >= 0)
+    diagonal = float(np.linalg.norm(np.ptp(scene.bounds, axis=0)))
+    on = eye[hit] + rays[hit] * hits["t"][hit, None]
+    off = on + 1e-4 * diagonal * hits["normal"][hit]
+    rng = np.random.default_rng(4)
+    origins = np.repeat(np.concatenate([off, on]), 4, axis=0)
+    directions = rng.normal(size=(len(origins), 3))
+    directions[::7, 0] = 0.0
+    directions[3::7, 1] = -0.0
+    directions[5::11] = [0.0, -0.0, 1.0]
+    tmax = np.where(np.arange(len(origins)) % 3 == 0, np.inf, rng.uniform(0.01, 0.5, len(origins)) * diagonal)
+    wide = scene.occluded(origins, directions, 0.0, tmax)
+    # Walks in flight (as on a large tree) answer as walks one after the other.
+    monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
+    np.testing.assert_array_equal(scene.occluded(origins, directions, 0.0, tmax), wide)
+    frames_in_flight = {s: render_camera(scene, camera, shading=s) for s in ("ao", "sun")}
+    monkeypatch.delenv("VASTRAY_INTERLEAVE_BYTES")
+    monkeypatch.setenv("VASTRAY_ANYHIT", "kd")
+    kd = scene.occluded(origins, directions, 0.0, tmax)
+    assert 0.05 < wide.mean() < 0.95
+    differ = np.flatnonzero(wide != kd)
+    assert (differ >= 4 * len(off)).all(), "rays off the surface disagree"
+    assert len(differ) <= 1e-2 * len(origins)
+    later = 1e-6 * diagonal
+    kd_later = scene.occluded(origins[differ], directions[differ], later, tmax[differ])
+    frames_kd = {s: render_camera(scene, camera, shading=s) for s in ("ao", "sun")}
+    monkeypatch.delenv("VASTRAY_ANYHIT")
+    wide_later = scene.occluded(origins[differ], directions[differ], later, tmax[differ])
+    np.testing.assert_array_equal(wide_later, kd_later)
+    for shading, frame in frames_kd.items():
+        image = render_camera(scene, camera, shading=shading).image
+        np.testing.assert_array_equal(image, frame.image, shading)
+        np.testing.assert_array_equal(frames_in_flight[shading].image, frame.image, shading)
 
 
 def _anon_huge_pages_kib() -> int:

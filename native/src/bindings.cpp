@@ -91,6 +91,24 @@ py::dict build_stats(const Scene& s) {
     return d;
 }
 
+py::dict any_hit_stats(const Scene& s) {
+    const WideBvh* bvh;
+    {
+        py::gil_scoped_release release;
+        bvh = s.wide_bvh();
+    }
+    py::dict d;
+    d["structure"] = bvh != nullptr ? "wide-bvh" : "kd-tree";
+    if (bvh != nullptr) {
+        d["nodes"] = bvh->nodes.size();
+        d["leaves"] = bvh->leaves;
+        d["max_depth"] = bvh->max_depth;
+        d["build_ms"] = bvh->build_ms;
+        d["memory_bytes"] = bvh->memory_bytes();
+    }
+    return d;
+}
+
 struct RayArrays {
     DoubleArray origins, directions;
     std::vector<double> tmin, tmax;
@@ -221,6 +239,9 @@ PYBIND11_MODULE(native, m) {
             return std::make_pair(std::vector<double>{lo.x, lo.y, lo.z}, std::vector<double>{hi.x, hi.y, hi.z});
         })
         .def_property_readonly("build_stats", &build_stats)
+        .def("any_hit_stats", &any_hit_stats,
+             "Builds the scene's 8-wide BVH for any-hit rays (occluded, AO and sun shading) if "
+             "not yet built; its nodes, leaves, depth, build time and bytes")
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
              py::arg("sections") = bindings::PlaneTuples{},

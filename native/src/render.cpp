@@ -2,7 +2,9 @@
 // frame-loop backend (frame_renderer.h), and closest/any-hit queries of world rays.
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <limits>
+#include <string_view>
 #include <vector>
 
 #include "vastray/frame_renderer.h"
@@ -10,6 +12,7 @@
 #include "vastray/kernels.h"
 #include "vastray/thread_pool.h"
 #include "vastray/traverse_packet.h"
+#include "vastray/wide_traverse.h"
 
 VASTRAY_KERNEL_BEGIN
 
@@ -35,6 +38,35 @@ void trace_coherent_packets(const Scene& scene, bool interleave, const Ray* cons
 
 // AO packets in flight on a large tree: 8 measured 1.32x one at a time, 4 1.27x (10^7 plant).
 constexpr int kOcclusionInFlight = 8;
+
+// Any-hit walks of the wide BVH in flight on a large tree (interleave.h): on the 10^7
+// plant's AO rays (a 650 MB tree) 8 ran 1.22x one at a time and 4 1.07x; at 10^6 (63 MB)
+// 8 ran 0.98x, at 10^5 0.85x (docs/native-core.md, "The wide BVH for any-hit rays").
+constexpr int kWideInFlight = 8;
+
+// Any hits of `count` rays through the wide BVH (occluded_wide_in_flight's ray_of and
+// answer): kWideInFlight walks in flight on a large tree, else one after the other.
+template <typename RayOf, typename Answer>
+void occluded_wide_rays(const WideBvh& bvh, bool interleave, std::size_t count, RayOf&& ray_of, Answer&& answer,
+                        TraversalCounters& counters) {
+    if (interleave) {
+        occluded_wide_in_flight<kWideInFlight>(bvh, count, ray_of, answer, counters);
+        return;
+    }
+    for (std::size_t i = 0; i < count; ++i) {
+        Ray ray;
+        std::uint32_t skip = kNoHit;
+        if (ray_of(i, ray, skip) && occluded_wide(bvh, ray, counters, skip)) answer(i);
+    }
+}
+
+// The structure any-hit rays walk: the scene's wide BVH, or null for the kd-tree
+// (VASTRAY_ANYHIT=kd, for comparisons, or a scene too large for the wide BVH).
+const WideBvh* any_hit_bvh(const Scene& scene) {
+    const char* env = std::getenv("VASTRAY_ANYHIT");
+    if (env != nullptr && std::string_view(env) == "kd") return nullptr;
+    return scene.wide_bvh();
+}
 
 // A secondary ray of the in-core scene: never reports the triangle it starts on.
 struct SceneSecondary {
@@ -94,7 +126,15 @@ public:
     using Secondary = SceneSecondary;
 
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
-        : scene_(scene), camera_(camera), interleave_(interleaves(scene.tree().memory_bytes())) {
+        : scene_(scene),
+          camera_(camera),
+          interleave_(interleaves(scene.tree().memory_bytes())),
+          // (Built here, before the frame's parallel loop: the build runs on the pool too.)
+          wide_(params.shading == Shading::Sun || params.shading == Shading::AmbientOcclusion ||
+                        params.shading == Shading::Indirect
+                    ? any_hit_bvh(scene)
+                    : nullptr),
+          wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
@@ -166,7 +206,12 @@ public:
     }
 
     template <int N>
-    std::uint32_t occluded(Lane& lane, const Secondary* rays, std::uint32_t mask, RayGroup) const {
+    std::uint32_t occluded(Lane& lane, const Secondary* rays, std::uint32_t mask, RayGroup group) const {
+        if (wide_ != nullptr) {
+            std::uint32_t blocked = 0;
+            occluded_group<N>(lane, &rays, &mask, &blocked, 1, group);
+            return blocked;
+        }
         return scene_occluded<N>(scene_, rays, mask, lane);
     }
 
@@ -175,6 +220,21 @@ public:
     template <int N>
     void occluded_group(Lane& lane, const Secondary* const* rays, const std::uint32_t* mask, std::uint32_t* blocked,
                         int count, RayGroup group) const {
+        if (wide_ != nullptr) {
+            // Every live lane of every query is its own walk (wide nodes have no packets).
+            for (int j = 0; j < count; ++j) blocked[j] = 0;
+            occluded_wide_rays(
+                *wide_, wide_interleave_, static_cast<std::size_t>(count) * N,
+                [&](std::size_t i, Ray& ray, std::uint32_t& skip) {
+                    const std::size_t j = i / N, k = i % N;
+                    if (!(mask[j] >> k & 1u)) return false;
+                    ray = rays[j][k].ray;
+                    skip = rays[j][k].skip;
+                    return true;
+                },
+                [&](std::size_t i) { blocked[i / N] |= 1u << (i % N); }, lane);
+            return;
+        }
         if constexpr (N > 1) {
             if (interleave_) {
                 for (int j0 = 0; j0 < count; j0 += kMaxGroup) {
@@ -224,6 +284,8 @@ private:
     const Scene& scene_;
     shading::CameraRays camera_;
     bool interleave_;
+    const WideBvh* wide_;  // null: any-hit rays walk the kd-tree
+    bool wide_interleave_;
     float ao_distance_ = 1;
 };
 
@@ -357,13 +419,31 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
 
 std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
                                          const double* tmin, const double* tmax, std::size_t n, unsigned threads) {
-    // Runs of rays from one origin (the AO rays of a point) or along one direction (the
-    // shadow rays of points towards a distant light) go as packets of up to 8; on a large
-    // tree a batch's packets go several in flight (occluded_packets).
-    constexpr int kPacket = 8;
+    // Every ray walks the wide BVH alone, several in flight. On the kd-tree, runs of rays
+    // from one origin (the AO rays of a point) or along one direction (the shadow rays of
+    // points towards a distant light) go as packets of up to 8, and on a large tree a
+    // batch's packets go several in flight (occluded_packets).
     std::vector<std::uint8_t> out(n, 0);
-    const bool interleave = interleaves(scene.tree().memory_bytes());
     ThreadPool& pool = ThreadPool::global();
+    if (const WideBvh* bvh = any_hit_bvh(scene)) {
+        const bool interleave = interleaves(bvh->memory_bytes());
+        pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
+            TraversalCounters c;
+            const std::size_t first = b * kBatch, end = std::min(n, first + kBatch);
+            occluded_wide_rays(
+                *bvh, interleave, end - first,
+                [&](std::size_t i, Ray& ray, std::uint32_t&) {
+                    const WorldRay wr = load_ray(origins, directions, tmin, tmax, first + i);
+                    if (!ray_is_valid(wr)) return false;  // invalid rays report a miss
+                    ray = scene.to_local(wr);
+                    return true;
+                },
+                [&](std::size_t i) { out[first + i] = 1; }, c);
+        }, threads);
+        return out;
+    }
+    constexpr int kPacket = 8;
+    const bool interleave = interleaves(scene.tree().memory_bytes());
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned) {
         TraversalCounters c;
         const std::size_t end = std::min(n, (b + 1) * kBatch);

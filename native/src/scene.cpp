@@ -36,6 +36,14 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
     tree_ = build_kdtree(TriangleSoup{tri_vertices_.data(), face_count}, params);
 }
 
+const WideBvh* Scene::wide_bvh() const {
+    if (triangle_count() > WideNode::kMaxFirst) return nullptr;
+    std::call_once(wide_once_, [this] {
+        wide_ = std::make_unique<WideBvh>(build_wide_bvh(tri_vertices_.data(), triangle_count(), 0));
+    });
+    return wide_.get();
+}
+
 std::size_t Scene::memory_bytes() const {
     return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + 4 * input_ids_.size() + tree_.memory_bytes();
 }

@@ -78,7 +78,13 @@ struct HugePageAllocator {
     T* allocate(std::size_t n) {
         if (n > static_cast<std::size_t>(-1) / sizeof(T)) throw std::bad_array_new_length();
         const std::size_t bytes = n * sizeof(T);
-        if (!huge || bytes < huge_pages::kThreshold) return static_cast<T*>(::operator new(bytes));
+        if (!huge || bytes < huge_pages::kThreshold) {
+            if constexpr (alignof(T) > __STDCPP_DEFAULT_NEW_ALIGNMENT__) {
+                return static_cast<T*>(::operator new(bytes, std::align_val_t{alignof(T)}));
+            } else {
+                return static_cast<T*>(::operator new(bytes));
+            }
+        }
         void* p = huge_pages::map(bytes);
         if (!p) throw std::bad_alloc();
         return static_cast<T*>(p);
@@ -87,7 +93,11 @@ struct HugePageAllocator {
     void deallocate(T* p, std::size_t n) {
         const std::size_t bytes = n * sizeof(T);
         if (!huge || bytes < huge_pages::kThreshold) {
-            ::operator delete(p);
+            if constexpr (alignof(T) > __STDCPP_DEFAULT_NEW_ALIGNMENT__) {
+                ::operator delete(p, std::align_val_t{alignof(T)});
+            } else {
+                ::operator delete(p);
+            }
         } else {
             huge_pages::unmap(p, bytes);
         }

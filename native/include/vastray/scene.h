@@ -3,10 +3,13 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
+#include <mutex>
 #include <vector>
 
 #include "vastray/kdtree.h"
 #include "vastray/ray.h"
+#include "vastray/wide_bvh.h"
 
 namespace vastray {
 
@@ -34,6 +37,9 @@ public:
     Vec3d world_lo() const { return centre_ + Vec3d(tree_.bounds.lo); }
     Vec3d world_hi() const { return centre_ + Vec3d(tree_.bounds.hi); }
     const KdTree& tree() const { return tree_; }
+    // The 8-wide BVH for any-hit rays (wide_bvh.h), built on first use (not from inside
+    // a ThreadPool task: the build runs on the pool); null for a scene too large for it.
+    const WideBvh* wide_bvh() const;
     const Vec3f* tri_vertices() const { return tri_vertices_.data(); }
     const std::uint8_t* colour(std::uint32_t prim) const { return colours_.data() + 3 * static_cast<std::size_t>(prim); }
     // The input's id of triangle `prim`: what frames and ray queries report.
@@ -65,6 +71,8 @@ private:
     std::vector<std::uint8_t> colours_;
     std::vector<std::uint32_t> input_ids_;  // empty: the identity
     KdTree tree_;
+    mutable std::once_flag wide_once_;
+    mutable std::unique_ptr<WideBvh> wide_;
 };
 
 // Batch queries in world coordinates (tools and tests). Outputs are arrays of n. They

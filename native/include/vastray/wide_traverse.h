@@ -1,0 +1,226 @@
+// Any-hit rays through the 8-wide BVH (wide_bvh.h): one node load tests the ray against
+// eight child boxes, hit children go on a stack, leaves are tested with the same
+// watertight triangle test as the kd-tree walk, so the answer (is there a triangle in
+// [tmin, tmax)?) is the kd-tree's.
+#pragma once
+
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+
+#include "vastray/isa.h"
+#include "vastray/kdtree.h"
+#include "vastray/prefetch.h"
+#include "vastray/simd.h"
+#include "vastray/traverse.h"
+#include "vastray/triangle.h"
+#include "vastray/wide_bvh.h"
+
+VASTRAY_KERNEL_BEGIN
+
+// The slab test of one ray against a node's eight boxes, its constants set up once per
+// ray: per axis the row of a node (lo or hi) the ray enters and leaves through, and 1/d
+// in every lane. A zero component gives an infinite 1/d, and a ray lying in a box's plane
+// then a NaN distance to it, which hits() ignores: such a ray stays in the plane, so
+// that plane does not bound its segment.
+struct WideBoxTest {
+    using vf = simd::vfloat<simd::kWidth>;
+    vf org[3], inv[3], tmin, tmax;
+    int near_row[3], far_row[3];  // float offsets into a WideNode
+
+    WideBoxTest() = default;
+    explicit WideBoxTest(const Ray& ray) {
+        const float o[3] = {ray.org.x, ray.org.y, ray.org.z};
+        const float d[3] = {ray.dir.x, ray.dir.y, ray.dir.z};
+        constexpr int W = WideNode::kWidth;
+        for (int a = 0; a < 3; ++a) {
+            const float i = 1.0f / d[a];
+            org[a] = vf::broadcast(o[a]);
+            inv[a] = vf::broadcast(i);
+            const int lo = 2 * W * a, hi = lo + W;
+            near_row[a] = std::signbit(i) ? hi : lo;
+            far_row[a] = std::signbit(i) ? lo : hi;
+        }
+        tmin = vf::broadcast(ray.tmin);
+        tmax = vf::broadcast(ray.tmax);
+    }
+
+    // The children whose boxes the segment [tmin, tmax] touches, as bits. Distances
+    // carry kSplitSlack's widening, like the kd-tree's split distances, so rounding
+    // never drops a box the ray grazes.
+    [[gnu::always_inline]] unsigned hits(const WideNode& node) const {
+        constexpr int W = simd::kWidth;
+        const float* base = node.lo_x;
+        const vf slack = vf::broadcast(kSplitSlack);
+        unsigned bits = 0;
+        for (int h = 0; h < WideNode::kWidth / W; ++h) {
+            const int off = h * W;
+            const vf nx = (vf::load(base + near_row[0] + off) - org[0]) * inv[0];
+            const vf ny = (vf::load(base + near_row[1] + off) - org[1]) * inv[1];
+            const vf nz = (vf::load(base + near_row[2] + off) - org[2]) * inv[2];
+            const vf fx = (vf::load(base + far_row[0] + off) - org[0]) * inv[0];
+            const vf fy = (vf::load(base + far_row[1] + off) - org[1]) * inv[1];
+            const vf fz = (vf::load(base + far_row[2] + off) - org[2]) * inv[2];
+            // min/max return their second operand when either is NaN (minps, maxps): the
+            // plane distances go first, so a NaN one leaves the segment as it was.
+            vf tn = max(nx, max(ny, max(nz, tmin)));
+            vf tf = min(fx, min(fy, min(fz, tmax)));
+            tn = tn - abs(tn) * slack;
+            tf = tf + abs(tf) * slack;
+            bits |= static_cast<unsigned>((tn <= tf).bits()) << off;
+        }
+        return bits;
+    }
+};
+
+// A walk's stack: trees are at most 58 levels deep (wide_bvh_build.cpp), a level adds at
+// most 7 entries.
+constexpr int kWideStack = 8 * 64;
+
+// Whether a triangle of the leaf `code` other than `skip` lies on the ray in [tmin, tmax).
+[[gnu::always_inline]] inline bool wide_leaf_hit(const WideBvh& bvh, std::uint32_t code, const Ray& ray,
+                                                 const ShearedRay& sheared, std::uint32_t skip,
+                                                 std::uint64_t& triangle_tests) {
+    const std::uint32_t first = WideNode::leaf_first(code), count = WideNode::leaf_count(code);
+    Hit hit;
+    hit.t = ray.tmax;
+    for (std::uint32_t i = first; i < first + count; ++i) {
+        const WideTriangle& t = bvh.triangles[i];
+        if (t.prim == skip) continue;
+        ++triangle_tests;
+        if (intersect_triangle(ray, sheared, t.v[0], t.v[1], t.v[2], hit)) return true;
+    }
+    return false;
+}
+
+// A node's step, the same in every walk (so all count the same visits): its first hit
+// child becomes `cur`, the others go on the stack in slot order. False: no child was hit.
+[[gnu::always_inline]] inline bool wide_descend(const WideNode& node, const WideBoxTest& test, std::uint32_t& cur,
+                                                std::uint32_t* stack, int& top) {
+    unsigned bits = test.hits(node);
+    if (bits == 0) return false;
+    cur = node.child[__builtin_ctz(bits)];
+    for (bits &= bits - 1; bits != 0; bits &= bits - 1) stack[top++] = node.child[__builtin_ctz(bits)];
+    return true;
+}
+
+// One any-hit walk, resumable at each node or leaf it is about to load, so several can
+// run in turn and each one's next load is on its way while the others work (the kd
+// walks do the same: walks_in_flight). The load it stops before is prefetched.
+struct WideWalk {
+    Ray ray;
+    WideBoxTest test;
+    ShearedRay sheared;
+    std::uint32_t skip = kNoHit;
+    std::uint32_t cur = 0;
+    int top = 0;
+    bool occluded = false;
+    std::uint32_t stack[kWideStack];
+
+    void start(const Ray& ray_in, std::uint32_t skip_prim = kNoHit) {
+        ray = ray_in;
+        test = WideBoxTest(ray_in);
+        sheared = ShearedRay(ray_in.dir);
+        skip = skip_prim;
+        cur = 0;
+        top = 0;
+        occluded = false;
+    }
+
+    static void prefetch(const WideBvh& bvh, std::uint32_t code) {
+        if (WideNode::is_leaf(code)) {
+            // Every line of the leaf's run of triangles (1-3 lines for 40-80 bytes).
+            const auto* first = reinterpret_cast<const char*>(bvh.triangles.data() + WideNode::leaf_first(code));
+            const char* last = first + WideNode::leaf_count(code) * sizeof(WideTriangle) - 1;
+            const auto line = [](const char* p) { return reinterpret_cast<std::uintptr_t>(p) >> 6; };
+            for (const char* p = first; line(p) <= line(last); p += 64) prefetch_line(p);
+        } else {
+            const char* n = reinterpret_cast<const char*>(bvh.nodes.data() + code);
+            prefetch_line(n);
+            prefetch_line(n + 64);
+            prefetch_line(n + 128);
+            prefetch_line(n + 192);
+        }
+    }
+
+    // Visits `cur`; returns true when the walk is over (occluded says how).
+    bool step(const WideBvh& bvh, std::uint64_t& node_visits, std::uint64_t& triangle_tests) {
+        if (WideNode::is_leaf(cur)) {
+            if (wide_leaf_hit(bvh, cur, ray, sheared, skip, triangle_tests)) {
+                occluded = true;
+                return true;
+            }
+        } else {
+            ++node_visits;
+            if (wide_descend(bvh.nodes[cur], test, cur, stack, top)) {
+                prefetch(bvh, cur);
+                return false;
+            }
+        }
+        if (top == 0) return true;
+        cur = stack[--top];
+        prefetch(bvh, cur);
+        return false;
+    }
+};
+
+// Is there a triangle (other than `skip`) in [ray.tmin, ray.tmax)? One walk to its end,
+// its state in registers; a node's first hit child is walked next without a push.
+inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters& counters,
+                          std::uint32_t skip = kNoHit) {
+    const WideBoxTest test(ray);
+    const ShearedRay sheared(ray.dir);
+    std::uint32_t stack[kWideStack];
+    int top = 0;
+    std::uint32_t cur = 0;
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    bool occluded = false;
+    for (;;) {
+        if (!WideNode::is_leaf(cur)) {
+            ++node_visits;
+            if (wide_descend(bvh.nodes[cur], test, cur, stack, top)) continue;
+        } else if (wide_leaf_hit(bvh, cur, ray, sheared, skip, triangle_tests)) {
+            occluded = true;
+            break;
+        }
+        if (top == 0) break;
+        cur = stack[--top];
+    }
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
+    return occluded;
+}
+
+// Any hits of `count` rays, G walks in flight: ray_of(i, ray, skip) sets ray i and the
+// triangle it must not report (false: no ray, no answer), answer(i) is called for each
+// ray that is occluded.
+template <int G, typename RayOf, typename Answer>
+inline void occluded_wide_in_flight(const WideBvh& bvh, std::size_t count, RayOf&& ray_of, Answer&& answer,
+                                    TraversalCounters& counters) {
+    WideWalk walks[G];
+    std::size_t id[G];
+    std::size_t next = 0;
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    walks_in_flight<G>(
+        [&](int g) {
+            Ray ray;
+            std::uint32_t skip = kNoHit;
+            for (; next < count; ++next) {
+                if (!ray_of(next, ray, skip)) continue;
+                walks[g].start(ray, skip);
+                id[g] = next++;
+                return true;
+            }
+            return false;
+        },
+        [&](int g) {
+            if (!walks[g].step(bvh, node_visits, triangle_tests)) return false;
+            if (walks[g].occluded) answer(id[g]);
+            return true;
+        });
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
+}
+
+VASTRAY_KERNEL_END
