@@ -412,14 +412,20 @@ def test_any_hit_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
     directions[3::7, 1] = -0.0
     directions[5::11] = [0.0, -0.0, 1.0]
     tmax = np.where(np.arange(len(origins)) % 3 == 0, np.inf, rng.uniform(0.01, 0.5, len(origins)) * diagonal)
-    wide = scene.occluded(origins, directions, 0.0, tmax)
+    # A tmin below 0 counts as 0 (rays start at their origin), in both queries.
+    tmin = np.where(np.arange(len(origins)) % 5 == 1, -0.05 * diagonal, 0.0)
+    wide = scene.occluded(origins, directions, tmin, tmax)
+    np.testing.assert_array_equal(wide, scene.occluded(origins, directions, 0.0, tmax))
+    closest = scene.intersect(origins, directions, tmin, tmax)
+    assert (closest["prim"] >= 0).any() and (closest["t"] >= 0).all()
+    np.testing.assert_array_equal(closest["t"], scene.intersect(origins, directions, 0.0, tmax)["t"])
     # Walks in flight (as on a large tree) answer as walks one after the other.
     monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
-    np.testing.assert_array_equal(scene.occluded(origins, directions, 0.0, tmax), wide)
+    np.testing.assert_array_equal(scene.occluded(origins, directions, tmin, tmax), wide)
     frames_in_flight = {s: render_camera(scene, camera, shading=s) for s in ("ao", "sun")}
     monkeypatch.delenv("VASTRAY_INTERLEAVE_BYTES")
     monkeypatch.setenv("VASTRAY_ANYHIT", "kd")
-    kd = scene.occluded(origins, directions, 0.0, tmax)
+    kd = scene.occluded(origins, directions, tmin, tmax)
     assert 0.05 < wide.mean() < 0.95
     differ = np.flatnonzero(wide != kd)
     assert (differ >= 4 * len(off)).all(), "rays off the surface disagree"

@@ -32,6 +32,7 @@ void require_shape(const py::array& a, py::ssize_t cols, const char* name) {
 }
 
 using bindings::broadcast;
+using bindings::ray_starts;
 using bindings::to_numpy;
 using bindings::to_vec3;
 
@@ -120,7 +121,7 @@ RayArrays load_rays(DoubleArray origins, DoubleArray directions, const py::objec
     require_shape(directions, 3, "directions");
     if (origins.shape(0) != directions.shape(0)) throw std::invalid_argument("origins and directions differ in length");
     const auto n = static_cast<std::size_t>(origins.shape(0));
-    return {origins, directions, broadcast(tmin, n, "tmin"), broadcast(tmax, n, "tmax"), n};
+    return {origins, directions, ray_starts(tmin, n), broadcast(tmax, n, "tmax"), n};
 }
 
 py::dict intersect(const Scene& s, DoubleArray origins, DoubleArray directions, py::object tmin,
@@ -245,12 +246,13 @@ PYBIND11_MODULE(native, m) {
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
              py::arg("sections") = bindings::PlaneTuples{},
-             "Closest hits: dict of t (inf on a miss), prim (input triangle id, -1 on a miss), u, v "
+             "Closest hits (a tmin below 0 counts as 0): dict of t (inf on a miss), prim (input "
+             "triangle id, -1 on a miss), u, v "
              "barycentrics, normal (unit geometric normal); section planes (nx, ny, nz, offset) cut as "
              "in rendering")
         .def("occluded", &occluded, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
-             "Any hit in [tmin, tmax]: bool per ray")
+             "Any hit in [tmin, tmax]: bool per ray (a tmin below 0 counts as 0)")
         .def("render", &render_frame, py::arg("camera"), py::arg("params") = RenderParams{},
              "Render one frame: (image (H,W,3) uint8, depth (H,W) float32, prim (H,W) int32, FrameStats)");
 

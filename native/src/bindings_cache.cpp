@@ -71,7 +71,7 @@ public:
             throw std::invalid_argument("origins and directions must both have shape (n, 3)");
         }
         const auto n = static_cast<std::size_t>(origins.shape(0));
-        const std::vector<double> lo = broadcast(tmin, n, "tmin"), hi = broadcast(tmax, n, "tmax");
+        const std::vector<double> lo = bindings::ray_starts(tmin, n), hi = broadcast(tmax, n, "tmax");
         CachedModel& m = model();
         LodRayHits r;
         {

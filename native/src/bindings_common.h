@@ -35,6 +35,16 @@ inline std::vector<double> broadcast(const py::object& value, std::size_t n, con
     return std::vector<double>(arr.data(), arr.data() + n);
 }
 
+// tmin of ray queries: a ray starts at its origin, so a tmin below 0 counts as 0 (the
+// walks never visit cells or boxes behind the origin). NaN stays NaN: an invalid ray.
+inline std::vector<double> ray_starts(const py::object& tmin, std::size_t n) {
+    std::vector<double> t = broadcast(tmin, n, "tmin");
+    for (double& v : t) {
+        if (v < 0) v = 0;
+    }
+    return t;
+}
+
 // Section planes as Python gives them: (nx, ny, nz, offset) each.
 using PlaneTuples = std::vector<std::array<double, 4>>;
 inline std::vector<SectionPlane> to_sections(const PlaneTuples& planes) {

@@ -29,25 +29,18 @@ struct WideBoxTest {
     // 1/d scaled for the entry and the exit distances: see hits().
     vf org[3], inv_near[3], inv_far[3], tmin, tmax;
     int near_row[3], far_row[3];  // float offsets into a WideNode
-    bool widen_after = false;
 
     WideBoxTest() = default;
+    // (ray.tmin >= 0: the batch queries clamp it, and secondary rays start at 0.)
     explicit WideBoxTest(const Ray& ray) {
         const float o[3] = {ray.org.x, ray.org.y, ray.org.z};
         const float d[3] = {ray.dir.x, ray.dir.y, ray.dir.z};
         constexpr int W = WideNode::kWidth;
-        // A segment starting at t >= 0 clamps every negative entry distance to tmin, so
-        // only positive distances need widening, and scaling 1/d does it once per ray
-        // (Ize's robust traversal). A segment reaching back before the origin widens
-        // every node's distances by their magnitude instead.
-        widen_after = !(ray.tmin >= 0.0f);
-        const float near_scale = widen_after ? 1.0f : 1.0f - kSplitSlack;
-        const float far_scale = widen_after ? 1.0f : 1.0f + kSplitSlack;
         for (int a = 0; a < 3; ++a) {
             const float i = 1.0f / d[a];
             org[a] = vf::broadcast(o[a]);
-            inv_near[a] = vf::broadcast(i * near_scale);
-            inv_far[a] = vf::broadcast(i * far_scale);
+            inv_near[a] = vf::broadcast(i * (1.0f - kSplitSlack));
+            inv_far[a] = vf::broadcast(i * (1.0f + kSplitSlack));
             const int lo = 2 * W * a, hi = lo + W;
             near_row[a] = std::signbit(i) ? hi : lo;
             far_row[a] = std::signbit(i) ? lo : hi;
@@ -56,10 +49,12 @@ struct WideBoxTest {
         tmax = vf::broadcast(ray.tmax);
     }
 
-    // The children whose boxes the segment [tmin, tmax] touches, as bits. Entry
-    // distances are made smaller and exit distances larger by kSplitSlack, like the
-    // kd-tree's split distances, so rounding never drops a box the ray grazes (the
-    // float error of (plane - o) * (1/d) is below 2 eps of it, the slack 8 eps).
+    // The children whose boxes the segment [tmin, tmax] touches, as bits. Positive
+    // entry distances shrink and exit distances grow by kSplitSlack, like the kd-tree's
+    // split distances, so rounding never drops a box the ray grazes (the float error of
+    // (plane - o) * (1/d) is below 2 eps of it, the slack 8 eps); scaling 1/d does that
+    // once per ray (Ize's robust traversal). A negative distance keeps its sign and,
+    // entering, is clamped to tmin >= 0 anyway.
     [[gnu::always_inline]] unsigned hits(const WideNode& node) const {
         constexpr int W = simd::kWidth;
         const float* base = node.lo_x;
@@ -74,13 +69,8 @@ struct WideBoxTest {
             const vf fz = (vf::load(base + far_row[2] + off) - org[2]) * inv_far[2];
             // min/max return their second operand when either is NaN (minps, maxps): the
             // plane distances go first, so a NaN one leaves the segment as it was.
-            vf tn = max(nx, max(ny, max(nz, tmin)));
-            vf tf = min(fx, min(fy, min(fz, tmax)));
-            if (widen_after) {
-                const vf slack = vf::broadcast(kSplitSlack);
-                tn = tn - abs(tn) * slack;
-                tf = tf + abs(tf) * slack;
-            }
+            const vf tn = max(nx, max(ny, max(nz, tmin)));
+            const vf tf = min(fx, min(fy, min(fz, tmax)));
             bits |= static_cast<unsigned>((tn <= tf).bits()) << off;
         }
         return bits;
