@@ -10,7 +10,7 @@ from typing import Any
 
 from vastray import __version__
 from vastray.layouts import LAYOUTS
-from vastray.renderer import SHADING_MODES
+from vastray.renderer import ANY_HIT_SHADINGS, SHADING_MODES
 
 
 def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequence[float]) -> Any:
@@ -97,6 +97,13 @@ def _cmd_render(args: argparse.Namespace) -> int:
                 f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
                 f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
             )
+            if args.shading in ANY_HIT_SHADINGS:
+                # Built here, on first use, so the frame's time below is the frame's alone.
+                wide = renderer.scene.any_hit_stats()
+                print(
+                    f"any-hit    8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
+                    f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
+                )
         lo, hi = renderer.bounds
         camera = _camera_from_args(args, lo, hi)
         frame = renderer.render_complete(camera, params)
