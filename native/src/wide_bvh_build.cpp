@@ -1,13 +1,14 @@
 // Top-down binned-SAH build of the 8-wide BVH (wide_bvh.h), in the manner of Embree's
 // BVHN builder: a node starts as one child holding all its triangles, and the child of
-// largest surface area is split in two by the SAH until there are eight or none is
-// worth splitting. The nodes below the root's grandchildren are built in parallel, each
-// subtree into its own array, and spliced after.
+// largest surface area is split in two by the SAH until there are eight or every child
+// is small enough to be a leaf. The nodes below the root's grandchildren are built in
+// parallel, each subtree into its own array, and spliced after.
 #include <algorithm>
 #include <array>
 #include <chrono>
-#include <cmath>
-#include <numeric>
+#include <limits>
+#include <stdexcept>
+#include <utility>
 #include <vector>
 
 #include "vastray/thread_pool.h"

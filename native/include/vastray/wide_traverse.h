@@ -7,7 +7,6 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
-#include <limits>
 
 #include "vastray/isa.h"
 #include "vastray/kdtree.h"
