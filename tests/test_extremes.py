@@ -557,6 +557,7 @@ def quad() -> tuple[np.ndarray, np.ndarray]:
         ({"vertex": (2, math.nan)}, "not finite"),
         ({"vertex": (1, math.inf)}, "not finite"),
         ({"vertex": (3, -math.inf)}, "not finite"),
+        ({"vertex": (2, 1e39)}, "float range"),
         ({"faces": np.array([[0, 1, 4]], dtype=np.uint32)}, "vertex 4"),
         ({"faces": np.array([[0, 1, 2], [0, 2, 2**31]], dtype=np.uint32)}, "vertex"),
         ({"vertices": np.zeros((4, 2))}, "shape"),

@@ -28,7 +28,13 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
                                             std::to_string(vi) + " of " + std::to_string(vertex_count));
             }
             const Vec3d p(vertices[3 * vi], vertices[3 * vi + 1], vertices[3 * vi + 2]);
-            tri_vertices_[3 * f + static_cast<std::size_t>(k)] = Vec3f(p - centre_);
+            const Vec3f local(p - centre_);
+            if (!all_finite(local)) {
+                throw std::invalid_argument("vertex " + std::to_string(vi) +
+                                            " lies too far from the model's centre for float coordinates "
+                                            "(the model spans more than the float range)");
+            }
+            tri_vertices_[3 * f + static_cast<std::size_t>(k)] = local;
         }
     }
     if (colours != nullptr) colours_.assign(colours, colours + 3 * face_count);

@@ -118,9 +118,13 @@ public:
             int pick = -1;
             float pick_area = -1.0f;
             for (std::size_t k = 0; k < kids.size(); ++k) {
-                if (kids[k].count() > kLeafMax && area(kids[k].bounds) > pick_area) {
+                // (Every child too large for a leaf is a candidate, whatever its area, so
+                // a node always gets at least two children.)
+                const float a = area(kids[k].bounds);
+                const float key = a >= 0.0f ? a : kInf;
+                if (kids[k].count() > kLeafMax && (pick < 0 || key > pick_area)) {
                     pick = static_cast<int>(k);
-                    pick_area = area(kids[k].bounds);
+                    pick_area = key;
                 }
             }
             if (pick < 0) break;
