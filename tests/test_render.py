@@ -442,6 +442,35 @@ def test_any_hit_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
         np.testing.assert_array_equal(frames_in_flight[shading].image, frame.image, shading)
 
 
+def test_the_wide_bvh_is_built_once_when_threads_first_need_it_together() -> None:
+    """The any-hit BVH is built on first use: batch queries and sun frames that start at
+    once on a fresh scene, from several threads, wait for the one build and all answer as
+    a query made after it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vastray import scenes
+    from vastray.camera import frame_bounds
+
+    mesh = scenes.to_mesh("plant", 30_000, 3)
+    scene = native.Scene(mesh.vertices, mesh.faces)
+    camera = frame_bounds(*scene.bounds, width=48, height=32)
+    rng = np.random.default_rng(8)
+    lo, hi = (np.asarray(b) for b in scene.bounds)
+    origins = lo + rng.random((20_000, 3)) * (hi - lo)
+    directions = rng.normal(size=(20_000, 3))
+    with ThreadPoolExecutor(6) as pool:
+        queries = [pool.submit(scene.occluded, origins, directions) for _ in range(4)]
+        frames = [pool.submit(render_camera, scene, camera, shading="sun") for _ in range(2)]
+        answers = [q.result() for q in queries]
+        images = [f.result().image for f in frames]
+    expected = scene.occluded(origins, directions)
+    assert 0.05 < expected.mean() < 0.95
+    for a in answers:
+        np.testing.assert_array_equal(a, expected)
+    for image in images:
+        np.testing.assert_array_equal(image, render_camera(scene, camera, shading="sun").image)
+
+
 def _anon_huge_pages_kib() -> int:
     for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
         if line.startswith("AnonHugePages:"):
