@@ -29,7 +29,7 @@ from vastray.camera import Camera
 
 SHADING_MODES: tuple[str, ...] = tuple(native.SHADING_MODES)
 # The modes that trace any-hit (shadow, AO) rays: in core they walk the scene's 8-wide BVH.
-ANY_HIT_SHADINGS: tuple[str, ...] = ("sun", "ao", "indirect")
+ANY_HIT_SHADINGS: tuple[str, ...] = tuple(native.ANY_HIT_SHADINGS)
 PRIM_BACKGROUND = -1  # Frame.prim where a pixel sees nothing
 PRIM_VOXEL = -2  # Frame.prim where a pixel shows a LOD voxel instead of a triangle
 

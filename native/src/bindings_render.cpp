@@ -60,6 +60,12 @@ void bind_render_types(py::module_& m) {
     }, "The instruction-set paths this build and CPU can run, slowest first (values for VASTRAY_ISA)");
     m.attr("MAX_IMAGE_SIDE") = kMaxImageSide;
     m.attr("SHADING_MODES") = py::make_tuple("normal", "headlight", "sun", "ao", "indirect");
+    py::list any_hit;
+    for (const Shading s : {Shading::Normal, Shading::Headlight, Shading::Sun, Shading::AmbientOcclusion,
+                            Shading::Indirect}) {
+        if (traces_any_hit_rays(s)) any_hit.append(shading_name(s));
+    }
+    m.attr("ANY_HIT_SHADINGS") = py::tuple(any_hit);
 
     py::class_<Camera>(m, "Camera", "Pinhole camera in world coordinates (double precision)")
         .def(py::init([](const std::vector<double>& eye, const std::vector<double>& target,

@@ -130,10 +130,7 @@ public:
           camera_(camera),
           interleave_(interleaves(scene.tree().memory_bytes())),
           // (Built here, before the frame's parallel loop: the build runs on the pool too.)
-          wide_(params.shading == Shading::Sun || params.shading == Shading::AmbientOcclusion ||
-                        params.shading == Shading::Indirect
-                    ? any_hit_bvh(scene)
-                    : nullptr),
+          wide_(traces_any_hit_rays(params.shading) ? any_hit_bvh(scene) : nullptr),
           wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)

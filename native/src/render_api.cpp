@@ -46,6 +46,10 @@ const char* shading_name(Shading shading) {
     return "headlight";
 }
 
+bool traces_any_hit_rays(Shading shading) {
+    return shading == Shading::Sun || shading == Shading::AmbientOcclusion || shading == Shading::Indirect;
+}
+
 void RenderParams::validate() const {
     if (!all_finite(sun_direction) || !(dot(sun_direction, sun_direction) > 0)) {
         throw std::invalid_argument("sun direction must be a finite non-zero vector");

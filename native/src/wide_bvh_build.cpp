@@ -1,7 +1,7 @@
 // Top-down binned-SAH build of the 8-wide BVH (wide_bvh.h), in the manner of Embree's
 // BVHN builder: a node starts as one child holding all its triangles, and the child of
 // largest surface area is split in two by the SAH until there are eight or every child
-// is small enough to be a leaf. The nodes below the root's grandchildren are built in
+// is small enough to be a leaf. The subtrees of the root's grandchildren are built in
 // parallel, each subtree into its own array, and spliced after.
 #include <algorithm>
 #include <array>
@@ -25,6 +25,8 @@ constexpr std::uint32_t kLeafMax = 2;
 // Halving from this depth on adds at most log2(2^28) / 3 < 10 levels: a walk's stack
 // (WideWalk, 7 entries a level) then holds every tree.
 constexpr int kHalveDepth = 48;
+// The subtrees from this depth (the root's grandchildren) are built in parallel.
+constexpr int kParallelDepth = 2;
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
 struct Range {
@@ -139,9 +141,19 @@ public:
         return WideNode::kLeafBit | r.begin << WideNode::kCountBits | (r.count() - 1);
     }
 
+    // A subtree left for later (and for another thread): its range, and the slot of its
+    // parent node that will hold its root.
+    struct Deferred {
+        Range range;
+        std::uint32_t node;
+        int slot;
+    };
+
     // Builds the subtree over `r` into `out`; returns its child code (node indices local
-    // to `out`).
-    std::uint32_t build(const Range& r, int depth, std::vector<WideNode>& out) const {
+    // to `out`). With `defer`, the subtrees at kParallelDepth are not built but listed
+    // there, their parents' slots left to fill.
+    std::uint32_t build(const Range& r, int depth, std::vector<WideNode>& out,
+                        std::vector<Deferred>* defer = nullptr) const {
         if (r.count() <= kLeafMax) return leaf_code(r);
         const std::uint32_t index = static_cast<std::uint32_t>(out.size());
         out.emplace_back();
@@ -149,7 +161,11 @@ public:
         WideNode node = empty_node();
         for (std::size_t k = 0; k < kids.size(); ++k) {
             set_box(node, static_cast<int>(k), kids[k].bounds);
-            node.child[k] = build(kids[k], depth + 1, out);
+            if (defer != nullptr && depth + 1 == kParallelDepth && kids[k].count() > kLeafMax) {
+                defer->push_back({kids[k], index, static_cast<int>(k)});
+            } else {
+                node.child[k] = build(kids[k], depth + 1, out, defer);
+            }
         }
         out[index] = node;
         return index;
@@ -231,37 +247,12 @@ WideBvh build_wide_bvh(const Vec3f* tri_vertices, std::size_t triangle_count, un
     } else {
         // The root and its children serially; the grandchildren's subtrees in parallel.
         std::vector<WideNode> top;
-        struct Task {
-            Range range;
-            std::size_t node;  // in `top`
-            int slot;
-        };
-        std::vector<Task> tasks;
-        top.push_back(Builder::empty_node());
-        const std::vector<Range> kids = builder.children(all, 0);
-        for (std::size_t k = 0; k < kids.size(); ++k) {
-            Builder::set_box(top[0], static_cast<int>(k), kids[k].bounds);
-            if (kids[k].count() <= kLeafMax) {
-                top[0].child[k] = Builder::leaf_code(kids[k]);
-                continue;
-            }
-            const std::uint32_t index = static_cast<std::uint32_t>(top.size());
-            top[0].child[k] = index;
-            top.push_back(Builder::empty_node());
-            const std::vector<Range> grand = builder.children(kids[k], 1);
-            for (std::size_t g = 0; g < grand.size(); ++g) {
-                Builder::set_box(top[index], static_cast<int>(g), grand[g].bounds);
-                if (grand[g].count() <= kLeafMax) {
-                    top[index].child[g] = Builder::leaf_code(grand[g]);
-                } else {
-                    tasks.push_back({grand[g], index, static_cast<int>(g)});
-                }
-            }
-        }
+        std::vector<Builder::Deferred> tasks;
+        builder.build(all, 0, top, &tasks);
         std::vector<std::vector<WideNode>> parts(tasks.size());
         std::vector<std::uint32_t> roots(tasks.size());
         pool.parallel_for(tasks.size(), [&](std::size_t i, unsigned) {
-            roots[i] = builder.build(tasks[i].range, 2, parts[i]);
+            roots[i] = builder.build(tasks[i].range, kParallelDepth, parts[i]);
         }, threads);
         std::size_t node_count = top.size();
         for (const auto& p : parts) node_count += p.size();

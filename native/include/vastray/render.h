@@ -34,6 +34,8 @@ constexpr int kMaxImageSide = 16384;
 enum class Shading { Normal, Headlight, Sun, AmbientOcclusion, Indirect };
 Shading parse_shading(const std::string& name);
 const char* shading_name(Shading shading);
+// Whether the mode traces any-hit (shadow, AO) rays: in core they walk the scene's 8-wide BVH.
+bool traces_any_hit_rays(Shading shading);
 
 // A section (clipping) plane in world coordinates: geometry where dot(normal, p) +
 // offset < 0 is cut away. Where a ray enters a solid through the cut it sees a cap.
