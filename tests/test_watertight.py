@@ -133,6 +133,11 @@ def shoot(
     touches = (corners == a[:, None]).any(axis=1) | (corners == b[:, None]).any(axis=1)
     leak = (prim < 0) | (t > 1 + slack) | ((t > 1) & ~touches)
     found = prim >= 0
+    # Any-hit rays (the wide BVH's quads, whose lanes hand exact edge hits to the scalar
+    # test) close the same surface: a ray to a target sees it, or something before it.
+    tmax = 1 + slack
+    blocked = scene.occluded(origins[idx], directions[idx], 0.0, tmax)
+    np.testing.assert_array_equal(blocked, found & (t < tmax))
     excess = float(((t[found] - 1) * dlen[found] / diag).max(initial=0.0))
     return ok, idx[leak], excess
 

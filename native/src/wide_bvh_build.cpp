@@ -18,10 +18,10 @@ namespace vastray {
 namespace {
 
 constexpr int kBins = 16;
-// Leaves of at most 2 triangles: against 4, AO rays 1.06-1.13x on five real meshes of
-// 10^4-10^6 triangles and 1.15x on the 10^7 plant, 0.99-1.02x on the 10^5 plant and
-// 10^6 mandelbulb, for 29 % more memory (docs/native-core.md); 3 was between them.
-constexpr std::uint32_t kLeafMax = 2;
+// Leaves of at most 4 triangles, one WideQuad, tested in one SSE pass. With the scalar
+// test of one triangle after the other, 2 had been best (AO rays 1.06-1.15x against 4);
+// with the quads 4 measured 1.10-1.12x of 2 and 8 no better than 4 (docs/native-core.md).
+constexpr std::uint32_t kLeafMax = WideQuad::kLanes;
 // Halving from this depth on adds at most log2(2^28) / 3 < 10 levels: a walk's stack
 // (WideWalk, 7 entries a level) then holds every tree.
 constexpr int kHalveDepth = 48;
@@ -201,6 +201,58 @@ private:
     std::vector<std::uint32_t>& order_;
 };
 
+// Gives every leaf its run of quads, in the order of the leaves' triangle ranges (the
+// build's depth-first order), and rewrites its code to point at them.
+void pack_leaves(WideBvh& bvh, const std::vector<std::uint32_t>& order, const Vec3f* tri_vertices,
+                 unsigned threads) {
+    const auto n = static_cast<std::uint32_t>(order.size());
+    // The triangle count of the leaf that begins at each position of `order` (0: none).
+    std::vector<std::uint8_t> count_at(n, 0);
+    ThreadPool& pool = ThreadPool::global();
+    constexpr std::size_t kNodeChunk = 1 << 12;
+    const std::size_t chunks = (bvh.nodes.size() + kNodeChunk - 1) / kNodeChunk;
+    const auto for_leaf_codes = [&](auto&& visit) {
+        pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
+            const std::size_t end = std::min(bvh.nodes.size(), (c + 1) * kNodeChunk);
+            for (std::size_t i = c * kNodeChunk; i < end; ++i) {
+                WideNode& node = bvh.nodes[i];
+                for (int k = 0; k < WideNode::kWidth; ++k) {
+                    if (node.lo_x[k] <= node.hi_x[k] && WideNode::is_leaf(node.child[k])) visit(node.child[k]);
+                }
+            }
+        }, threads);
+    };
+    for_leaf_codes([&](std::uint32_t code) {
+        count_at[WideNode::leaf_first(code)] = static_cast<std::uint8_t>(WideNode::leaf_count(code));
+    });
+    std::vector<std::uint32_t> quad_at(n, 0);
+    std::uint32_t quads = 0;
+    for (std::uint32_t i = 0; i < n; ++i) {
+        quad_at[i] = quads;
+        quads += WideQuad::count_for(count_at[i]);
+    }
+    bvh.quads.resize(quads);
+    for_leaf_codes([&](std::uint32_t& code) {
+        const std::uint32_t begin = WideNode::leaf_first(code), count = WideNode::leaf_count(code);
+        const std::uint32_t first = quad_at[begin];
+        for (std::uint32_t q = 0; q < WideQuad::count_for(count); ++q) {
+            WideQuad& quad = bvh.quads[first + q];
+            for (int lane = 0; lane < WideQuad::kLanes; ++lane) {
+                const std::uint32_t i = q * WideQuad::kLanes + static_cast<std::uint32_t>(lane);
+                const std::uint32_t t = order[begin + (i < count ? i : 0)];
+                for (int k = 0; k < 3; ++k) {
+                    const Vec3f& p = tri_vertices[3 * static_cast<std::size_t>(t) + static_cast<std::size_t>(k)];
+                    quad.v[k][0][lane] = p.x;
+                    quad.v[k][1][lane] = p.y;
+                    quad.v[k][2][lane] = p.z;
+                }
+                quad.prim[lane] = t;
+            }
+        }
+        code = WideNode::kLeafBit | first << WideNode::kCountBits | (count - 1);
+    });
+}
+
 }  // namespace
 
 WideBvh build_wide_bvh(const Vec3f* tri_vertices, std::size_t triangle_count, unsigned threads) {
@@ -269,15 +321,7 @@ WideBvh build_wide_bvh(const Vec3f* tri_vertices, std::size_t triangle_count, un
             bvh.nodes[tasks[i].node].child[tasks[i].slot] = roots[i] + base;
         }
     }
-    bvh.triangles.resize(n);
-    pool.parallel_for((n + kChunk - 1) / kChunk, [&](std::size_t c, unsigned) {
-        const std::size_t end = std::min<std::size_t>(n, (c + 1) * kChunk);
-        for (std::size_t i = c * kChunk; i < end; ++i) {
-            WideTriangle& t = bvh.triangles[i];
-            for (int k = 0; k < 3; ++k) t.v[k] = tri_vertices[3 * static_cast<std::size_t>(order[i]) + static_cast<std::size_t>(k)];
-            t.prim = order[i];
-        }
-    }, threads);
+    pack_leaves(bvh, order, tri_vertices, threads);
     // Shape statistics, by a walk from the root.
     std::vector<std::pair<std::uint32_t, int>> todo{{0u, 1}};
     while (!todo.empty()) {

@@ -21,7 +21,8 @@ struct alignas(64) WideNode {
     static constexpr int kWidth = 8;
     float lo_x[kWidth], hi_x[kWidth], lo_y[kWidth], hi_y[kWidth], lo_z[kWidth], hi_z[kWidth];
     // Inner child: its node index. Leaf: kLeafBit | first << kCountBits | (count - 1),
-    // its triangles being `count` consecutive ones of WideBvh::triangles.
+    // its `count` triangles filling WideQuad::count_for(count) consecutive records of
+    // WideBvh::quads from `first`.
     std::uint32_t child[kWidth];
 
     static constexpr std::uint32_t kLeafBit = 0x80000000u;
@@ -34,23 +35,29 @@ struct alignas(64) WideNode {
 };
 static_assert(sizeof(WideNode) == 256, "a wide node is four cache lines");
 
-// A leaf's triangle: its corners and the scene's index of it (which a secondary ray
-// compares with the triangle it starts on), in one record so a leaf is one run of lines.
-struct WideTriangle {
-    Vec3f v[3];
-    std::uint32_t prim;
+// A leaf's triangles, up to four to a record with each coordinate of the four side by
+// side (v[corner][axis][lane]), so one SSE pass tests them all (wide_traverse.h), and the
+// scene's index of each (which a secondary ray compares with the triangle it starts on).
+// A leaf of fewer fills its other lanes with copies of its first triangle.
+struct alignas(32) WideQuad {
+    static constexpr int kLanes = 4;
+    float v[3][3][kLanes];
+    std::uint32_t prim[kLanes];
+
+    Vec3f corner(int lane, int k) const { return {v[k][0][lane], v[k][1][lane], v[k][2][lane]}; }
+    static std::uint32_t count_for(std::uint32_t triangles) { return (triangles + kLanes - 1) / kLanes; }
 };
-static_assert(sizeof(WideTriangle) == 40, "a wide-BVH triangle is 40 bytes");
+static_assert(sizeof(WideQuad) == 160, "a wide-BVH quad is 160 bytes");
 
 struct WideBvh {
     HugeVector<WideNode> nodes;           // nodes[0] is the root
-    HugeVector<WideTriangle> triangles;   // in leaf order
+    HugeVector<WideQuad> quads;  // the leaves' triangles, in leaf order
     std::uint64_t leaves = 0;
     int max_depth = 0;  // in nodes, the root's children at depth 1
     double build_ms = 0;
 
     std::size_t memory_bytes() const {
-        return nodes.size() * sizeof(WideNode) + triangles.size() * sizeof(WideTriangle);
+        return nodes.size() * sizeof(WideNode) + quads.size() * sizeof(WideQuad);
     }
 };
 

@@ -80,20 +80,87 @@ struct WideBoxTest {
 // most 7 entries.
 constexpr int kWideStack = 8 * 64;
 
-// Whether a triangle of the leaf `code` other than `skip` lies on the ray in [tmin, tmax).
-[[gnu::always_inline]] inline bool wide_leaf_hit(const WideBvh& bvh, std::uint32_t code, const Ray& ray,
-                                                 const ShearedRay& sheared, std::uint32_t skip,
-                                                 std::uint64_t& triangle_tests) {
-    const std::uint32_t first = WideNode::leaf_first(code), count = WideNode::leaf_count(code);
-    Hit hit;
-    hit.t = ray.tmax;
-    for (std::uint32_t i = first; i < first + count; ++i) {
-        const WideTriangle& t = bvh.triangles[i];
-        if (t.prim == skip) continue;
-        ++triangle_tests;
-        if (intersect_triangle(ray, sheared, t.v[0], t.v[1], t.v[2], hit)) return true;
+// The watertight triangle test (triangle.h) of one ray against the four triangles of a
+// WideQuad at once: its constants in SSE lanes, set up once per ray.
+struct QuadRay {
+    using vf = simd::vfloat<WideQuad::kLanes>;
+    vf org[3];  // the origin's coordinates in the sheared frame's order: kx, ky, kz
+    vf sx, sy, sz, tmin, tmax;
+    int kx = 0, ky = 1, kz = 2;
+
+    QuadRay() = default;
+    QuadRay(const Ray& ray, const ShearedRay& s) : kx(s.kx), ky(s.ky), kz(s.kz) {
+        org[0] = vf::broadcast(ray.org[kx]);
+        org[1] = vf::broadcast(ray.org[ky]);
+        org[2] = vf::broadcast(ray.org[kz]);
+        sx = vf::broadcast(s.sx);
+        sy = vf::broadcast(s.sy);
+        sz = vf::broadcast(s.sz);
+        tmin = vf::broadcast(ray.tmin);
+        tmax = vf::broadcast(ray.tmax);
+    }
+};
+
+// Whether one of the first `count` triangles of `quad` other than `skip` lies on the ray
+// in [tmin, tmax). Each lane does intersect_triangle's float operations in its order
+// (the kernels do not contract them into FMAs), so its answer is the scalar test's; a
+// lane with an edge function exactly zero goes to the scalar test, which decides it in
+// double.
+[[gnu::always_inline]] inline bool quad_hit(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
+                                            const Ray& ray, const ShearedRay& sheared, std::uint32_t skip) {
+    using vf = QuadRay::vf;
+    // (A lambda here was not inlined.)
+    const auto edge = [&](int k, vf& x, vf& y, vf& z) __attribute__((always_inline)) {
+        z = vf::load(quad.v[k][r.kz]) - r.org[2];
+        x = (vf::load(quad.v[k][r.kx]) - r.org[0]) - r.sx * z;
+        y = (vf::load(quad.v[k][r.ky]) - r.org[1]) - r.sy * z;
+    };
+    vf ax, ay, az, bx, by, bz, cx, cy, cz;
+    edge(0, ax, ay, az);
+    edge(1, bx, by, bz);
+    edge(2, cx, cy, cz);
+    const vf u = cx * by - cy * bx;
+    const vf v = ax * cy - ay * cx;
+    const vf w = bx * ay - by * ax;
+    unsigned lanes = (1u << count) - 1;
+    for (int lane = 0; lane < WideQuad::kLanes; ++lane) {
+        if (quad.prim[lane] == skip) lanes &= ~(1u << lane);
+    }
+    const vf zero = vf::broadcast(0.0f);
+    const unsigned exact = static_cast<unsigned>(((u == zero) | (v == zero) | (w == zero)).bits()) & lanes;
+    const auto negative = (u < zero) | (v < zero) | (w < zero);
+    const auto positive = (u > zero) | (v > zero) | (w > zero);
+    const vf det = u + v + w;
+    const vf t_scaled = u * (r.sz * az) + v * (r.sz * bz) + w * (r.sz * cz);
+    // t_scaled * sign(det) and |det|, compared without dividing, then t itself.
+    const vf ts = t_scaled ^ simd::sign_bits(det);
+    const vf abs_det = simd::abs(det);
+    const vf t = t_scaled * (vf::broadcast(1.0f) / det);
+    const auto in = andnot(negative & positive, det != zero) & andnot(ts < r.tmin * abs_det, ts < r.tmax * abs_det) &
+                    andnot(t < r.tmin, t < r.tmax);
+    if ((static_cast<unsigned>(in.bits()) & lanes & ~exact) != 0) return true;
+    for (unsigned e = exact; e != 0; e &= e - 1) {
+        const int lane = __builtin_ctz(e);
+        Hit hit;
+        hit.t = ray.tmax;
+        if (intersect_triangle(ray, sheared, quad.corner(lane, 0), quad.corner(lane, 1), quad.corner(lane, 2), hit)) {
+            return true;
+        }
     }
     return false;
+}
+
+// Whether a triangle of the leaf `code` other than `skip` lies on the ray in [tmin, tmax).
+[[gnu::always_inline]] inline bool wide_leaf_hit(const WideBvh& bvh, std::uint32_t code, const QuadRay& r,
+                                                 const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
+                                                 std::uint64_t& triangle_tests) {
+    const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(code);
+    std::uint32_t count = WideNode::leaf_count(code);
+    triangle_tests += count;
+    for (;; ++quad, count -= WideQuad::kLanes) {
+        if (count <= WideQuad::kLanes) return quad_hit(*quad, count, r, ray, sheared, skip);
+        if (quad_hit(*quad, WideQuad::kLanes, r, ray, sheared, skip)) return true;
+    }
 }
 
 // A node's step, the same in every walk (so all count the same visits): its first hit
@@ -114,6 +181,7 @@ struct WideWalk {
     Ray ray;
     WideBoxTest test;
     ShearedRay sheared;
+    QuadRay quad_ray;
     std::uint32_t skip = kNoHit;
     std::uint32_t cur = 0;
     int top = 0;
@@ -124,6 +192,7 @@ struct WideWalk {
         ray = ray_in;
         test = WideBoxTest(ray_in);
         sheared = ShearedRay(ray_in.dir);
+        quad_ray = QuadRay(ray_in, sheared);
         skip = skip_prim;
         cur = 0;
         top = 0;
@@ -132,9 +201,9 @@ struct WideWalk {
 
     static void prefetch(const WideBvh& bvh, std::uint32_t code) {
         if (WideNode::is_leaf(code)) {
-            // Every line of the leaf's run of triangles (1-3 lines for 40-80 bytes).
-            const auto* first = reinterpret_cast<const char*>(bvh.triangles.data() + WideNode::leaf_first(code));
-            const char* last = first + WideNode::leaf_count(code) * sizeof(WideTriangle) - 1;
+            // Every line of the leaf's quads (3 lines for one).
+            const auto* first = reinterpret_cast<const char*>(bvh.quads.data() + WideNode::leaf_first(code));
+            const char* last = first + WideQuad::count_for(WideNode::leaf_count(code)) * sizeof(WideQuad) - 1;
             const auto line = [](const char* p) { return reinterpret_cast<std::uintptr_t>(p) >> 6; };
             for (const char* p = first; line(p) <= line(last); p += 64) prefetch_line(p);
         } else {
@@ -149,7 +218,7 @@ struct WideWalk {
     // Visits `cur`; returns true when the walk is over (occluded says how).
     bool step(const WideBvh& bvh, std::uint64_t& node_visits, std::uint64_t& triangle_tests) {
         if (WideNode::is_leaf(cur)) {
-            if (wide_leaf_hit(bvh, cur, ray, sheared, skip, triangle_tests)) {
+            if (wide_leaf_hit(bvh, cur, quad_ray, ray, sheared, skip, triangle_tests)) {
                 occluded = true;
                 return true;
             }
@@ -172,7 +241,11 @@ struct WideWalk {
 inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters& counters,
                           std::uint32_t skip = kNoHit) {
     const WideBoxTest test(ray);
-    const ShearedRay sheared(ray.dir);
+    // The triangle test's constants (three more divisions) wait for the first leaf: many
+    // rays leave the tree without reaching one.
+    ShearedRay sheared;
+    QuadRay quad_ray;
+    bool sheared_set = false;
     std::uint32_t stack[kWideStack];
     int top = 0;
     std::uint32_t cur = 0;
@@ -182,9 +255,16 @@ inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters&
         if (!WideNode::is_leaf(cur)) {
             ++node_visits;
             if (wide_descend(bvh.nodes[cur], test, cur, stack, top)) continue;
-        } else if (wide_leaf_hit(bvh, cur, ray, sheared, skip, triangle_tests)) {
-            occluded = true;
-            break;
+        } else {
+            if (!sheared_set) {
+                sheared = ShearedRay(ray.dir);
+                quad_ray = QuadRay(ray, sheared);
+                sheared_set = true;
+            }
+            if (wide_leaf_hit(bvh, cur, quad_ray, ray, sheared, skip, triangle_tests)) {
+                occluded = true;
+                break;
+            }
         }
         if (top == 0) break;
         cur = stack[--top];
