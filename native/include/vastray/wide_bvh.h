@@ -61,7 +61,7 @@ struct WideBvh {
     }
 };
 
-// Binned SAH, children split until eight per node, leaves of at most 2 triangles.
+// Binned SAH, children split until eight per node, leaves of at most 4 triangles.
 WideBvh build_wide_bvh(const Vec3f* tri_vertices, std::size_t triangle_count, unsigned threads);
 
 }  // namespace vastray
