@@ -50,7 +50,7 @@ struct alignas(32) WideQuad {
 static_assert(sizeof(WideQuad) == 160, "a wide-BVH quad is 160 bytes");
 
 struct WideBvh {
-    HugeVector<WideNode> nodes;           // nodes[0] is the root
+    HugeVector<WideNode> nodes;  // nodes[0] is the root
     HugeVector<WideQuad> quads;  // the leaves' triangles, in leaf order
     std::uint64_t leaves = 0;
     int max_depth = 0;  // in nodes, the root's children at depth 1
