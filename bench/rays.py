@@ -611,7 +611,7 @@ def report(rows: list[dict[str, Any]], info: dict[str, str], args: argparse.Name
         "traces 4x4 SIMD packets, `Scene.intersect` 16 neighbours of a row (one origin, one direction"
         " octant) as one packet (since 6 December; single rays before), all with the single-ray "
         "answers. `Scene.occluded` walks an 8-wide BVH (since 6 December; kd-tree packets of each "
-        "point's rays before), one ray at a time (8 walks in flight on a tree from 128 MiB); *any-hit"
+        "point's rays before), one ray at a time (16 walks in flight on a tree from 128 MiB); *any-hit"
         " BVH s* and *MB* are its build time and size (built on first use, not part of *build s*). "
         "Embree traces every ray alone (embreex has no packet API).",
         "",

@@ -41,8 +41,10 @@ constexpr int kOcclusionInFlight = 8;
 
 // Any-hit walks of the wide BVH in flight on a large tree (interleave.h): on the 10^7
 // plant's AO rays (a 650 MB tree) 8 ran 1.22x one at a time and 4 1.07x; at 10^6 (63 MB)
-// 8 ran 0.98x, at 10^5 0.85x (docs/native-core.md, "The wide BVH for any-hit rays").
-constexpr int kWideInFlight = 8;
+// 8 ran 0.98x, at 10^5 0.85x. With the 4-triangle leaves 16 ran 1.09x of 8 (AO and
+// shadow rays, 12 between them; frames 1.00-1.14x; docs/native-core.md, "The wide BVH
+// for any-hit rays").
+constexpr int kWideInFlight = 16;
 
 // Any hits of `count` rays through the wide BVH (occluded_wide_in_flight's ray_of and
 // answer): kWideInFlight walks in flight on a large tree, else one after the other.
