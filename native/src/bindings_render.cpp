@@ -59,12 +59,14 @@ void bind_render_types(py::module_& m) {
         return out;
     }, "The instruction-set paths this build and CPU can run, slowest first (values for VASTRAY_ISA)");
     m.attr("MAX_IMAGE_SIDE") = kMaxImageSide;
-    m.attr("SHADING_MODES") = py::make_tuple("normal", "headlight", "sun", "ao", "indirect");
-    py::list any_hit;
+    // Both tuples from the one list of modes, named as parse_shading reads them.
+    py::list modes, any_hit;
     for (const Shading s : {Shading::Normal, Shading::Headlight, Shading::Sun, Shading::AmbientOcclusion,
                             Shading::Indirect}) {
+        modes.append(shading_name(s));
         if (traces_any_hit_rays(s)) any_hit.append(shading_name(s));
     }
+    m.attr("SHADING_MODES") = py::tuple(modes);
     m.attr("ANY_HIT_SHADINGS") = py::tuple(any_hit);
 
     py::class_<Camera>(m, "Camera", "Pinhole camera in world coordinates (double precision)")
