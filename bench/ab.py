@@ -17,6 +17,8 @@ Workloads, one thread each (`--threads` for more):
   through `Scene.occluded`;
 * `frame`: the in-core renderer, 1024x768, 4x4 packets, shading='normal', its own clock;
 * `sun`: the same frame with shading='sun' (a shadow ray per lit pixel facing the sun);
+* `indirect`: the same frame with shading='indirect' (two diffuse rays and a shadow ray
+  per pixel);
 * `section`: the same frame with shading='headlight' and a section plane through the
   model's centre (keeping x at and above it);
 * `ooc`: an out-of-core frame (1280x720, headlight, `--poe`) of each built model given
@@ -75,7 +77,7 @@ OOC_SHADING = {
     "ooc-indirect": "indirect",
 }
 OOC_WORKLOADS = tuple(OOC_SHADING)
-WORKLOADS = ("batch", "ao", "shadow", "frame", "sun", "section", *OOC_WORKLOADS)
+WORKLOADS = ("batch", "ao", "shadow", "frame", "sun", "indirect", "section", *OOC_WORKLOADS)
 PROCEDURAL = ("plant", "mandelbulb")
 
 
@@ -177,7 +179,7 @@ class Child:
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
                 else:
-                    shading = "sun" if workload == "sun" else "normal"
+                    shading = workload if workload in ("sun", "indirect") else "normal"
                     frame = trace(scene, camera, shading=shading, threads=threads)
                     seconds = float(frame.stats.milliseconds) / 1e3
                     check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())

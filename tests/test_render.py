@@ -442,6 +442,47 @@ def test_any_hit_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
         np.testing.assert_array_equal(frames_in_flight[shading].image, frame.image, shading)
 
 
+def test_diffuse_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
+    plant_scene: native.Scene, scene_data: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The indirect mode's diffuse rays (closest hits from points on the surface, in every
+    direction) walk the wide BVH as the frame's shadow rays do, nearest child first. Its
+    frames equal the kd-tree's (VASTRAY_ANYHIT=kd) pixel for pixel: on the plant's thin
+    pipes at all angles and on the corner scene, whose walls meet at right angles (rays
+    that leave one wall hit the other). The node visits drop, as they should with eight
+    boxes a step; the primary rays, on the kd-tree either way, are the same."""
+    from vastray.camera import frame_bounds
+
+    corner = scene_data[0]
+    plant_camera = frame_bounds(*plant_scene.bounds, width=64, height=48)
+    corner_view = {
+        "eye": EYE.tolist(),
+        "target": TARGET.tolist(),
+        "up": UP,
+        "fov": FOV,
+        "width": 64,
+        "height": 48,
+    }
+    views = {
+        "plant": lambda **p: render_camera(plant_scene, plant_camera, **p),
+        "corner": lambda **p: render_view(corner, **corner_view, **p),
+    }
+    for name, render_indirect in views.items():
+        frames = {}
+        for walk in ("wide", "kd"):
+            if walk == "kd":
+                monkeypatch.setenv("VASTRAY_ANYHIT", "kd")
+            frames[walk] = [render_indirect(shading="indirect", sample_index=k) for k in range(3)]
+            monkeypatch.delenv("VASTRAY_ANYHIT", raising=False)
+        for wide, kd in zip(frames["wide"], frames["kd"], strict=True):
+            assert wide.stats.secondary_rays == kd.stats.secondary_rays > 0, name
+            np.testing.assert_array_equal(wide.prim, kd.prim, name)
+            np.testing.assert_array_equal(wide.image, kd.image, name)
+            assert wide.stats.node_visits < kd.stats.node_visits, name
+        # Other samples, other diffuse rays: the comparison covered more than one set.
+        assert not np.array_equal(frames["wide"][0].image, frames["wide"][1].image), name
+
+
 def test_the_wide_bvh_is_built_once_when_threads_first_need_it_together() -> None:
     """The any-hit BVH is built on first use: batch queries and sun frames that start at
     once on a fresh scene, from several threads, wait for the one build and all answer as

@@ -241,7 +241,7 @@ PYBIND11_MODULE(native, m) {
         })
         .def_property_readonly("build_stats", &build_stats)
         .def("any_hit_stats", &any_hit_stats,
-             "Builds the scene's 8-wide BVH for any-hit rays (occluded, AO and sun shading) if "
+             "Builds the scene's 8-wide BVH for secondary rays (occluded; AO, sun and indirect shading) if "
              "not yet built; its nodes, leaves, depth, build time and bytes")
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,

@@ -37,7 +37,7 @@ public:
     Vec3d world_lo() const { return centre_ + Vec3d(tree_.bounds.lo); }
     Vec3d world_hi() const { return centre_ + Vec3d(tree_.bounds.hi); }
     const KdTree& tree() const { return tree_; }
-    // The 8-wide BVH for any-hit rays (wide_bvh.h), built on first use (not from inside
+    // The 8-wide BVH for secondary rays (wide_bvh.h), built on first use (not from inside
     // a ThreadPool task: the build runs on the pool); null for a scene too large for it.
     const WideBvh* wide_bvh() const;
     const Vec3f* tri_vertices() const { return tri_vertices_.data(); }

@@ -1,9 +1,10 @@
-// An 8-wide bounding-volume hierarchy over the in-core triangles, for any-hit rays.
+// An 8-wide bounding-volume hierarchy over the in-core triangles, for secondary rays (any
+// hit, and the indirect mode's diffuse rays, closest hit).
 //
 // The kd-tree decides one plane per step, so a ray's walk is a chain of ~25 dependent
 // node loads before its first leaf; a node of this tree tests a ray against 8 child
 // boxes at once (one AVX compare, two SSE ones), about 3 levels of the kd-tree per load.
-// That is how Embree answers incoherent occlusion rays (its BVH8), and the AO and shadow
+// That is how Embree answers incoherent rays (its BVH8), and the AO, shadow and diffuse
 // rays of the in-core scene are where the kd-tree lagged it most.
 #pragma once
 

@@ -1,7 +1,7 @@
-// Any-hit rays through the 8-wide BVH (wide_bvh.h): one node load tests the ray against
+// Secondary rays through the 8-wide BVH (wide_bvh.h): one node load tests the ray against
 // eight child boxes, hit children go on a stack, leaves are tested with the same
 // watertight triangle test as the kd-tree walk, so the answer (is there a triangle in
-// [tmin, tmax)?) is the kd-tree's.
+// [tmin, tmax)? which is the nearest?) is the kd-tree's.
 #pragma once
 
 #include <cmath>
@@ -54,7 +54,9 @@ struct WideBoxTest {
     // (plane - o) * (1/d) is below 2 eps of it, the slack 8 eps); scaling 1/d does that
     // once per ray (Ize's robust traversal). A negative distance keeps its sign and,
     // entering, is clamped to tmin >= 0 anyway.
-    [[gnu::always_inline]] unsigned hits(const WideNode& node) const {
+    // `entries`, if given, gets each child's entry distance (closest-hit walks take the
+    // nearest first).
+    [[gnu::always_inline]] unsigned hits(const WideNode& node, float* entries = nullptr) const {
         constexpr int W = simd::kWidth;
         const float* base = node.lo_x;
         unsigned bits = 0;
@@ -70,6 +72,7 @@ struct WideBoxTest {
             // plane distances go first, so a NaN one leaves the segment as it was.
             const vf tn = max(nx, max(ny, max(nz, tmin)));
             const vf tf = min(fx, min(fy, min(fz, tmax)));
+            if (entries != nullptr) tn.store(entries + off);
             bits |= static_cast<unsigned>((tn <= tf).bits()) << off;
         }
         return bits;
@@ -101,45 +104,64 @@ struct QuadRay {
     }
 };
 
-// Whether one of the first `count` triangles of `quad` other than `skip` lies on the ray
-// in [tmin, tmax). Each lane does intersect_triangle's float operations in its order
-// (the kernels do not contract them into FMAs), so its answer is the scalar test's; a
-// lane with an edge function exactly zero goes to the scalar test, which decides it in
-// double.
-[[gnu::always_inline]] inline bool quad_hit(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
-                                            const Ray& ray, const ShearedRay& sheared, std::uint32_t skip) {
+// The float part of intersect_triangle for the four triangles of a quad at once: each lane
+// does its float operations in its order (the kernels do not contract them into FMAs), so
+// a lane's values are the scalar test's. `in`: the lanes whose hit lies in [tmin, tmax);
+// `exact`: the lanes with an edge function exactly zero, which only the scalar test
+// decides (in double).
+struct QuadTest {
     using vf = QuadRay::vf;
-    // (A lambda here was not inlined.)
-    const auto edge = [&](int k, vf& x, vf& y, vf& z) __attribute__((always_inline)) {
-        z = vf::load(quad.v[k][r.kz]) - r.org[2];
-        x = (vf::load(quad.v[k][r.kx]) - r.org[0]) - r.sx * z;
-        y = (vf::load(quad.v[k][r.ky]) - r.org[1]) - r.sy * z;
-    };
-    vf ax, ay, az, bx, by, bz, cx, cy, cz;
-    edge(0, ax, ay, az);
-    edge(1, bx, by, bz);
-    edge(2, cx, cy, cz);
-    const vf u = cx * by - cy * bx;
-    const vf v = ax * cy - ay * cx;
-    const vf w = bx * ay - by * ax;
+    vf u, v, w, det, t_scaled, ts, abs_det, inv_det, t;
+    unsigned in = 0, exact = 0;
+
+    [[gnu::always_inline]] QuadTest(const WideQuad& quad, const QuadRay& r, vf tmax) {
+        // (A lambda here was not inlined.)
+        const auto edge = [&](int k, vf& x, vf& y, vf& z) __attribute__((always_inline)) {
+            z = vf::load(quad.v[k][r.kz]) - r.org[2];
+            x = (vf::load(quad.v[k][r.kx]) - r.org[0]) - r.sx * z;
+            y = (vf::load(quad.v[k][r.ky]) - r.org[1]) - r.sy * z;
+        };
+        vf ax, ay, az, bx, by, bz, cx, cy, cz;
+        edge(0, ax, ay, az);
+        edge(1, bx, by, bz);
+        edge(2, cx, cy, cz);
+        u = cx * by - cy * bx;
+        v = ax * cy - ay * cx;
+        w = bx * ay - by * ax;
+        const vf zero = vf::broadcast(0.0f);
+        exact = static_cast<unsigned>(((u == zero) | (v == zero) | (w == zero)).bits());
+        const auto negative = (u < zero) | (v < zero) | (w < zero);
+        const auto positive = (u > zero) | (v > zero) | (w > zero);
+        det = u + v + w;
+        t_scaled = u * (r.sz * az) + v * (r.sz * bz) + w * (r.sz * cz);
+        // t_scaled * sign(det) and |det|, compared without dividing, then t itself.
+        ts = t_scaled ^ simd::sign_bits(det);
+        abs_det = simd::abs(det);
+        inv_det = vf::broadcast(1.0f) / det;
+        t = t_scaled * inv_det;
+        in = static_cast<unsigned>((andnot(negative & positive, det != zero) &
+                                    andnot(ts < r.tmin * abs_det, ts < tmax * abs_det) & andnot(t < r.tmin, t < tmax))
+                                       .bits());
+    }
+};
+
+// The first `count` lanes of a quad, less those whose triangle is `skip`.
+[[gnu::always_inline]] inline unsigned quad_lanes(const WideQuad& quad, std::uint32_t count, std::uint32_t skip) {
     unsigned lanes = (1u << count) - 1;
     for (int lane = 0; lane < WideQuad::kLanes; ++lane) {
         if (quad.prim[lane] == skip) lanes &= ~(1u << lane);
     }
-    const vf zero = vf::broadcast(0.0f);
-    const unsigned exact = static_cast<unsigned>(((u == zero) | (v == zero) | (w == zero)).bits()) & lanes;
-    const auto negative = (u < zero) | (v < zero) | (w < zero);
-    const auto positive = (u > zero) | (v > zero) | (w > zero);
-    const vf det = u + v + w;
-    const vf t_scaled = u * (r.sz * az) + v * (r.sz * bz) + w * (r.sz * cz);
-    // t_scaled * sign(det) and |det|, compared without dividing, then t itself.
-    const vf ts = t_scaled ^ simd::sign_bits(det);
-    const vf abs_det = simd::abs(det);
-    const vf t = t_scaled * (vf::broadcast(1.0f) / det);
-    const auto in = andnot(negative & positive, det != zero) & andnot(ts < r.tmin * abs_det, ts < r.tmax * abs_det) &
-                    andnot(t < r.tmin, t < r.tmax);
-    if ((static_cast<unsigned>(in.bits()) & lanes & ~exact) != 0) return true;
-    for (unsigned e = exact; e != 0; e &= e - 1) {
+    return lanes;
+}
+
+// Whether one of the first `count` triangles of `quad` other than `skip` lies on the ray
+// in [tmin, tmax): the scalar test's answer.
+[[gnu::always_inline]] inline bool quad_hit(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
+                                            const Ray& ray, const ShearedRay& sheared, std::uint32_t skip) {
+    const unsigned lanes = quad_lanes(quad, count, skip);
+    const QuadTest q(quad, r, r.tmax);
+    if ((q.in & lanes & ~q.exact) != 0) return true;
+    for (unsigned e = q.exact & lanes; e != 0; e &= e - 1) {
         const int lane = __builtin_ctz(e);
         Hit hit;
         hit.t = ray.tmax;
@@ -148,6 +170,45 @@ struct QuadRay {
         }
     }
     return false;
+}
+
+// The nearest of the first `count` triangles of `quad` other than `skip` in [tmin, hit.t),
+// as intersect_triangle tests them one after the other in lane order: `hit` gets it (t, u,
+// v and prim); false if there is none.
+[[gnu::always_inline]] inline bool quad_closest(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
+                                                const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
+                                                Hit& hit) {
+    using vf = QuadRay::vf;
+    const unsigned lanes = quad_lanes(quad, count, skip);
+    const QuadTest q(quad, r, vf::broadcast(hit.t));
+    unsigned candidates = ((q.in & ~q.exact) | q.exact) & lanes;
+    if (candidates == 0) return false;
+    alignas(16) float t[WideQuad::kLanes], ts[WideQuad::kLanes], abs_det[WideQuad::kLanes], u[WideQuad::kLanes],
+        v[WideQuad::kLanes];
+    q.t.store(t);
+    q.ts.store(ts);
+    q.abs_det.store(abs_det);
+    (q.v * q.inv_det).store(u);
+    (q.w * q.inv_det).store(v);
+    bool found = false;
+    for (; candidates != 0; candidates &= candidates - 1) {
+        const int lane = __builtin_ctz(candidates);
+        if (q.exact >> lane & 1u) {
+            if (intersect_triangle(ray, sheared, quad.corner(lane, 0), quad.corner(lane, 1), quad.corner(lane, 2),
+                                   hit)) {
+                hit.prim = quad.prim[lane];
+                found = true;
+            }
+        } else if (ts[lane] < hit.t * abs_det[lane] && t[lane] < hit.t) {
+            // (A lane before it may have moved hit.t since `in` was computed.)
+            hit.t = t[lane];
+            hit.u = u[lane];
+            hit.v = v[lane];
+            hit.prim = quad.prim[lane];
+            found = true;
+        }
+    }
+    return found;
 }
 
 // Whether a triangle of the leaf `code` other than `skip` lies on the ray in [tmin, tmax).
@@ -272,6 +333,78 @@ inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters&
     counters.node_visits += node_visits;
     counters.triangle_tests += triangle_tests;
     return occluded;
+}
+
+// The closest triangle (other than `skip`) in [ray.tmin, ray.tmax): the indirect mode's
+// diffuse rays, which start anywhere on the model in any direction. One walk to its end,
+// its state in registers; a node's hit children are taken nearest first (the others go on
+// the stack farthest first, with their entry distances), a hit shortens the box tests, and
+// a popped child that starts beyond the hit is skipped. The answer is the kd-tree walk's
+// up to the order of ties: each leaf answers as intersect_triangle one triangle after the
+// other, but the two trees hold the triangles in other orders, so of two triangles hit at
+// exactly the same t either may be reported.
+inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, TraversalCounters& counters,
+                         std::uint32_t skip = kNoHit) {
+    WideBoxTest test(ray);
+    hit.t = ray.tmax;
+    hit.prim = kNoHit;
+    ShearedRay sheared;
+    QuadRay quad_ray;
+    bool sheared_set = false;
+    struct Entry {
+        std::uint32_t code;
+        float t;  // where the ray enters the child's box
+    };
+    Entry stack[kWideStack];
+    int top = 0;
+    std::uint32_t cur = 0;
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    for (;;) {
+        if (!WideNode::is_leaf(cur)) {
+            ++node_visits;
+            const WideNode& node = bvh.nodes[cur];
+            alignas(32) float entry[WideNode::kWidth];
+            unsigned bits = test.hits(node, entry);
+            if (bits != 0) {
+                if ((bits & (bits - 1)) == 0) {
+                    cur = node.child[__builtin_ctz(bits)];
+                    continue;
+                }
+                // Insertion into the stack's top, farthest first; the nearest is popped at once.
+                const int first = top;
+                for (; bits != 0; bits &= bits - 1) {
+                    const int k = __builtin_ctz(bits);
+                    const Entry e{node.child[k], entry[k]};
+                    int j = top++;
+                    for (; j > first && stack[j - 1].t < e.t; --j) stack[j] = stack[j - 1];
+                    stack[j] = e;
+                }
+                cur = stack[--top].code;
+                continue;
+            }
+        } else {
+            if (!sheared_set) {
+                sheared = ShearedRay(ray.dir);
+                quad_ray = QuadRay(ray, sheared);
+                sheared_set = true;
+            }
+            const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(cur);
+            std::uint32_t count = WideNode::leaf_count(cur);
+            triangle_tests += count;
+            bool found = false;
+            for (;; ++quad, count -= WideQuad::kLanes) {
+                const std::uint32_t n = count < WideQuad::kLanes ? count : WideQuad::kLanes;
+                found |= quad_closest(*quad, n, quad_ray, ray, sheared, skip, hit);
+                if (count <= WideQuad::kLanes) break;
+            }
+            if (found) test.tmax = WideBoxTest::vf::broadcast(hit.t);
+        }
+        while (top > 0 && stack[top - 1].t > hit.t) --top;
+        if (top == 0) break;
+        cur = stack[--top].code;
+    }
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
 }
 
 // Any hits of `count` rays, G walks in flight: ray_of(i, ray, skip) sets ray i and the
