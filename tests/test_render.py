@@ -449,8 +449,9 @@ def test_diffuse_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
     direction) walk the wide BVH as the frame's shadow rays do, nearest child first. Its
     frames equal the kd-tree's (VASTRAY_ANYHIT=kd) pixel for pixel: on the plant's thin
     pipes at all angles and on the corner scene, whose walls meet at right angles (rays
-    that leave one wall hit the other). The node visits drop, as they should with eight
-    boxes a step; the primary rays, on the kd-tree either way, are the same."""
+    that leave one wall hit the other), with walks one after the other and in flight (as
+    on a large tree). The node visits drop, as they should with eight boxes a step; the
+    primary rays, on the kd-tree either way, are the same."""
     from vastray.camera import frame_bounds
 
     corner = scene_data[0]
@@ -481,6 +482,12 @@ def test_diffuse_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
             assert wide.stats.node_visits < kd.stats.node_visits, name
         # Other samples, other diffuse rays: the comparison covered more than one set.
         assert not np.array_equal(frames["wide"][0].image, frames["wide"][1].image), name
+        # Walks in flight (as on a large tree) answer as walks one after the other.
+        monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", "0")
+        in_flight = render_indirect(shading="indirect", sample_index=0)
+        monkeypatch.delenv("VASTRAY_INTERLEAVE_BYTES")
+        np.testing.assert_array_equal(in_flight.prim, frames["wide"][0].prim, name)
+        np.testing.assert_array_equal(in_flight.image, frames["wide"][0].image, name)
 
 
 def test_the_wide_bvh_is_built_once_when_threads_first_need_it_together() -> None:

@@ -335,14 +335,70 @@ inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters&
     return occluded;
 }
 
+// A closest-hit walk's stack entry: a child and where the ray enters its box.
+struct WideEntry {
+    std::uint32_t code;
+    float t;
+};
+
+// A closest-hit walk's node step: the node's hit children nearest first, the nearest
+// becoming `cur` and the others pushed farthest first (an insertion into the stack's
+// top), so pops take them in order. False: no child was hit.
+[[gnu::always_inline]] inline bool wide_descend_nearest(const WideNode& node, const WideBoxTest& test,
+                                                        std::uint32_t& cur, WideEntry* stack, int& top) {
+    alignas(32) float entry[WideNode::kWidth];
+    unsigned bits = test.hits(node, entry);
+    if (bits == 0) return false;
+    if ((bits & (bits - 1)) == 0) {
+        cur = node.child[__builtin_ctz(bits)];
+        return true;
+    }
+    const int first = top;
+    for (; bits != 0; bits &= bits - 1) {
+        const int k = __builtin_ctz(bits);
+        const WideEntry e{node.child[k], entry[k]};
+        int j = top++;
+        for (; j > first && stack[j - 1].t < e.t; --j) stack[j] = stack[j - 1];
+        stack[j] = e;
+    }
+    cur = stack[--top].code;
+    return true;
+}
+
+// A leaf's quads in order for a closest hit; on a nearer hit the box test's segment ends
+// there, so boxes beyond it are no longer entered.
+[[gnu::always_inline]] inline void wide_leaf_closest(const WideBvh& bvh, std::uint32_t code, const QuadRay& r,
+                                                     const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
+                                                     Hit& hit, WideBoxTest& test, std::uint64_t& triangle_tests) {
+    const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(code);
+    std::uint32_t count = WideNode::leaf_count(code);
+    triangle_tests += count;
+    bool found = false;
+    for (;; ++quad, count -= WideQuad::kLanes) {
+        const std::uint32_t n = count < WideQuad::kLanes ? count : WideQuad::kLanes;
+        found |= quad_closest(*quad, n, r, ray, sheared, skip, hit);
+        if (count <= WideQuad::kLanes) break;
+    }
+    if (found) test.tmax = WideBoxTest::vf::broadcast(hit.t);
+}
+
+// The next child to visit: the top entry that starts before the hit; false when none is
+// left.
+[[gnu::always_inline]] inline bool wide_pop_nearer(const WideEntry* stack, int& top, float hit_t,
+                                                   std::uint32_t& cur) {
+    while (top > 0 && stack[top - 1].t > hit_t) --top;
+    if (top == 0) return false;
+    cur = stack[--top].code;
+    return true;
+}
+
 // The closest triangle (other than `skip`) in [ray.tmin, ray.tmax): the indirect mode's
 // diffuse rays, which start anywhere on the model in any direction. One walk to its end,
-// its state in registers; a node's hit children are taken nearest first (the others go on
-// the stack farthest first, with their entry distances), a hit shortens the box tests, and
-// a popped child that starts beyond the hit is skipped. The answer is the kd-tree walk's
-// up to the order of ties: each leaf answers as intersect_triangle one triangle after the
-// other, but the two trees hold the triangles in other orders, so of two triangles hit at
-// exactly the same t either may be reported.
+// its state in registers; a node's hit children are taken nearest first, a hit shortens
+// the box tests, and a popped child that starts beyond the hit is skipped. The answer is
+// the kd-tree walk's up to the order of ties: each leaf answers as intersect_triangle one
+// triangle after the other, but the two trees hold the triangles in other orders, so of
+// two triangles hit at exactly the same t either may be reported.
 inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, TraversalCounters& counters,
                          std::uint32_t skip = kNoHit) {
     WideBoxTest test(ray);
@@ -351,58 +407,93 @@ inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, Traversal
     ShearedRay sheared;
     QuadRay quad_ray;
     bool sheared_set = false;
-    struct Entry {
-        std::uint32_t code;
-        float t;  // where the ray enters the child's box
-    };
-    Entry stack[kWideStack];
+    WideEntry stack[kWideStack];
     int top = 0;
     std::uint32_t cur = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0;
     for (;;) {
         if (!WideNode::is_leaf(cur)) {
             ++node_visits;
-            const WideNode& node = bvh.nodes[cur];
-            alignas(32) float entry[WideNode::kWidth];
-            unsigned bits = test.hits(node, entry);
-            if (bits != 0) {
-                if ((bits & (bits - 1)) == 0) {
-                    cur = node.child[__builtin_ctz(bits)];
-                    continue;
-                }
-                // Insertion into the stack's top, farthest first; the nearest is popped at once.
-                const int first = top;
-                for (; bits != 0; bits &= bits - 1) {
-                    const int k = __builtin_ctz(bits);
-                    const Entry e{node.child[k], entry[k]};
-                    int j = top++;
-                    for (; j > first && stack[j - 1].t < e.t; --j) stack[j] = stack[j - 1];
-                    stack[j] = e;
-                }
-                cur = stack[--top].code;
-                continue;
-            }
+            if (wide_descend_nearest(bvh.nodes[cur], test, cur, stack, top)) continue;
         } else {
             if (!sheared_set) {
                 sheared = ShearedRay(ray.dir);
                 quad_ray = QuadRay(ray, sheared);
                 sheared_set = true;
             }
-            const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(cur);
-            std::uint32_t count = WideNode::leaf_count(cur);
-            triangle_tests += count;
-            bool found = false;
-            for (;; ++quad, count -= WideQuad::kLanes) {
-                const std::uint32_t n = count < WideQuad::kLanes ? count : WideQuad::kLanes;
-                found |= quad_closest(*quad, n, quad_ray, ray, sheared, skip, hit);
-                if (count <= WideQuad::kLanes) break;
-            }
-            if (found) test.tmax = WideBoxTest::vf::broadcast(hit.t);
+            wide_leaf_closest(bvh, cur, quad_ray, ray, sheared, skip, hit, test, triangle_tests);
         }
-        while (top > 0 && stack[top - 1].t > hit.t) --top;
-        if (top == 0) break;
-        cur = stack[--top].code;
+        if (!wide_pop_nearer(stack, top, hit.t, cur)) break;
     }
+    counters.node_visits += node_visits;
+    counters.triangle_tests += triangle_tests;
+}
+
+// closest_wide as a walk resumable at each node or leaf it is about to load (WideWalk's
+// way), for walks in flight on a large tree.
+struct WideClosestWalk {
+    Ray ray;
+    WideBoxTest test;
+    ShearedRay sheared;
+    QuadRay quad_ray;
+    Hit* hit = nullptr;
+    std::uint32_t skip = kNoHit;
+    std::uint32_t cur = 0;
+    int top = 0;
+    WideEntry stack[kWideStack];
+
+    void start(const Ray& ray_in, Hit& hit_out, std::uint32_t skip_prim) {
+        ray = ray_in;
+        test = WideBoxTest(ray_in);
+        sheared = ShearedRay(ray_in.dir);
+        quad_ray = QuadRay(ray_in, sheared);
+        hit = &hit_out;
+        hit->t = ray_in.tmax;
+        hit->prim = kNoHit;
+        skip = skip_prim;
+        cur = 0;
+        top = 0;
+    }
+
+    // Visits `cur`; true when the walk is over (*hit is its answer).
+    bool step(const WideBvh& bvh, std::uint64_t& node_visits, std::uint64_t& triangle_tests) {
+        if (WideNode::is_leaf(cur)) {
+            wide_leaf_closest(bvh, cur, quad_ray, ray, sheared, skip, *hit, test, triangle_tests);
+        } else {
+            ++node_visits;
+            if (wide_descend_nearest(bvh.nodes[cur], test, cur, stack, top)) {
+                WideWalk::prefetch(bvh, cur);
+                return false;
+            }
+        }
+        if (!wide_pop_nearer(stack, top, hit->t, cur)) return true;
+        WideWalk::prefetch(bvh, cur);
+        return false;
+    }
+};
+
+// Closest hits of `count` rays, G walks in flight: ray_of(i, ray, skip) sets ray i and
+// the triangle it must not report (false: no ray), hit_of(i) is where its hit goes. The
+// answers are closest_wide's.
+template <int G, typename RayOf, typename HitOf>
+inline void closest_wide_in_flight(const WideBvh& bvh, std::size_t count, RayOf&& ray_of, HitOf&& hit_of,
+                                   TraversalCounters& counters) {
+    WideClosestWalk walks[G];
+    std::size_t next = 0;
+    std::uint64_t node_visits = 0, triangle_tests = 0;
+    walks_in_flight<G>(
+        [&](int g) {
+            Ray ray;
+            std::uint32_t skip = kNoHit;
+            for (; next < count; ++next) {
+                if (!ray_of(next, ray, skip)) continue;
+                walks[g].start(ray, hit_of(next), skip);
+                ++next;
+                return true;
+            }
+            return false;
+        },
+        [&](int g) { return walks[g].step(bvh, node_visits, triangle_tests); });
     counters.node_visits += node_visits;
     counters.triangle_tests += triangle_tests;
 }
