@@ -472,6 +472,21 @@ struct WideClosestWalk {
     }
 };
 
+// Walks in flight take their rays in order: starts the next ray that ray_of(i, ray, skip)
+// gives from `next` on with start(i, ray, skip); false when none is left.
+template <typename RayOf, typename Start>
+[[gnu::always_inline]] inline bool start_next_ray(std::size_t& next, std::size_t count, RayOf& ray_of,
+                                                  Start&& start) {
+    Ray ray;
+    std::uint32_t skip = kNoHit;
+    for (; next < count; ++next) {
+        if (!ray_of(next, ray, skip)) continue;
+        start(next++, ray, skip);
+        return true;
+    }
+    return false;
+}
+
 // Closest hits of `count` rays, G walks in flight: ray_of(i, ray, skip) sets ray i and
 // the triangle it must not report (false: no ray), hit_of(i) is where its hit goes. The
 // answers are closest_wide's.
@@ -483,15 +498,9 @@ inline void closest_wide_in_flight(const WideBvh& bvh, std::size_t count, RayOf&
     std::uint64_t node_visits = 0, triangle_tests = 0;
     walks_in_flight<G>(
         [&](int g) {
-            Ray ray;
-            std::uint32_t skip = kNoHit;
-            for (; next < count; ++next) {
-                if (!ray_of(next, ray, skip)) continue;
-                walks[g].start(ray, hit_of(next), skip);
-                ++next;
-                return true;
-            }
-            return false;
+            return start_next_ray(next, count, ray_of, [&](std::size_t i, const Ray& ray, std::uint32_t skip) {
+                walks[g].start(ray, hit_of(i), skip);
+            });
         },
         [&](int g) { return walks[g].step(bvh, node_visits, triangle_tests); });
     counters.node_visits += node_visits;
@@ -510,15 +519,10 @@ inline void occluded_wide_in_flight(const WideBvh& bvh, std::size_t count, RayOf
     std::uint64_t node_visits = 0, triangle_tests = 0;
     walks_in_flight<G>(
         [&](int g) {
-            Ray ray;
-            std::uint32_t skip = kNoHit;
-            for (; next < count; ++next) {
-                if (!ray_of(next, ray, skip)) continue;
+            return start_next_ray(next, count, ray_of, [&](std::size_t i, const Ray& ray, std::uint32_t skip) {
                 walks[g].start(ray, skip);
-                id[g] = next++;
-                return true;
-            }
-            return false;
+                id[g] = i;
+            });
         },
         [&](int g) {
             if (!walks[g].step(bvh, node_visits, triangle_tests)) return false;
