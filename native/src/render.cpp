@@ -39,11 +39,12 @@ void trace_coherent_packets(const Scene& scene, bool interleave, const Ray* cons
 // AO packets in flight on a large tree: 8 measured 1.32x one at a time, 4 1.27x (10^7 plant).
 constexpr int kOcclusionInFlight = 8;
 
-// Any-hit walks of the wide BVH in flight on a large tree (interleave.h): on the 10^7
+// Walks of the wide BVH in flight on a large tree (interleave.h), any-hit and closest-hit
+// (the diffuse rays: 1.04-1.10x one at a time on 10^7 indirect frames). On the 10^7
 // plant's AO rays (a 650 MB tree) 8 ran 1.22x one at a time and 4 1.07x; at 10^6 (63 MB)
 // 8 ran 0.98x, at 10^5 0.85x. With the 4-triangle leaves 16 ran 1.09x of 8 (AO and
 // shadow rays, 12 between them; frames 1.00-1.14x; docs/native-core.md, "The wide BVH
-// for any-hit rays").
+// for secondary rays").
 constexpr int kWideInFlight = 16;
 
 // Any hits of `count` rays through the wide BVH (occluded_wide_in_flight's ray_of and
