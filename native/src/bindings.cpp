@@ -4,6 +4,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <cmath>
 #include <cstring>
 #include <memory>
 #include <stdexcept>
@@ -11,6 +12,7 @@
 
 #include "bindings_common.h"
 #include "vastray/format.h"
+#include "vastray/kernels.h"
 #include "vastray/lz4.h"
 #include "vastray/render.h"
 #include "vastray/scene.h"
@@ -169,6 +171,31 @@ py::tuple render_frame(const Scene& s, const Camera& camera, const RenderParams&
     return bindings::frame_tuple(std::move(f));
 }
 
+using FloatArray = py::array_t<float, py::array::c_style | py::array::forcecast>;
+
+// The indirect mode's edge-aware filter on given light and guides, through the running
+// path's kernels (a test hook: the renderer filters its own buffers).
+py::array_t<float> filter_light(FloatArray light, FloatArray depth, FloatArray normal, float pixel_angle,
+                                unsigned threads) {
+    if (depth.ndim() != 2) throw std::invalid_argument("depth must be a (height, width) array");
+    const py::ssize_t h = depth.shape(0), w = depth.shape(1);
+    const auto is_image = [&](const FloatArray& a) {
+        return a.ndim() == 3 && a.shape(0) == h && a.shape(1) == w && a.shape(2) == 3;
+    };
+    if (!is_image(light) || !is_image(normal)) {
+        throw std::invalid_argument("light and normal must be (height, width, 3) arrays, as depth is (height, width)");
+    }
+    if (!(pixel_angle > 0) || !std::isfinite(pixel_angle)) throw std::invalid_argument("pixel_angle must be > 0");
+    py::array_t<float> out({h, w, py::ssize_t{3}});
+    std::memcpy(out.mutable_data(), light.data(), static_cast<std::size_t>(light.size()) * sizeof(float));
+    {
+        py::gil_scoped_release release;
+        kernels().denoise_light(out.mutable_data(), depth.data(), normal.data(), static_cast<int>(w),
+                                static_cast<int>(h), pixel_angle, threads);
+    }
+    return out;
+}
+
 py::dict reference(DoubleArray vertices, UIntArray faces, DoubleArray origins, DoubleArray directions,
                    py::object tmin, py::object tmax, unsigned threads, bool cull) {
     require_shape(vertices, 3, "vertices");
@@ -317,4 +344,8 @@ PYBIND11_MODULE(native, m) {
           py::arg("directions"), py::arg("tmin") = 0.0, py::arg("tmax") = std::numeric_limits<double>::infinity(),
           py::arg("threads") = 0u, py::arg("cull") = true,
           "Brute-force double-precision closest hits (test reference): t, t_second, prim, u, v");
+    m.def("denoise_light", &filter_light, py::arg("light"), py::arg("depth"), py::arg("normal"),
+          py::arg("pixel_angle"), py::arg("threads") = 0u,
+          "The indirect mode's edge-aware filter (test hook): light (h, w, 3) filtered under the guides "
+          "depth (h, w; inf where nothing was hit) and unit normals (h, w, 3)");
 }

@@ -5,7 +5,7 @@ namespace vastray {
 
 namespace {
 constexpr KernelTable kTable = {static_cast<Isa>(VASTRAY_ISA_LEVEL), &render_scene, &render_model,
-                                &intersect_model, &intersect_scene, &occluded_scene};
+                                &intersect_model, &intersect_scene, &occluded_scene, &denoise_light};
 }  // namespace
 
 #if VASTRAY_ISA_LEVEL == VASTRAY_ISA_AVX2

@@ -337,6 +337,20 @@ bool same_vector(const double* v, std::size_t i, std::size_t j) {
 
 }  // namespace
 
+void denoise_light(float* light, const float* depth, const float* normal, int width, int height, float pixel_angle,
+                   unsigned threads) {
+    denoise::Guides guides;
+    guides.width = width;
+    guides.height = height;
+    guides.depth = depth;
+    guides.normal = normal;
+    guides.pixel_angle = pixel_angle;
+    const std::size_t size = 3 * static_cast<std::size_t>(width) * static_cast<std::size_t>(height);
+    std::vector<float> values(light, light + size);
+    denoise::filter(guides, values, threads);
+    std::copy(values.begin(), values.end(), light);
+}
+
 Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams& params) {
     camera.validate();
     params.validate();

@@ -27,6 +27,8 @@ struct KernelTable {
     std::vector<std::uint8_t> (*occluded_scene)(const Scene&, const double* origins, const double* directions,
                                                 const double* tmin, const double* tmax, std::size_t n,
                                                 unsigned threads);
+    void (*denoise_light)(float* light, const float* depth, const float* normal, int width, int height,
+                          float pixel_angle, unsigned threads);
 };
 
 // One table per ISA build (kernels.cpp); the AVX ones exist only where the compiler
@@ -52,4 +54,8 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
                             const std::vector<SectionPlane>& sections);
 std::vector<std::uint8_t> occluded_scene(const Scene& scene, const double* origins, const double* directions,
                                          const double* tmin, const double* tmax, std::size_t n, unsigned threads);
+// The indirect mode's edge-aware filter (denoise.h) on `light` (3 floats a pixel, in place),
+// guided by depth (inf: no hit) and unit normals (3 floats a pixel): for tests.
+void denoise_light(float* light, const float* depth, const float* normal, int width, int height, float pixel_angle,
+                   unsigned threads);
 VASTRAY_KERNEL_END
