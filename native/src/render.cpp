@@ -63,6 +63,22 @@ void occluded_wide_rays(const WideBvh& bvh, bool interleave, std::size_t count, 
     }
 }
 
+// Closest hits of `count` rays through the wide BVH (closest_wide_in_flight's ray_of and
+// hit_of), as occluded_wide_rays goes: in flight on a large tree, else one after the other.
+template <typename RayOf, typename HitOf>
+void closest_wide_rays(const WideBvh& bvh, bool interleave, std::size_t count, RayOf&& ray_of, HitOf&& hit_of,
+                       TraversalCounters& counters) {
+    if (interleave) {
+        closest_wide_in_flight<kWideInFlight>(bvh, count, ray_of, hit_of, counters);
+        return;
+    }
+    for (std::size_t i = 0; i < count; ++i) {
+        Ray ray;
+        std::uint32_t skip = kNoHit;
+        if (ray_of(i, ray, skip)) closest_wide(bvh, ray, hit_of(i), counters, skip);
+    }
+}
+
 // The structure secondary rays walk (any-hit rays, and the indirect mode's diffuse rays):
 // the scene's wide BVH, or null for the kd-tree (VASTRAY_ANYHIT=kd, for comparisons, or a
 // scene too large for the wide BVH).
@@ -267,22 +283,15 @@ public:
     template <int N>
     void trace_secondary(Lane& lane, const Secondary* rays, Hit* hits, std::uint32_t mask) const {
         if (wide_ != nullptr) {
-            if (wide_interleave_) {
-                closest_wide_in_flight<kWideInFlight>(
-                    *wide_, N,
-                    [&](std::size_t i, Ray& ray, std::uint32_t& skip) {
-                        if (!(mask >> i & 1u)) return false;
-                        ray = rays[i].ray;
-                        skip = rays[i].skip;
-                        return true;
-                    },
-                    [&](std::size_t i) -> Hit& { return hits[i]; }, lane);
-                return;
-            }
-            for (; mask; mask &= mask - 1) {
-                const int i = __builtin_ctz(mask);
-                closest_wide(*wide_, rays[i].ray, hits[i], lane, rays[i].skip);
-            }
+            closest_wide_rays(
+                *wide_, wide_interleave_, N,
+                [&](std::size_t i, Ray& ray, std::uint32_t& skip) {
+                    if (!(mask >> i & 1u)) return false;
+                    ray = rays[i].ray;
+                    skip = rays[i].skip;
+                    return true;
+                },
+                [&](std::size_t i) -> Hit& { return hits[i]; }, lane);
             return;
         }
         for (; mask; mask &= mask - 1) {

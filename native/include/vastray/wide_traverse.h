@@ -235,10 +235,10 @@ struct QuadTest {
     return true;
 }
 
-// One any-hit walk, resumable at each node or leaf it is about to load, so several can
-// run in turn and each one's next load is on its way while the others work (the kd
-// walks do the same: walks_in_flight). The load it stops before is prefetched.
-struct WideWalk {
+// What a walk resumable at each node or leaf it is about to load keeps of its ray, so
+// several can run in turn and each one's next load is on its way while the others work
+// (the kd walks do the same: walks_in_flight). The load it stops before is prefetched.
+struct WideWalkRay {
     Ray ray;
     WideBoxTest test;
     ShearedRay sheared;
@@ -246,10 +246,8 @@ struct WideWalk {
     std::uint32_t skip = kNoHit;
     std::uint32_t cur = 0;
     int top = 0;
-    bool occluded = false;
-    std::uint32_t stack[kWideStack];
 
-    void start(const Ray& ray_in, std::uint32_t skip_prim = kNoHit) {
+    void begin(const Ray& ray_in, std::uint32_t skip_prim) {
         ray = ray_in;
         test = WideBoxTest(ray_in);
         sheared = ShearedRay(ray_in.dir);
@@ -257,7 +255,6 @@ struct WideWalk {
         skip = skip_prim;
         cur = 0;
         top = 0;
-        occluded = false;
     }
 
     static void prefetch(const WideBvh& bvh, std::uint32_t code) {
@@ -274,6 +271,17 @@ struct WideWalk {
             prefetch_line(n + 128);
             prefetch_line(n + 192);
         }
+    }
+};
+
+// One any-hit walk, resumable (WideWalkRay).
+struct WideWalk : WideWalkRay {
+    bool occluded = false;
+    std::uint32_t stack[kWideStack];
+
+    void start(const Ray& ray_in, std::uint32_t skip_prim = kNoHit) {
+        begin(ray_in, skip_prim);
+        occluded = false;
     }
 
     // Visits `cur`; returns true when the walk is over (occluded says how).
@@ -404,7 +412,7 @@ inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, Traversal
     WideBoxTest test(ray);
     hit.t = ray.tmax;
     hit.prim = kNoHit;
-    ShearedRay sheared;
+    ShearedRay sheared;  // (set at the first leaf, as in occluded_wide)
     QuadRay quad_ray;
     bool sheared_set = false;
     WideEntry stack[kWideStack];
@@ -429,30 +437,16 @@ inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, Traversal
     counters.triangle_tests += triangle_tests;
 }
 
-// closest_wide as a walk resumable at each node or leaf it is about to load (WideWalk's
-// way), for walks in flight on a large tree.
-struct WideClosestWalk {
-    Ray ray;
-    WideBoxTest test;
-    ShearedRay sheared;
-    QuadRay quad_ray;
+// closest_wide as a walk resumable (WideWalkRay), for walks in flight on a large tree.
+struct WideClosestWalk : WideWalkRay {
     Hit* hit = nullptr;
-    std::uint32_t skip = kNoHit;
-    std::uint32_t cur = 0;
-    int top = 0;
     WideEntry stack[kWideStack];
 
     void start(const Ray& ray_in, Hit& hit_out, std::uint32_t skip_prim) {
-        ray = ray_in;
-        test = WideBoxTest(ray_in);
-        sheared = ShearedRay(ray_in.dir);
-        quad_ray = QuadRay(ray_in, sheared);
+        begin(ray_in, skip_prim);
         hit = &hit_out;
         hit->t = ray_in.tmax;
         hit->prim = kNoHit;
-        skip = skip_prim;
-        cur = 0;
-        top = 0;
     }
 
     // Visits `cur`; true when the walk is over (*hit is its answer).
@@ -462,12 +456,12 @@ struct WideClosestWalk {
         } else {
             ++node_visits;
             if (wide_descend_nearest(bvh.nodes[cur], test, cur, stack, top)) {
-                WideWalk::prefetch(bvh, cur);
+                prefetch(bvh, cur);
                 return false;
             }
         }
         if (!wide_pop_nearer(stack, top, hit->t, cur)) return true;
-        WideWalk::prefetch(bvh, cur);
+        prefetch(bvh, cur);
         return false;
     }
 };
