@@ -292,20 +292,23 @@ public:
                     if constexpr (Quantized) e.node = node;  // (its cell; the rest is set below)
                     enter(e.node, !near_is_left, far_off);
                     e.voxel = voxel;
+                    // Segments go in as they are, without clearing the lanes outside the
+                    // child: a lane that is not active has an empty segment (tmin > tmax,
+                    // or it is no longer live), the split keeps it empty in both children,
+                    // and every use of a segment is masked by the active or live lanes.
                     for (int v = 0; v < K; ++v) {
-                        e.tmin[v] = select(seg.far_in[v], seg.far_lo[v], v_inf);
-                        e.tmax[v] = select(seg.far_in[v], seg.far_hi[v], v_neg_inf);
+                        e.tmin[v] = seg.far_lo[v];
+                        e.tmax[v] = seg.far_hi[v];
                         e.axis[v] = select(seg.far_lo[v] > tmin[v], axis_v, axis_in[v]);
                     }
                 }
                 const vf* lo_v = any_near ? seg.near_lo : seg.far_lo;
                 const vf* hi_v = any_near ? seg.near_hi : seg.far_hi;
-                const vm* in_v = any_near ? seg.near_in : seg.far_in;
                 if (!any_near && !any_far) break;
                 for (int v = 0; v < K; ++v) {
                     axis_in[v] = select(lo_v[v] > tmin[v], axis_v, axis_in[v]);
-                    tmin[v] = select(in_v[v], lo_v[v], v_inf);
-                    tmax[v] = select(in_v[v], hi_v[v], v_neg_inf);
+                    tmin[v] = lo_v[v];
+                    tmax[v] = hi_v[v];
                 }
                 enter(node, any_near ? near_is_left : !near_is_left, any_near ? near_off : far_off);
                 if constexpr (Yield) {

@@ -224,8 +224,20 @@ struct PacketSplit {
 
     PacketSplit(float split, bool near_left, bool may_flip, const vf* org, const vf* inv, const vm* dir_negative,
                 const vf* tmin, const vf* tmax, const vm* active) {
+        // Apart from origins on the plane, every lane's first child is the packet's near
+        // one: no lane flips, and the selects that would map flipped lanes are left out.
+        if (may_flip) {
+            compute<true>(split, near_left, org, inv, dir_negative, tmin, tmax, active);
+        } else {
+            compute<false>(split, near_left, org, inv, dir_negative, tmin, tmax, active);
+        }
+    }
+
+private:
+    template <bool MayFlip>
+    void compute(float split, bool near_left, const vf* org, const vf* inv, const vm* dir_negative, const vf* tmin,
+                 const vf* tmax, const vm* active) {
         const vf split_v = vf::broadcast(split);
-        const vm near_left_v = vm::from_bits(near_left ? ~0u : 0u);
         const vf zero = vf::broadcast(0.0f), inf = vf::broadcast(std::numeric_limits<float>::infinity());
         for (int v = 0; v < K; ++v) {
             const vf t_split = (split_v - org[v]) * inv[v];
@@ -235,16 +247,33 @@ struct PacketSplit {
             const vf ts_lo = t_split - slack, ts_hi = t_split + slack;
             const vm nan = t_split != t_split;
             const vm behind = t_split <= zero;
-            const vf first_hi = select(nan | behind, tmax[v], min(ts_hi, tmax[v]));
-            const vf second_lo = select(nan, tmin[v], select(behind, inf, max(ts_lo, tmin[v])));
-            // Lanes whose own first child is the packet's far one: origin across the
-            // plane, or exactly on it with the other direction sign.
-            vm flip = vm::from_bits(0);
-            if (may_flip) flip = ((org[v] < split_v) | ((org[v] == split_v) & dir_negative[v])) ^ near_left_v;
-            near_lo[v] = select(flip, second_lo, tmin[v]);
-            near_hi[v] = select(flip, tmax[v], first_hi);
-            far_lo[v] = select(flip, tmin[v], second_lo);
-            far_hi[v] = select(flip, first_hi, tmax[v]);
+            // With a shared origin off the plane, whether the plane lies ahead depends only
+            // on the direction sign, which a primary packet's lanes share: planes ahead of
+            // every lane (the usual case) need no selects, and the branch predicts well.
+            // (Rays from many origins mix lanes with the plane behind them.)
+            vf first_hi, second_lo;
+            if (!MayFlip && (nan | behind).bits() == 0) {
+                first_hi = min(ts_hi, tmax[v]);
+                second_lo = max(ts_lo, tmin[v]);
+            } else {
+                first_hi = select(nan | behind, tmax[v], min(ts_hi, tmax[v]));
+                second_lo = select(nan, tmin[v], select(behind, inf, max(ts_lo, tmin[v])));
+            }
+            if constexpr (MayFlip) {
+                // Lanes whose own first child is the packet's far one: origin across the
+                // plane, or exactly on it with the other direction sign.
+                const vm near_left_v = vm::from_bits(near_left ? ~0u : 0u);
+                const vm flip = ((org[v] < split_v) | ((org[v] == split_v) & dir_negative[v])) ^ near_left_v;
+                near_lo[v] = select(flip, second_lo, tmin[v]);
+                near_hi[v] = select(flip, tmax[v], first_hi);
+                far_lo[v] = select(flip, tmin[v], second_lo);
+                far_hi[v] = select(flip, first_hi, tmax[v]);
+            } else {
+                near_lo[v] = tmin[v];
+                near_hi[v] = first_hi;
+                far_lo[v] = second_lo;
+                far_hi[v] = tmax[v];
+            }
             near_in[v] = active[v] & (near_lo[v] <= near_hi[v]);
             far_in[v] = active[v] & (far_lo[v] <= far_hi[v]);
             any_near |= near_in[v].bits();
