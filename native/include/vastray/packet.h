@@ -239,23 +239,26 @@ private:
                  const vf* tmax, const vm* active) {
         const vf split_v = vf::broadcast(split);
         const vf zero = vf::broadcast(0.0f), inf = vf::broadcast(std::numeric_limits<float>::infinity());
+        constexpr int kAllLanes = (1 << W) - 1;
         for (int v = 0; v < K; ++v) {
             const vf t_split = (split_v - org[v]) * inv[v];
-            const vf abs_split = abs(t_split);
-            // An infinite t_split (zero direction component) gets no slack: inf - inf is NaN.
-            const vf slack = select(abs_split < inf, abs_split * vf::broadcast(kSplitSlack), zero);
-            const vf ts_lo = t_split - slack, ts_hi = t_split + slack;
-            const vm nan = t_split != t_split;
-            const vm behind = t_split <= zero;
-            // With a shared origin off the plane, whether the plane lies ahead depends only
-            // on the direction sign, which a primary packet's lanes share: planes ahead of
-            // every lane (the usual case) need no selects, and the branch predicts well.
-            // (Rays from many origins mix lanes with the plane behind them.)
             vf first_hi, second_lo;
-            if (!MayFlip && (nan | behind).bits() == 0) {
-                first_hi = min(ts_hi, tmax[v]);
-                second_lo = max(ts_lo, tmin[v]);
+            // With a shared origin off the plane, whether the plane lies ahead depends only
+            // on the direction sign, which a primary packet's lanes share: a plane ahead of
+            // every lane at a finite distance (the usual case) needs none of the selects
+            // below, and the branch predicts well. The arithmetic is theirs for such lanes
+            // (|t_split| = t_split). Rays from many origins mix lanes with the plane behind.
+            if (!MayFlip && ((t_split > zero) & (t_split < inf)).bits() == kAllLanes) {
+                const vf slack = t_split * vf::broadcast(kSplitSlack);
+                first_hi = min(t_split + slack, tmax[v]);
+                second_lo = max(t_split - slack, tmin[v]);
             } else {
+                const vf abs_split = abs(t_split);
+                // An infinite t_split (zero direction component) gets no slack: inf - inf is NaN.
+                const vf slack = select(abs_split < inf, abs_split * vf::broadcast(kSplitSlack), zero);
+                const vf ts_lo = t_split - slack, ts_hi = t_split + slack;
+                const vm nan = t_split != t_split;
+                const vm behind = t_split <= zero;
                 first_hi = select(nan | behind, tmax[v], min(ts_hi, tmax[v]));
                 second_lo = select(nan, tmin[v], select(behind, inf, max(ts_lo, tmin[v])));
             }
