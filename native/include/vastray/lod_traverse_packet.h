@@ -32,19 +32,22 @@ VASTRAY_KERNEL_BEGIN
 enum class LodPacketOrder { SharedOrigin, SharedSigns };
 
 // Primary packets: a shared origin and cone, every direction component non-zero with
-// the same sign across the packet.
+// the same sign across the packet. (Tested for every 4x4 block of a frame: one pass
+// over the rays, without a branch per component.)
 template <int N>
 inline bool lod_packet_is_coherent(const LodRay* rays) {
-    for (int a = 0; a < 3; ++a) {
-        const float d0 = rays[0].ray.dir[a];
-        if (d0 == 0.0f) return false;
-        for (int k = 1; k < N; ++k) {
-            const float d = rays[k].ray.dir[a];
-            if (d == 0.0f || std::signbit(d) != std::signbit(d0) || rays[k].ray.org.x != rays[0].ray.org.x ||
-                rays[k].ray.org.y != rays[0].ray.org.y || rays[k].ray.org.z != rays[0].ray.org.z) return false;
+    const Ray& first = rays[0].ray;
+    std::uint32_t sign[3], zero = 0, differ = 0;
+    for (int a = 0; a < 3; ++a) sign[a] = format::float_bits(first.dir[a]) >> 31;
+    for (int k = 0; k < N; ++k) {
+        const Ray& r = rays[k].ray;
+        for (int a = 0; a < 3; ++a) {
+            zero |= r.dir[a] == 0.0f ? 1u : 0u;
+            differ |= (format::float_bits(r.dir[a]) >> 31) ^ sign[a];
+            differ |= r.org[a] != first.org[a] ? 1u : 0u;
         }
     }
-    return rays[0].cone == rays[N - 1].cone && rays[0].cone_t0 == rays[N - 1].cone_t0;
+    return (zero | differ) == 0 && rays[0].cone == rays[N - 1].cone && rays[0].cone_t0 == rays[N - 1].cone_t0;
 }
 
 namespace lod_detail {
