@@ -305,6 +305,15 @@ struct WideWalk : WideWalkRay {
     }
 };
 
+// The triangle test's constants of a single walk, made at its first leaf (sheared_set
+// says whether they are there yet): many rays leave the tree without reaching one.
+inline void shear_once(const Ray& ray, bool& sheared_set, ShearedRay& sheared, QuadRay& quad_ray) {
+    if (sheared_set) return;
+    sheared = ShearedRay(ray.dir);
+    quad_ray = QuadRay(ray, sheared);
+    sheared_set = true;
+}
+
 // Is there a triangle (other than `skip`) in [ray.tmin, ray.tmax)? One walk to its end,
 // its state in registers; a node's first hit child is walked next without a push.
 inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters& counters,
@@ -325,11 +334,7 @@ inline bool occluded_wide(const WideBvh& bvh, const Ray& ray, TraversalCounters&
             ++node_visits;
             if (wide_descend(bvh.nodes[cur], test, cur, stack, top)) continue;
         } else {
-            if (!sheared_set) {
-                sheared = ShearedRay(ray.dir);
-                quad_ray = QuadRay(ray, sheared);
-                sheared_set = true;
-            }
+            shear_once(ray, sheared_set, sheared, quad_ray);
             if (wide_leaf_hit(bvh, cur, quad_ray, ray, sheared, skip, triangle_tests)) {
                 occluded = true;
                 break;
@@ -424,11 +429,7 @@ inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, Traversal
             ++node_visits;
             if (wide_descend_nearest(bvh.nodes[cur], test, cur, stack, top)) continue;
         } else {
-            if (!sheared_set) {
-                sheared = ShearedRay(ray.dir);
-                quad_ray = QuadRay(ray, sheared);
-                sheared_set = true;
-            }
+            shear_once(ray, sheared_set, sheared, quad_ray);
             wide_leaf_closest(bvh, cur, quad_ray, ray, sheared, skip, hit, test, triangle_tests);
         }
         if (!wide_pop_nearer(stack, top, hit.t, cur)) break;
