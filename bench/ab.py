@@ -29,6 +29,10 @@ Workloads, one thread each (`--threads` for more):
 
 Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
 
+`--isas A,B` compares two of the kernels' ISA paths (isa.h) of the working tree instead
+of two builds: the baseline child runs with VASTRAY_ISA=A, the other with VASTRAY_ISA=B
+(a path must be one this CPU runs, `native.supported_isas()`).
+
 `--images` is for a change that is meant to change the out-of-core images at PoE > 0
 (a LOD metric, say): the builds' answers may then differ, and the table gives each
 build's working set and its image's PSNR and mean absolute error against its own
@@ -36,12 +40,14 @@ full-detail (PoE 0) frame of the same view and mode, whose answers must still ag
 
     python bench/ab.py --baseline HEAD --models stanford-bunny,plant --sizes 1e6
     python bench/ab.py --baseline HEAD --models plant --sizes 1e7 --ooc plant-1e7.vast
+    python bench/ab.py --isas avx2,avx512 --models plant --sizes 1e6 --ooc plant-1e8.vast
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -225,14 +231,18 @@ def child_main(snapshot: str) -> int:
 
 
 class Build:
-    def __init__(self, name: str, snapshot: Path, description: str) -> None:
+    def __init__(self, name: str, snapshot: Path, description: str, isa: str | None = None) -> None:
         self.name, self.description = name, description
         here = str(Path(__file__).resolve())
+        env = dict(os.environ)
+        if isa is not None:
+            env["VASTRAY_ISA"] = isa
         self.proc = subprocess.Popen(
             [sys.executable, here, "--child", str(snapshot)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
+            env=env,
         )
         self.isa = self._read()["isa"]
 
@@ -292,11 +302,17 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [parse_count(s) for s in args.sizes.split(",") if s]
     names = [m for m in args.models.split(",") if m]
     ooc = [str(Path(p).resolve()) for p in args.ooc]
+    isas = [i for i in (args.isas or "").split(",") if i]
+    if args.isas is not None and len(isas) != 2:
+        raise SystemExit(f"--isas takes two paths, baseline first (got {args.isas!r})")
     with tempfile.TemporaryDirectory(prefix="vastray-ab-") as tmp:
         meshes = model_meshes(names, sizes, Path(tmp))
         now_pkg, now_desc = snapshot_vastray()
-        base_pkg, base_desc = build_baseline(args.baseline)
-        builds = [Build("now", now_pkg, now_desc), Build("baseline", base_pkg, base_desc)]
+        if isas:
+            builds = [Build("now", now_pkg, now_desc, isas[1]), Build("baseline", now_pkg, now_desc, isas[0])]
+        else:
+            base_pkg, base_desc = build_baseline(args.baseline)
+            builds = [Build("now", now_pkg, now_desc), Build("baseline", base_pkg, base_desc)]
         try:
             for b in builds:  # one after the other: their scene builds would compete
                 for label, path in meshes:
@@ -353,9 +369,14 @@ def main(argv: list[str] | None = None) -> int:
             columns = (("working_set_mib", ".0f"), ("psnr", ".2f"), ("mae", ".2f"))
             row += [", ".join(f"{q[k]:{fmt}}" for q in pair if q) for k, fmt in columns]
         rows.append(row)
-    info = machine_info({"now": now_desc, "baseline": base_desc, "ISA path (both)": builds[0].isa})
+    if isas:
+        info = machine_info(
+            {"build (both)": now_desc, "ISA path": f"baseline {builds[1].isa}, now {builds[0].isa}"}
+        )
+    else:
+        info = machine_info({"now": now_desc, "baseline": base_desc, "ISA path (both)": builds[0].isa})
     lines = [
-        "# Two builds side by side",
+        "# Two ISA paths side by side" if isas else "# Two builds side by side",
         "",
         f"`{' '.join(['python', 'bench/ab.py', *sys.argv[1:]])}`",
         "",
@@ -389,6 +410,11 @@ def main(argv: list[str] | None = None) -> int:
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--baseline", default="HEAD", help="git revision to compare with (default HEAD)")
+    ap.add_argument(
+        "--isas",
+        default=None,
+        help="compare two ISA paths of the working tree instead (baseline first, e.g. avx2,avx512)",
+    )
     ap.add_argument("--models", default="stanford-bunny,plant", help="mesh stems, plant, mandelbulb")
     ap.add_argument("--sizes", default="1e6", help="procedural triangle counts (default 1e6)")
     ap.add_argument("--workloads", default="batch,ao,frame,ooc", help=f"of {', '.join(WORKLOADS)}")

@@ -424,7 +424,7 @@ def bench_model(
 
 
 def isa_path() -> str:
-    """The ISA path the kernels run on ('sse2', 'avx', 'avx2'; 'sse2 only' before issue 12)."""
+    """The ISA path the kernels run on ('sse2', 'avx', 'avx2', 'avx512'; 'sse2 only' before issue 12)."""
     return native.isa() if hasattr(native, "isa") else "sse2 (no dispatch)"
 
 
@@ -697,7 +697,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--threads", type=int, default=0, help="'all threads' count (default: hardware threads)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-embree", action="store_true", help="vastray only")
-    ap.add_argument("--isa", default=None, help="force the kernels' ISA path (sse2, avx, avx2): VASTRAY_ISA")
+    ap.add_argument(
+        "--isa", default=None, help="force the kernels' ISA path (sse2, avx, avx2, avx512): VASTRAY_ISA"
+    )
     ap.add_argument("--no-pin", action="store_true", help="import vastray.native in place (no private copy)")
     ap.add_argument("--quick", action="store_true", help="smoke run: two small models, 320x240, 2 runs")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR, help="output folder (default bench/results)")

@@ -68,7 +68,7 @@ def run_python(code: str, *args: str, isa: str | None = None) -> subprocess.Comp
 
 def test_paths_are_listed_and_can_be_forced() -> None:
     supported = native.supported_isas()
-    assert supported[0] == "sse2" and set(supported) <= {"sse2", "avx", "avx2"}
+    assert supported[0] == "sse2" and set(supported) <= {"sse2", "avx", "avx2", "avx512"}
     assert native.isa() in supported
     if "VASTRAY_ISA" not in os.environ:
         assert native.isa() == supported[-1], "the best supported path runs by default"
@@ -80,7 +80,7 @@ def test_paths_are_listed_and_can_be_forced() -> None:
         "from vastray import native\ntry:\n    native.isa()\nexcept ValueError as e:\n    print('error:', e)",
         isa="avx1024",
     )
-    assert "error: VASTRAY_ISA must be one of sse2, avx, avx2 (got 'avx1024')" in bad.stdout, (
+    assert "error: VASTRAY_ISA must be one of sse2, avx, avx2, avx512 (got 'avx1024')" in bad.stdout, (
         bad.stdout + bad.stderr
     )
 

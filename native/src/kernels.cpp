@@ -8,7 +8,9 @@ constexpr KernelTable kTable = {static_cast<Isa>(VASTRAY_ISA_LEVEL), &render_sce
                                 &intersect_model, &intersect_scene, &occluded_scene, &denoise_light};
 }  // namespace
 
-#if VASTRAY_ISA_LEVEL == VASTRAY_ISA_AVX2
+#if VASTRAY_ISA_LEVEL == VASTRAY_ISA_AVX512
+const KernelTable& kernel_table_avx512() { return kTable; }
+#elif VASTRAY_ISA_LEVEL == VASTRAY_ISA_AVX2
 const KernelTable& kernel_table_avx2() { return kTable; }
 #elif VASTRAY_ISA_LEVEL == VASTRAY_ISA_AVX
 const KernelTable& kernel_table_avx() { return kTable; }

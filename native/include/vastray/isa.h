@@ -1,9 +1,9 @@
 // Runtime instruction-set dispatch (the Embree model): the ray-tracing kernels are
 // compiled once per ISA level into their own namespace, and one of them is picked when
 // the first frame is rendered: the best the CPU and OS support, or the one named by the
-// environment variable VASTRAY_ISA (sse2, avx, avx2). The rest of the library is built
-// for the portable baseline (x86-64 = SSE2), so one binary runs everywhere and still
-// takes the fast path where there is one.
+// environment variable VASTRAY_ISA (sse2, avx, avx2, avx512). The rest of the library is
+// built for the portable baseline (x86-64 = SSE2), so one binary runs everywhere and
+// still takes the fast path where there is one.
 //
 // How a kernel header or source keeps its ISA apart:
 //
@@ -37,8 +37,15 @@
 #define VASTRAY_ISA_SSE2 1
 #define VASTRAY_ISA_AVX 2
 #define VASTRAY_ISA_AVX2 3
+#define VASTRAY_ISA_AVX512 4
 
-#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX2
+// AVX-512 is the x86-64-v4 set (F, BW, CD, DQ, VL) on top of AVX2's.
+#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX512
+#define VASTRAY_ISA_TARGET_PUSH \
+    _Pragma("GCC push_options") \
+        _Pragma("GCC target(\"avx512f,avx512bw,avx512cd,avx512dq,avx512vl,avx2,fma,bmi,bmi2,popcnt\")")
+#define VASTRAY_ISA_TARGET_POP _Pragma("GCC pop_options")
+#elif VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX2
 #define VASTRAY_ISA_TARGET_PUSH _Pragma("GCC push_options") _Pragma("GCC target(\"avx2,fma,bmi,bmi2,popcnt\")")
 #define VASTRAY_ISA_TARGET_POP _Pragma("GCC pop_options")
 #elif VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX
@@ -54,7 +61,12 @@
 
 namespace vastray {
 
-enum class Isa { Sse2 = VASTRAY_ISA_SSE2, Avx = VASTRAY_ISA_AVX, Avx2 = VASTRAY_ISA_AVX2 };
+enum class Isa {
+    Sse2 = VASTRAY_ISA_SSE2,
+    Avx = VASTRAY_ISA_AVX,
+    Avx2 = VASTRAY_ISA_AVX2,
+    Avx512 = VASTRAY_ISA_AVX512,
+};
 
 const char* isa_name(Isa isa);
 // Paths this build has kernels for and this CPU (and OS) can run, slowest first.

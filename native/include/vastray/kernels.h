@@ -36,6 +36,7 @@ struct KernelTable {
 const KernelTable& kernel_table_sse2();
 const KernelTable& kernel_table_avx();
 const KernelTable& kernel_table_avx2();
+const KernelTable& kernel_table_avx512();
 
 // The table of the active ISA (active_isa()).
 const KernelTable& kernels();

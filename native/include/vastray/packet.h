@@ -17,11 +17,16 @@
 
 VASTRAY_KERNEL_BEGIN
 
-// Vector width for a packet of N rays: the build's widest for 16-ray blocks, SSE for
-// 2x2 quads.
+// Vector width for a packet of N rays: the build's widest that the packet fills (16-ray
+// blocks take one AVX-512 vector or two AVX ones, 8-ray packets one AVX vector), SSE
+// for 2x2 quads.
 template <int N>
 constexpr int packet_width() {
-    return N >= simd::kWidth ? simd::kWidth : 4;
+    if constexpr (N >= simd::kWidth) {
+        return simd::kWidth;
+    } else {
+        return N >= 8 && simd::kWidth >= 8 ? 8 : 4;
+    }
 }
 
 // Ray i of a Side x Side block (row order) goes to lane packet_lane<N, W>(i). Vectors of

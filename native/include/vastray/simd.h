@@ -1,6 +1,7 @@
-// A thin layer over SSE and AVX registers for the packet kernels: vfloat<W> holds W
-// floats, vmask<W> W lane masks. W = 4 is SSE (VEX-encoded in the AVX builds), W = 8
-// is AVX (only in the AVX and AVX2 builds). Only what the kernels use, each operation
+// A thin layer over SSE, AVX and AVX-512 registers for the packet kernels: vfloat<W>
+// holds W floats, vmask<W> W lane masks. W = 4 is SSE (VEX-encoded in the AVX builds),
+// W = 8 is AVX (in the AVX, AVX2 and AVX-512 builds), W = 16 is AVX-512 (its build
+// only; a mask there is a mask register). Only what the kernels use, each operation
 // one instruction where the ISA has one. Comparisons follow C++ semantics on NaN
 // (ordered, except != which is true for NaN), so a vector lane computes exactly what
 // the scalar code computes for the same ray.
@@ -16,8 +17,10 @@
 VASTRAY_KERNEL_BEGIN
 namespace simd {
 
-#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX
-constexpr int kWidth = 8;  // the widest float vector of this build
+#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX512
+constexpr int kWidth = 16;  // the widest float vector of this build
+#elif VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX
+constexpr int kWidth = 8;
 #else
 constexpr int kWidth = 4;
 #endif
@@ -124,6 +127,51 @@ inline vmask<8> operator>=(vfloat<8> a, vfloat<8> b) { return {_mm256_cmp_ps(a.v
 inline vmask<8> operator==(vfloat<8> a, vfloat<8> b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_EQ_OQ)}; }
 inline vmask<8> operator!=(vfloat<8> a, vfloat<8> b) { return {_mm256_cmp_ps(a.v, b.v, _CMP_NEQ_UQ)}; }
 inline vfloat<8> select(vmask<8> m, vfloat<8> a, vfloat<8> b) { return {_mm256_blendv_ps(b.v, a.v, m.m)}; }
+#endif
+
+#if VASTRAY_ISA_LEVEL >= VASTRAY_ISA_AVX512
+template <>
+struct vmask<16> {
+    __mmask16 m;
+    int bits() const { return static_cast<int>(m); }
+    static vmask from_bits(unsigned b) { return {static_cast<__mmask16>(b)}; }
+};
+inline vmask<16> operator&(vmask<16> a, vmask<16> b) { return {_kand_mask16(a.m, b.m)}; }
+inline vmask<16> operator|(vmask<16> a, vmask<16> b) { return {_kor_mask16(a.m, b.m)}; }
+inline vmask<16> operator^(vmask<16> a, vmask<16> b) { return {_kxor_mask16(a.m, b.m)}; }
+inline vmask<16> andnot(vmask<16> a, vmask<16> b) { return {_kandn_mask16(a.m, b.m)}; }  // b & ~a
+
+template <>
+struct vfloat<16> {
+    __m512 v;
+    static vfloat broadcast(float f) { return {_mm512_set1_ps(f)}; }
+    static vfloat load(const float* p) { return {_mm512_loadu_ps(p)}; }
+    static vfloat bits(std::uint32_t u) { return {_mm512_castsi512_ps(_mm512_set1_epi32(static_cast<int>(u)))}; }
+    void store(float* p) const { _mm512_storeu_ps(p, v); }
+    float operator[](int i) const {
+        alignas(64) float f[16];
+        _mm512_store_ps(f, v);
+        return f[i];
+    }
+};
+inline vfloat<16> operator+(vfloat<16> a, vfloat<16> b) { return {_mm512_add_ps(a.v, b.v)}; }
+inline vfloat<16> operator-(vfloat<16> a, vfloat<16> b) { return {_mm512_sub_ps(a.v, b.v)}; }
+inline vfloat<16> operator*(vfloat<16> a, vfloat<16> b) { return {_mm512_mul_ps(a.v, b.v)}; }
+inline vfloat<16> operator/(vfloat<16> a, vfloat<16> b) { return {_mm512_div_ps(a.v, b.v)}; }
+// (The masked forms with every lane set: GCC 12's _mm512_min_ps and _mm512_max_ps pass
+// an undefined vector that -Wmaybe-uninitialized reports, GCC bug 105593.)
+inline vfloat<16> min(vfloat<16> a, vfloat<16> b) { return {_mm512_mask_min_ps(a.v, 0xFFFF, a.v, b.v)}; }
+inline vfloat<16> max(vfloat<16> a, vfloat<16> b) { return {_mm512_mask_max_ps(a.v, 0xFFFF, a.v, b.v)}; }
+inline vfloat<16> abs(vfloat<16> a) { return {_mm512_andnot_ps(_mm512_set1_ps(-0.0f), a.v)}; }
+inline vfloat<16> sign_bits(vfloat<16> a) { return {_mm512_and_ps(a.v, _mm512_set1_ps(-0.0f))}; }
+inline vfloat<16> operator^(vfloat<16> a, vfloat<16> b) { return {_mm512_xor_ps(a.v, b.v)}; }
+inline vmask<16> operator<(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LT_OQ)}; }
+inline vmask<16> operator<=(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_LE_OQ)}; }
+inline vmask<16> operator>(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GT_OQ)}; }
+inline vmask<16> operator>=(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_GE_OQ)}; }
+inline vmask<16> operator==(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_EQ_OQ)}; }
+inline vmask<16> operator!=(vfloat<16> a, vfloat<16> b) { return {_mm512_cmp_ps_mask(a.v, b.v, _CMP_NEQ_UQ)}; }
+inline vfloat<16> select(vmask<16> m, vfloat<16> a, vfloat<16> b) { return {_mm512_mask_blend_ps(m.m, b.v, a.v)}; }
 #endif
 
 }  // namespace simd

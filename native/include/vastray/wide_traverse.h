@@ -23,8 +23,12 @@ VASTRAY_KERNEL_BEGIN
 // in every lane. A zero component gives an infinite 1/d, and a ray lying in a box's plane
 // then a NaN distance to it, which hits() ignores: such a ray stays in the plane, so
 // that plane does not bound its segment.
+// A node's boxes take vectors of up to eight lanes: the AVX-512 build tests them as the
+// AVX builds do.
+constexpr int kBoxLanes = simd::kWidth < WideNode::kWidth ? simd::kWidth : WideNode::kWidth;
+
 struct WideBoxTest {
-    using vf = simd::vfloat<simd::kWidth>;
+    using vf = simd::vfloat<kBoxLanes>;
     // 1/d scaled for the entry and the exit distances: see hits().
     vf org[3], inv_near[3], inv_far[3], tmin, tmax;
     int near_row[3], far_row[3];  // float offsets into a WideNode
@@ -57,7 +61,7 @@ struct WideBoxTest {
     // `entries`, if given, gets each child's entry distance (closest-hit walks take the
     // nearest first).
     [[gnu::always_inline]] unsigned hits(const WideNode& node, float* entries = nullptr) const {
-        constexpr int W = simd::kWidth;
+        constexpr int W = kBoxLanes;
         const float* base = node.lo_x;
         unsigned bits = 0;
         for (int h = 0; h < WideNode::kWidth / W; ++h) {
