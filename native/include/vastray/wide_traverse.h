@@ -18,15 +18,15 @@
 
 VASTRAY_KERNEL_BEGIN
 
+// A node's boxes take vectors of up to eight lanes: the AVX-512 build tests them as the
+// AVX builds do.
+constexpr int kBoxLanes = simd::kWidth < WideNode::kWidth ? simd::kWidth : WideNode::kWidth;
+
 // The slab test of one ray against a node's eight boxes, its constants set up once per
 // ray: per axis the row of a node (lo or hi) the ray enters and leaves through, and 1/d
 // in every lane. A zero component gives an infinite 1/d, and a ray lying in a box's plane
 // then a NaN distance to it, which hits() ignores: such a ray stays in the plane, so
 // that plane does not bound its segment.
-// A node's boxes take vectors of up to eight lanes: the AVX-512 build tests them as the
-// AVX builds do.
-constexpr int kBoxLanes = simd::kWidth < WideNode::kWidth ? simd::kWidth : WideNode::kWidth;
-
 struct WideBoxTest {
     using vf = simd::vfloat<kBoxLanes>;
     // 1/d scaled for the entry and the exit distances: see hits().
