@@ -2,6 +2,7 @@
 #include "vastray/isa.h"
 
 #include <cstdlib>
+#include <iterator>
 #include <mutex>
 #include <stdexcept>
 
@@ -71,7 +72,8 @@ Isa choose() {
         throw std::runtime_error("VASTRAY_ISA=" + name + ", but this " +
                                  (compiled(isa) ? "CPU" : "build") + " runs only " + names(usable));
     }
-    throw std::invalid_argument("VASTRAY_ISA must be one of sse2, avx, avx2, avx512 (got '" + name + "')");
+    throw std::invalid_argument("VASTRAY_ISA must be one of " + names({std::begin(kAll), std::end(kAll)}) +
+                                " (got '" + name + "')");
 }
 
 }  // namespace
