@@ -7,6 +7,9 @@ then waits. The parent then asks the two children in turn, round after round, th
 order swapped every round, so that a busy machine slows both alike; each child reports
 its time and a checksum of its answers, and the run stops if the answers differ (by more
 than `--tolerate`, a fraction, when a change may move answers on known boundaries).
+The working tree's side is its Python sources with the installed native module: build and
+install it first (`make install`); a module older than a native source file stops the
+run, as it would measure the code before the change (`--stale` runs it anyway).
 
 Workloads, one thread each (`--threads` for more):
 
@@ -306,8 +309,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.isas is not None and len(isas) != 2:
         raise SystemExit(f"--isas takes two paths, baseline first (got {args.isas!r})")
     with tempfile.TemporaryDirectory(prefix="vastray-ab-") as tmp:
+        now_pkg, now_desc = snapshot_vastray(require_fresh=not args.stale)
         meshes = model_meshes(names, sizes, Path(tmp))
-        now_pkg, now_desc = snapshot_vastray()
         if isas:
             builds = [Build("now", now_pkg, now_desc, isas[1]), Build("baseline", now_pkg, now_desc, isas[0])]
         else:
@@ -437,6 +440,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--reps", type=int, default=2, help="runs per build per round (the best is kept)")
     ap.add_argument("--out", type=Path, default=RESULTS_DIR)
     ap.add_argument("--name", default="ab")
+    ap.add_argument(
+        "--stale",
+        action="store_true",
+        help="measure the installed native module even where native sources changed after it was built "
+        "(by default the run stops: it would not measure the working tree)",
+    )
     return ap.parse_args(argv)
 
 

@@ -100,13 +100,15 @@ TARGET_BIG_SECONDS = 100  # ... and this time
 # ----------------------------------------------------------------------------- child process
 
 
-def snapshot_vastray() -> tuple[Path, str]:
+def snapshot_vastray(require_fresh: bool = False) -> tuple[Path, str]:
     """Copies the vastray package (Python sources and the built native module) into a
     private folder and returns (folder, description).
 
     Others edit and rebuild the package while a long benchmark runs; every build of one
     run must use the same code, Python and native alike (pinning only the native module
     is not enough: new Python next to an old native module fails).
+    With `require_fresh`, a module older than a native source file is refused: a run that
+    compares the working tree with something else would measure the old build.
     """
     import atexit
 
@@ -132,6 +134,12 @@ def snapshot_vastray() -> tuple[Path, str]:
     sources = [p for p in (REPO_ROOT / "native").rglob("*") if p.is_file()]
     stale = [p for p in sources if p.stat().st_mtime > built]
     desc = f"{so} ({so.stat().st_size:,} bytes, built {stamp}) and vastray/*.py, copied at start"
+    if stale and require_fresh:
+        raise SystemExit(
+            f"{len(stale)} native source file(s) ({stale[0].relative_to(REPO_ROOT)} among them) changed "
+            f"after the installed module was built ({so}, {stamp}): rebuild it (make install) so that the "
+            "run measures the working tree, or pass --stale to measure the module as it is"
+        )
     if stale:
         desc += f"; WARNING: {len(stale)} native source file(s) are newer than the module"
     return folder, desc
