@@ -11,7 +11,10 @@ import pytest
 from modelwalk import decode_sample, walk
 
 from vastray.build import BuildOptions, build_model
+from vastray.camera import frame_bounds
 from vastray.modelfile import ModelFile
+from vastray.outofcore import OutOfCoreModel, make_cache
+from vastray.renderer import PRIM_VOXEL
 
 # 5-bit colour channels and 6-bit cube-face normal coordinates, plus averaging slack.
 COLOUR_TOL = 1.0 / 31 + 1e-3
@@ -78,6 +81,35 @@ def test_voxels_of_a_flat_plane_are_one_sample_with_its_normal_and_colour(tmp_pa
         c, n = decode_sample(node.samples[0])
         np.testing.assert_allclose(c, colour / 255.0, atol=COLOUR_TOL)
         assert abs(abs(n[1]) - 1.0) < NORMAL_TOL, f"voxel normal {n} is not the plane's (0, ±1, 0)"
+
+
+@pytest.mark.parametrize(
+    "normal", [(0.8, 0.5, 0.33), (0.33, 0.8, 0.5), (0.5, 0.33, 0.8)], ids=["major-x", "major-y", "major-z"]
+)
+def test_rendered_voxels_show_their_decoded_normals(tmp_path: Path, normal: tuple[float, ...]) -> None:
+    """A tilted plane whose normal has three different components, one per major axis of
+    the sample's code: where a voxel stands in for the plane, the `normal` shading shows
+    the normal that the independent decoder (modelwalk) reads from the model's samples,
+    so the renderer's decode puts each component on its own axis."""
+    n = np.array(normal) / np.linalg.norm(normal)
+    t1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(t1, n)  # (t1, n, t2) is right-handed, as (x, y, z) is: windings stay
+    flat = grid_plane(16.0, 48, 0.0)
+    corners = flat[..., 0:1] * t1 + flat[..., 1:2] * n + flat[..., 2:3] * t2
+    write_ply(tmp_path / "tilted.ply", corners, np.tile(np.array([200, 60, 30], np.uint8), (len(corners), 1)))
+    build_model(tmp_path / "tilted.ply", tmp_path / "tilted.vast")
+    samples = {s for node in lod_nodes(tmp_path / "tilted.vast") for s in node.samples}
+    expected = [decode_sample(s)[1] for s in samples]
+    with OutOfCoreModel(tmp_path / "tilted.vast", make_cache(64 << 20)) as model:
+        camera = frame_bounds(*model.bounds, width=160, height=120, direction=tuple(n))
+        frame = model.render_complete(camera, shading="normal", pixels_of_error=8.0)
+    voxels = frame.prim == PRIM_VOXEL
+    assert voxels.sum() > 200, "the view should show voxels standing in for the plane"
+    colours = frame.image[voxels].astype(np.float64)
+    shown = [(e + 1.0) * 0.5 * 255.0 for e in expected]
+    nearest = np.min([np.abs(colours - c).max(axis=1) for c in shown], axis=0)
+    assert nearest.max() <= 1.0, f"voxel pixels whose colour is no decoded normal: {(nearest > 1.0).sum()}"
 
 
 def test_voxels_respect_occlusion_between_two_stacked_planes(tmp_path: Path) -> None:
