@@ -432,13 +432,17 @@ struct TriangleBlockLayout {
         std::memcpy(h, tb, sizeof h);
         return of(h[0], h[1], h[2], has_colours, quantized_vertices, h[3]);
     }
+    // Vertex i of the block at tb when it stores f32 vertices (not packed). Always
+    // inlined: the kernels read it in their hot loops, and an out-of-line copy could be
+    // the SSE2 core's (lod_detail::plain_vertex says why that costs).
+    [[gnu::always_inline]] Vec3f float_vertex(const std::uint8_t* tb, std::size_t i) const {
+        Vec3f v;
+        std::memcpy(&v, tb + vertices + 12 * i, 12);
+        return v;
+    }
     // Vertex i of the block at tb: f32 as stored, or f32(origin + offset) * step.
     Vec3f vertex(const std::uint8_t* tb, std::size_t i, const Vec3f& steps) const {
-        Vec3f v;
-        if (!packed) {
-            std::memcpy(&v, tb + vertices + 12 * i, 12);
-            return v;
-        }
+        if (!packed) return float_vertex(tb, i);
         std::int32_t o[3];
         std::uint64_t w;
         std::memcpy(o, tb + vertices, 12);
