@@ -36,6 +36,14 @@ Ratios above 1: the working tree is faster. Writes NAME.md to bench/results/.
 of two builds: the baseline child runs with VASTRAY_ISA=A, the other with VASTRAY_ISA=B
 (a path must be one this CPU runs, `native.supported_isas()`).
 
+`--instructions` counts each workload's instructions instead of timing it: the
+children run under valgrind's callgrind with instrumentation off, and switch it on for
+the measured call alone (for an out-of-core workload, one more frame of the complete
+view, after the timed run's frames). The count does not depend on the machine's load,
+so one round settles what timing needs many for, where a change moves the instruction
+count; it says nothing of cache misses or of the processor's overlap, which the timed
+run measures. Needs valgrind (`apt install valgrind`); runs are 20-50x slower.
+
 `--images` is for a change that is meant to change the out-of-core images at PoE > 0
 (a LOD metric, say): the builds' answers may then differ, and the table gives each
 build's working set and its image's PSNR and mean absolute error against its own
@@ -44,6 +52,7 @@ full-detail (PoE 0) frame of the same view and mode, whose answers must still ag
     python bench/ab.py --baseline HEAD --models stanford-bunny,plant --sizes 1e6
     python bench/ab.py --baseline HEAD --models plant --sizes 1e7 --ooc plant-1e7.vast
     python bench/ab.py --isas avx2,avx512 --models plant --sizes 1e6 --ooc plant-1e8.vast
+    python bench/ab.py --instructions --rounds 1 --reps 1 --models '' --workloads ooc --ooc plant-1e7.vast
 """
 
 from __future__ import annotations
@@ -51,12 +60,15 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -92,6 +104,44 @@ PROCEDURAL = ("plant", "mandelbulb")
 
 # ----------------------------------------------------------------------------- child
 
+T = TypeVar("T")
+
+# Where a child under callgrind writes its dumps (set by the parent with --instructions).
+CALLGRIND_OUT_ENV = "VASTRAY_AB_CALLGRIND_OUT"
+
+
+class InstructionCounter:
+    """The instructions this process runs in one call. The process runs under callgrind
+    with instrumentation off (`--instr-atstart=no`); callgrind_control switches it on,
+    zeroes the counters, and dumps them after the call, and waits each time until the
+    process has acted on the command, so the dump holds the call and the few Python
+    lines around it (its total is its `summary:` line). Without the zeroing, the second
+    and later dumps of a process read nonsense (a wrapped negative count, or next to
+    nothing) once instrumentation had been off in between."""
+
+    def __init__(self, out_prefix: str) -> None:
+        self.out_prefix = out_prefix
+        self.dumps = 0
+
+    def _control(self, *args: str) -> None:
+        subprocess.run(["callgrind_control", *args, str(os.getpid())], check=True, capture_output=True)
+
+    def count(self, call: Callable[[], T]) -> tuple[T, int]:
+        self._control("--instr=on")
+        self._control("--zero")
+        try:
+            result = call()
+        finally:
+            self._control("--dump=ab")
+            self._control("--instr=off")
+        self.dumps += 1
+        dump = Path(f"{self.out_prefix}.{os.getpid()}.{self.dumps}")
+        for line in dump.read_text().splitlines():
+            if line.startswith("summary:"):
+                dump.unlink()
+                return result, int(line.split()[1])
+        raise RuntimeError(f"{dump}: no summary line (not a callgrind dump?)")
+
 
 def section_through_centre(bounds: Any) -> list[tuple[float, float, float, float]]:
     """The section workloads' plane: through the model's centre, keeping x at and above it."""
@@ -110,6 +160,17 @@ class Child:
         self.cache: Any = None
         self.ooc: dict[str, Any] = {}
         self.references: dict[tuple[str, str], np.ndarray] = {}
+        out = os.environ.get(CALLGRIND_OUT_ENV)
+        self.counter = InstructionCounter(out) if out else None
+
+    def measure(self, call: Callable[[], T]) -> tuple[T, float]:
+        """The call's result and its cost: wall-clock seconds, or with --instructions its
+        instruction count."""
+        if self.counter is not None:
+            return self.counter.count(call)
+        start = time.perf_counter()
+        result = call()
+        return result, time.perf_counter() - start
 
     def load(self, label: str, npz: str) -> dict[str, Any]:
         from common import ao_rays_from_hits
@@ -144,55 +205,68 @@ class Child:
     def run(
         self, workload: str, label: str, reps: int, poe: float, images: bool = False, threads: int = 1
     ) -> dict[str, Any]:
+        """The workload's best time in seconds (with --instructions its instruction count)
+        over `reps` runs, and a checksum of its answers."""
+        if workload in OOC_WORKLOADS:
+            return self.run_ooc(workload, label, reps, poe, images, threads)
         from vastray.renderer import trace
 
+        scene, camera, o, d, ao_o, ao_d, ao_tmax = self.scenes[label]
+        call: Callable[[], Any]
+        if workload == "batch":
+            call = partial(scene.intersect, o, d, threads=threads)
+        elif workload == "ao":
+            call = partial(scene.occluded, ao_o, ao_d, 0.0, ao_tmax, threads=threads)
+        elif workload == "shadow":
+            points, towards = shadow_rays_from(ao_o, 8)
+            call = partial(scene.occluded, points, towards, threads=threads)
+        else:
+            params: dict[str, Any] = {"shading": workload if workload in ("sun", "indirect") else "normal"}
+            if workload == "section":
+                params = {"shading": "headlight", "sections": section_through_centre(scene.bounds)}
+            call = partial(trace, scene, camera, threads=threads, **params)
+        best, check = float("inf"), 0
+        for _ in range(reps):
+            answer, cost = self.measure(call)
+            if workload == "batch":
+                check = int(np.asarray(answer["prim"], dtype=np.int64).sum())
+            elif workload in ("ao", "shadow"):
+                check = int(np.count_nonzero(answer))
+            else:
+                if self.counter is None:
+                    cost = float(answer.stats.milliseconds) / 1e3  # the renderer's own clock
+                check = int(answer.prim.astype(np.int64).sum()) + int(answer.image.astype(np.int64).sum())
+            best = min(best, cost)
+        return {"seconds": best, "check": check}
+
+    def run_ooc(
+        self, workload: str, label: str, reps: int, poe: float, images: bool, threads: int
+    ) -> dict[str, Any]:
+        """run() for an out-of-core workload: the time of the frame that completes the view
+        or, with --instructions, the instructions of one more frame of the complete view."""
+        model, camera = self.ooc[label]
+        shading = OOC_SHADING[workload]
+        fields: dict[str, Any] = {}
+        if workload == "ooc-single":
+            fields["packets"] = 1
+        elif workload == "ooc-section":
+            fields["sections"] = section_through_centre(model.bounds)
+        frame_of = partial(
+            model.render, camera, pixels_of_error=poe, shading=shading, threads=threads, **fields
+        )
         best, check = float("inf"), 0
         extra: dict[str, Any] = {}
         for _ in range(reps):
-            if workload in OOC_WORKLOADS:
-                model, camera = self.ooc[label]
-                shading = OOC_SHADING[workload]
-                fields: dict[str, Any] = {}
-                if workload == "ooc-single":
-                    fields["packets"] = 1
-                elif workload == "ooc-section":
-                    fields["sections"] = section_through_centre(model.bounds)
-                frame = model.render_complete(
-                    camera, pixels_of_error=poe, shading=shading, threads=threads, **fields
-                )
-                seconds = float(frame.stats.milliseconds) / 1e3
-                check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
-                if images:
-                    extra = self.image_error(workload, label, frame, fields)
-            else:
-                scene, camera, o, d, ao_o, ao_d, ao_tmax = self.scenes[label]
-                if workload == "batch":
-                    start = time.perf_counter()
-                    hits = scene.intersect(o, d, threads=threads)
-                    seconds = time.perf_counter() - start
-                    check = int(np.asarray(hits["prim"], dtype=np.int64).sum())
-                elif workload == "ao":
-                    start = time.perf_counter()
-                    blocked = scene.occluded(ao_o, ao_d, 0.0, ao_tmax, threads=threads)
-                    seconds = time.perf_counter() - start
-                    check = int(np.count_nonzero(blocked))
-                elif workload == "shadow":
-                    points, towards = shadow_rays_from(ao_o, 8)
-                    start = time.perf_counter()
-                    blocked = scene.occluded(points, towards, threads=threads)
-                    seconds = time.perf_counter() - start
-                    check = int(np.count_nonzero(blocked))
-                elif workload == "section":
-                    planes = section_through_centre(scene.bounds)
-                    frame = trace(scene, camera, shading="headlight", sections=planes, threads=threads)
-                    seconds = float(frame.stats.milliseconds) / 1e3
-                    check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
-                else:
-                    shading = workload if workload in ("sun", "indirect") else "normal"
-                    frame = trace(scene, camera, shading=shading, threads=threads)
-                    seconds = float(frame.stats.milliseconds) / 1e3
-                    check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
-            best = min(best, seconds)
+            frame = model.render_complete(
+                camera, pixels_of_error=poe, shading=shading, threads=threads, **fields
+            )
+            cost = float(frame.stats.milliseconds) / 1e3
+            if self.counter is not None:
+                frame, cost = self.measure(frame_of)
+            check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
+            if images:
+                extra = self.image_error(workload, label, frame, fields)
+            best = min(best, cost)
         return {"seconds": best, "check": check, **extra}
 
     def image_error(self, workload: str, label: str, frame: Any, fields: dict[str, Any]) -> dict[str, Any]:
@@ -234,14 +308,36 @@ def child_main(snapshot: str) -> int:
 
 
 class Build:
-    def __init__(self, name: str, snapshot: Path, description: str, isa: str | None = None) -> None:
+    """A child process with one build's vastray. With `callgrind_out` (a path prefix) it
+    runs under callgrind, uninstrumented but for the calls it counts (InstructionCounter);
+    valgrind's own messages go to the prefix's .log."""
+
+    def __init__(
+        self,
+        name: str,
+        snapshot: Path,
+        description: str,
+        isa: str | None = None,
+        callgrind_out: str | None = None,
+    ) -> None:
         self.name, self.description = name, description
         here = str(Path(__file__).resolve())
         env = dict(os.environ)
         if isa is not None:
             env["VASTRAY_ISA"] = isa
+        command = [sys.executable, here, "--child", str(snapshot)]
+        if callgrind_out is not None:
+            env[CALLGRIND_OUT_ENV] = callgrind_out
+            command = [
+                "valgrind",
+                "--tool=callgrind",
+                "--instr-atstart=no",
+                f"--callgrind-out-file={callgrind_out}.%p",
+                f"--log-file={callgrind_out}.log",
+                *command,
+            ]
         self.proc = subprocess.Popen(
-            [sys.executable, here, "--child", str(snapshot)],
+            command,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
@@ -306,16 +402,28 @@ def main(argv: list[str] | None = None) -> int:
     names = [m for m in args.models.split(",") if m]
     ooc = [str(Path(p).resolve()) for p in args.ooc]
     isas = [i for i in (args.isas or "").split(",") if i]
+    if args.instructions and shutil.which("callgrind_control") is None:
+        raise SystemExit("--instructions needs valgrind's callgrind (apt install valgrind)")
     if args.isas is not None and len(isas) != 2:
         raise SystemExit(f"--isas takes two paths, baseline first (got {args.isas!r})")
     with tempfile.TemporaryDirectory(prefix="vastray-ab-") as tmp:
         now_pkg, now_desc = snapshot_vastray(require_fresh=not args.stale)
         meshes = model_meshes(names, sizes, Path(tmp))
+
+        def out(name: str) -> str | None:
+            return str(Path(tmp) / f"callgrind-{name}") if args.instructions else None
+
         if isas:
-            builds = [Build("now", now_pkg, now_desc, isas[1]), Build("baseline", now_pkg, now_desc, isas[0])]
+            builds = [
+                Build("now", now_pkg, now_desc, isas[1], out("now")),
+                Build("baseline", now_pkg, now_desc, isas[0], out("baseline")),
+            ]
         else:
             base_pkg, base_desc = build_baseline(args.baseline)
-            builds = [Build("now", now_pkg, now_desc), Build("baseline", base_pkg, base_desc)]
+            builds = [
+                Build("now", now_pkg, now_desc, callgrind_out=out("now")),
+                Build("baseline", base_pkg, base_desc, callgrind_out=out("baseline")),
+            ]
         try:
             for b in builds:  # one after the other: their scene builds would compete
                 for label, path in meshes:
@@ -359,14 +467,16 @@ def main(argv: list[str] | None = None) -> int:
             for b in builds:
                 b.close()
     rows, ratios = [], []
-    header = ["workload", "model", "baseline ms", "now ms", "baseline / now"]
+    unit = "M instructions" if args.instructions else "ms"
+    header = ["workload", "model", f"baseline {unit}", f"now {unit}", "baseline / now"]
     if quality:
         header += ["working set MiB (baseline, now)", "PSNR dB (baseline, now)", "MAE (baseline, now)"]
     for workload, label in jobs:
         now, base = best[(workload, label, "now")], best[(workload, label, "baseline")]
         ratios.append(base / now)
         name = Path(label).name if workload in OOC_WORKLOADS else label
-        row = [workload, name, f"{base * 1e3:.1f}", f"{now * 1e3:.1f}", f"{base / now:.3f}x"]
+        scale = 1e-6 if args.instructions else 1e3
+        row = [workload, name, f"{base * scale:.1f}", f"{now * scale:.1f}", f"{base / now:.3f}x"]
         if quality:
             pair = [quality.get((workload, label, side)) for side in ("baseline", "now")]
             columns = (("working_set_mib", ".0f"), ("psnr", ".2f"), ("mae", ".2f"))
@@ -385,7 +495,9 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *(f"- {k}: {v}" for k, v in info.items()),
         "",
-        f"Best of {args.rounds} rounds x {args.reps} runs per build, alternating; "
+        ("Instructions counted by callgrind (the fewest of " if args.instructions else "Best of ")
+        + f"{args.rounds} rounds x {args.reps} runs per build"
+        + ("), " if args.instructions else ", alternating; ")
         + ("one thread; " if args.threads == 1 else f"{args.threads} threads; ")
         + (
             "images may differ (--images): PSNR and MAE (0-255) are each build's against its own "
@@ -434,6 +546,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         default=0.0,
         help="the builds' answer checksums (e.g. occluded-ray counts) may differ by this fraction; "
         "the report lists each difference (default 0: any difference stops the run)",
+    )
+    ap.add_argument(
+        "--instructions",
+        action="store_true",
+        help="count instructions under callgrind instead of timing (needs valgrind; one round is enough)",
     )
     ap.add_argument("--threads", type=int, default=1, help="threads of every workload (default 1)")
     ap.add_argument("--rounds", type=int, default=5)
