@@ -133,14 +133,19 @@ class InstructionCounter:
             result = call()
         finally:
             self._control("--dump=ab")
+            self.dumps += 1  # (numbered by callgrind whether or not the call returned)
             self._control("--instr=off")
-        self.dumps += 1
         dump = Path(f"{self.out_prefix}.{os.getpid()}.{self.dumps}")
         for line in dump.read_text().splitlines():
             if line.startswith("summary:"):
                 dump.unlink()
                 return result, int(line.split()[1])
         raise RuntimeError(f"{dump}: no summary line (not a callgrind dump?)")
+
+
+def frame_check(frame: Any) -> int:
+    """A checksum of a frame's answers: its triangle ids and its pixels."""
+    return int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
 
 
 def section_through_centre(bounds: Any) -> list[tuple[float, float, float, float]]:
@@ -235,7 +240,7 @@ class Child:
             else:
                 if self.counter is None:
                     cost = float(answer.stats.milliseconds) / 1e3  # the renderer's own clock
-                check = int(answer.prim.astype(np.int64).sum()) + int(answer.image.astype(np.int64).sum())
+                check = frame_check(answer)
             best = min(best, cost)
         return {"cost": best, "check": check}
 
@@ -263,7 +268,7 @@ class Child:
             cost = float(frame.stats.milliseconds) / 1e3
             if self.counter is not None:
                 frame, cost = self.measure(frame_of)
-            check = int(frame.prim.astype(np.int64).sum()) + int(frame.image.astype(np.int64).sum())
+            check = frame_check(frame)
             if images:
                 extra = self.image_error(workload, label, frame, fields)
             best = min(best, cost)
