@@ -459,21 +459,28 @@ struct LeafPrefetch {
         const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
         ++stage;
         if (layout.end > format::kBlockSize) return;  // a damaged header: LeafTriangles says so
-        const std::uint32_t w = load<std::uint32_t>(node);
-        const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
-        const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
-        std::uint32_t t_lo = ~0u, t_hi = 0;
-        for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
-            const std::uint32_t t = load<std::uint16_t>(tb + layout.list + 2 * std::size_t{e});
-            if (t >= tris) continue;
-            t_lo = std::min(t_lo, t);
-            t_hi = std::max(t_hi, t);
-        }
-        if (t_lo > t_hi) return;
+        const std::uint32_t tris = load<std::uint32_t>(tb + 4);
         if (stage == 2) {
+            // The list entries are here: the range of the leaf's first triangles, kept for
+            // the next wait.
+            const std::uint32_t w = load<std::uint32_t>(node);
+            const std::uint32_t entries = load<std::uint32_t>(tb);
+            const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
+            std::uint32_t t_lo = ~0u, t_hi = 0;
+            for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
+                const std::uint32_t t = load<std::uint16_t>(tb + layout.list + 2 * std::size_t{e});
+                if (t >= tris) continue;
+                t_lo = std::min(t_lo, t);
+                t_hi = std::max(t_hi, t);
+            }
+            t_lo_ = t_lo;
+            t_hi_ = t_hi;
+            if (t_lo > t_hi) return;
             prefetch_range(tb + layout.triangles + 6 * std::size_t{t_lo}, 6 * std::size_t{t_hi - t_lo + 1});
             return;
         }
+        const std::uint32_t t_lo = t_lo_, t_hi = t_hi_;
+        if (t_lo > t_hi) return;
         const std::uint32_t verts = load<std::uint32_t>(tb + 8);
         std::uint32_t v_lo = ~0u, v_hi = 0;
         for (std::uint32_t t : {t_lo, t_hi}) {
@@ -574,7 +581,7 @@ private:
         for (std::size_t b = 0; b < bytes + 63; b += 64) prefetch_line(p + b);
     }
 
-    std::uint32_t t_lo_ = 0, t_hi_ = 0;  // a compact leaf's first and last triangle (of its first entries)
+    std::uint32_t t_lo_ = 0, t_hi_ = 0;  // the leaf's first and last triangle (of its first entries)
 };
 
 // The walk of one ray below a node (lod_walk), for a model whose basic nodes carry their
