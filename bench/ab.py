@@ -472,7 +472,7 @@ def main(argv: list[str] | None = None) -> int:
             for b in builds:
                 b.close()
     rows, ratios = [], []
-    unit = "M instructions" if args.instructions else "ms"
+    unit, scale = ("M instructions", 1e-6) if args.instructions else ("ms", 1e3)
     header = ["workload", "model", f"baseline {unit}", f"now {unit}", "baseline / now"]
     if quality:
         header += ["working set MiB (baseline, now)", "PSNR dB (baseline, now)", "MAE (baseline, now)"]
@@ -480,7 +480,6 @@ def main(argv: list[str] | None = None) -> int:
         now, base = best[(workload, label, "now")], best[(workload, label, "baseline")]
         ratios.append(base / now)
         name = Path(label).name if workload in OOC_WORKLOADS else label
-        scale = 1e-6 if args.instructions else 1e3
         row = [workload, name, f"{base * scale:.1f}", f"{now * scale:.1f}", f"{base / now:.3f}x"]
         if quality:
             pair = [quality.get((workload, label, side)) for side in ("baseline", "now")]
