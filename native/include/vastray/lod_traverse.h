@@ -459,12 +459,11 @@ struct LeafPrefetch {
         const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
         ++stage;
         if (layout.end > format::kBlockSize) return;  // a damaged header: LeafTriangles says so
-        const std::uint32_t tris = load<std::uint32_t>(tb + 4);
         if (stage == 2) {
             // The list entries are here: the range of the leaf's first triangles, kept for
             // the next wait.
             const std::uint32_t w = load<std::uint32_t>(node);
-            const std::uint32_t entries = load<std::uint32_t>(tb);
+            const std::uint32_t entries = load<std::uint32_t>(tb), tris = load<std::uint32_t>(tb + 4);
             const std::uint32_t first = format::leaf_first(w), end = std::min(first + format::leaf_count(w), entries);
             std::uint32_t t_lo = ~0u, t_hi = 0;
             for (std::uint32_t e = first; e < end && e < first + 32; ++e) {
