@@ -988,7 +988,10 @@ def render_full(path: Path, camera: Camera, shading: str = "headlight") -> Frame
 
 
 def decoded_render(path: Path, camera: Camera, shading: str = "headlight") -> Frame:
-    with ModelFile(path) as f:
+    """The decoded scene's frame through the kd-tree (VASTRAY_PRIMARY=kd), the out-of-core
+    walk's in-core twin: the wide BVH may take the other of two triangles hit at the same t."""
+    with ModelFile(path) as f, pytest.MonkeyPatch.context() as env:
+        env.setenv("VASTRAY_PRIMARY", "kd")
         return render_camera(f.to_scene(), camera, shading=shading)
 
 

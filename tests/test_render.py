@@ -247,11 +247,15 @@ def test_stats_are_consistent(scene_data: tuple, camera_directions: Callable[...
     assert hits is not None and hits > 0
 
 
-def test_ray_packets_change_speed_not_answers() -> None:
+@pytest.mark.parametrize("walk", ["wide", "kd"])
+def test_ray_packets_change_speed_not_answers(walk: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """Primary rays traced as 4x4 and 2x2 packets must give exactly the single-ray
-    frame, on a scene with many near-coincident surfaces (pipes meeting flanges)."""
+    frame, on a scene with many near-coincident surfaces (pipes meeting flanges), through
+    the wide BVH (the default) and through the kd-tree (VASTRAY_PRIMARY=kd)."""
     from vastray import scenes
     from vastray.camera import frame_bounds
+
+    monkeypatch.setenv("VASTRAY_PRIMARY", walk)
 
     # At this size and view, a single-ray early exit that trusted hits inside the split
     # slack picked a farther surface than the packets on 3 pixels: keep it that big.
@@ -270,14 +274,18 @@ def test_ray_packets_change_speed_not_answers() -> None:
         render_view(scene, *args, packets=3)
 
 
-def test_packets_in_flight_change_speed_not_answers(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("walk", ["wide", "kd"])
+def test_packets_in_flight_change_speed_not_answers(walk: str, monkeypatch: pytest.MonkeyPatch) -> None:
     """On a large tree the in-core renderer keeps several 4x4 packets in flight, each
     stopping where its next node, leaf list or vertices would miss the caches
-    (traverse_packets), and a block's AO queries in flight (occluded_group).
-    VASTRAY_INTERLEAVE_BYTES=0 turns that on for any tree: every shading mode must give
-    the frame of packets traced one at a time, and of single rays."""
+    (closest_wide_packets, or traverse_packets on the kd-tree), and a block's AO queries
+    in flight (occluded_group). VASTRAY_INTERLEAVE_BYTES=0 turns that on for any tree:
+    every shading mode must give the frame of packets traced one at a time, and of
+    single rays."""
     from vastray import scenes
     from vastray.camera import frame_bounds
+
+    monkeypatch.setenv("VASTRAY_PRIMARY", walk)
 
     mesh = scenes.to_mesh("plant", 300_000, 2)
     scene = native.Scene(mesh.vertices, mesh.faces, mesh.face_colours)
@@ -309,6 +317,42 @@ def plant_scene() -> native.Scene:
 
     mesh = scenes.to_mesh("plant", 100_000, 2)
     return native.Scene(mesh.vertices, mesh.faces)
+
+
+def test_primary_hits_do_not_depend_on_the_order_of_the_walk(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the wide BVH a primary ray's hit is its nearest triangle, and of two at the
+    same float t the one of lower index, whichever the walk met first, so single rays,
+    2x2 and 4x4 packets, one at a time or in flight, all answer alike. Two triangulations
+    of one flat square (its cells split along the other diagonal), drawn alone and then
+    together, z-fight on every pixel: together, each pixel must show the first surface
+    (lower indices) where its t is at most the second's, and the second elsewhere."""
+    n_side = 24
+    g = np.linspace(-1.0, 1.0, n_side + 1)
+    x, y = np.meshgrid(g, g)
+    vertices = np.column_stack([x.ravel(), y.ravel(), np.zeros(x.size)])
+    k = np.arange(n_side * n_side)
+    i0 = (k // n_side) * (n_side + 1) + k % n_side
+    cells = np.column_stack([i0, i0 + 1, i0 + n_side + 2, i0 + n_side + 1])
+    first = np.concatenate([cells[:, [0, 1, 2]], cells[:, [0, 2, 3]]]).astype(np.uint32)
+    second = np.concatenate([cells[:, [0, 1, 3]], cells[:, [1, 2, 3]]]).astype(np.uint32)
+    n = len(first)
+    view = {"eye": [0.4, -0.9, 2.2], "target": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0], "fov": 50.0}
+    size = {"width": 96, "height": 64}
+    alone = [render_view(native.Scene(vertices, f), **view, **size, packets=1) for f in (first, second)]
+    hit = alone[0].prim >= 0
+    assert hit.mean() > 0.4 and np.array_equal(hit, alone[1].prim >= 0)
+    ties = hit & (alone[0].depth == alone[1].depth)
+    assert ties.sum() > 500 and (hit & (alone[1].depth < alone[0].depth)).sum() > 100  # both kinds, often
+    expected = np.where(alone[1].depth < alone[0].depth, alone[1].prim + n, alone[0].prim)
+    both = native.Scene(vertices, np.concatenate([first, second]))
+    for interleave in (str(2**62), "0"):
+        monkeypatch.setenv("VASTRAY_INTERLEAVE_BYTES", interleave)
+        for packets in (1, 4, 16):
+            frame = render_view(both, **view, **size, packets=packets)
+            np.testing.assert_array_equal(frame.prim[hit], expected[hit], f"packets={packets}")
+    monkeypatch.setenv("VASTRAY_PRIMARY", "bvh")
+    with pytest.raises(ValueError, match="VASTRAY_PRIMARY must be 'kd' or 'wide'"):
+        render_view(both, **view, **size)
 
 
 def test_batch_packets_change_speed_not_answers(

@@ -97,11 +97,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
                 f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
                 f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
             )
-            if args.shading in ANY_HIT_SHADINGS:
-                # Built here, on first use, so the frame's time below is the frame's alone.
+            if args.shading in ANY_HIT_SHADINGS or os.environ.get("VASTRAY_PRIMARY") != "kd":
+                # Primary rays (unless VASTRAY_PRIMARY=kd) and secondary rays walk the 8-wide
+                # BVH. Built here, on first use, so the frame's time below is the frame's alone.
                 wide = renderer.scene.any_hit_stats()
                 print(
-                    f"any-hit    8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
+                    f"wide BVH   8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
                     f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
                 )
         lo, hi = renderer.bounds

@@ -268,8 +268,9 @@ PYBIND11_MODULE(native, m) {
         })
         .def_property_readonly("build_stats", &build_stats)
         .def("any_hit_stats", &any_hit_stats,
-             "Builds the scene's 8-wide BVH for secondary rays (occluded; AO, sun and indirect shading) if "
-             "not yet built; its nodes, leaves, depth, build time and bytes")
+             "Builds the scene's 8-wide BVH, which the renderer's rays walk (primary rays unless "
+             "VASTRAY_PRIMARY=kd; occluded; AO, sun and indirect shading), if not yet built; its nodes, "
+             "leaves, depth, build time and bytes")
         .def("intersect", &intersect, py::arg("origins"), py::arg("directions"), py::arg("tmin") = 0.0,
              py::arg("tmax") = std::numeric_limits<double>::infinity(), py::arg("threads") = 0u,
              py::arg("sections") = bindings::PlaneTuples{},

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <cstdlib>
 #include <limits>
+#include <stdexcept>
+#include <string>
 #include <string_view>
 #include <vector>
 
@@ -13,6 +15,7 @@
 #include "vastray/thread_pool.h"
 #include "vastray/traverse_packet.h"
 #include "vastray/wide_traverse.h"
+#include "vastray/wide_traverse_packet.h"
 
 VASTRAY_KERNEL_BEGIN
 
@@ -46,6 +49,9 @@ constexpr int kOcclusionInFlight = 8;
 // shadow rays, 12 between them; frames 1.00-1.14x; docs/native-core.md, "The wide BVH
 // for secondary rays").
 constexpr int kWideInFlight = 16;
+// Primary packets through the wide BVH in flight on a large tree: 8 ran 1.13x (plant) and
+// 1.28x (mandelbulb) one at a time at 10^7, 4 as 8 (AMD EPYC; docs/native-core.md).
+constexpr int kWidePacketsInFlight = 8;
 
 // Any hits of `count` rays through the wide BVH (occluded_wide_in_flight's ray_of and
 // answer): kWideInFlight walks in flight on a large tree, else one after the other.
@@ -85,6 +91,20 @@ void closest_wide_rays(const WideBvh& bvh, bool interleave, std::size_t count, R
 const WideBvh* any_hit_bvh(const Scene& scene) {
     const char* env = std::getenv("VASTRAY_ANYHIT");
     if (env != nullptr && std::string_view(env) == "kd") return nullptr;
+    return scene.wide_bvh();
+}
+
+// The structure the renderer's primary rays walk: the scene's wide BVH (its packets beat
+// the kd-tree's by 1.21-1.66x, docs/native-core.md), or null for the kd-tree
+// (VASTRAY_PRIMARY=kd: the walk the out-of-core renderer shares, whose full-detail frames
+// equal it bit for bit; or a scene too large for the wide BVH).
+const WideBvh* primary_bvh(const Scene& scene) {
+    const char* env = std::getenv("VASTRAY_PRIMARY");
+    const std::string_view choice = env != nullptr ? env : "";
+    if (choice == "kd") return nullptr;
+    if (!choice.empty() && choice != "wide") {
+        throw std::invalid_argument("VASTRAY_PRIMARY must be 'kd' or 'wide' (got '" + std::string(choice) + "')");
+    }
     return scene.wide_bvh();
 }
 
@@ -151,7 +171,9 @@ public:
           interleave_(interleaves(scene.tree().memory_bytes())),
           // (Built here, before the frame's parallel loop: the build runs on the pool too.)
           wide_(traces_any_hit_rays(params.shading) ? any_hit_bvh(scene) : nullptr),
-          wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())) {
+          wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())),
+          primary_(primary_bvh(scene)),
+          primary_interleave_(primary_ != nullptr && interleaves(primary_->memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
@@ -166,17 +188,35 @@ public:
     }
 
     void trace(Lane& lane, const Ray& ray, Hit& hit) const {
-        traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);
+        if (primary_ != nullptr) {
+            closest_wide(*primary_, ray, hit, lane);
+        } else {
+            traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);
+        }
     }
     void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {
-        for (int i = 0; i < n; ++i) trace(lane, rays[i], hits[i]);
+        if (primary_ == nullptr) {
+            for (int i = 0; i < n; ++i) trace(lane, rays[i], hits[i]);
+            return;
+        }
+        closest_wide_rays(
+            *primary_, primary_interleave_, static_cast<std::size_t>(n),
+            [&](std::size_t i, Ray& ray, std::uint32_t&) {
+                ray = rays[i];
+                return true;
+            },
+            [&](std::size_t i) -> Hit& { return hits[i]; }, lane);
     }
 
     template <int Side>
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {
         constexpr int N = Side * Side;
         if (!packet_is_coherent(rays, N)) return false;
-        traverse_packet<N>(scene_.tree(), scene_.tri_vertices(), rays, hits, lane);
+        if (primary_ != nullptr) {
+            closest_wide_packets<N, 1>(*primary_, &rays, &hits, 1, lane);
+        } else {
+            traverse_packet<N>(scene_.tree(), scene_.tri_vertices(), rays, hits, lane);
+        }
         return true;
     }
 
@@ -194,7 +234,13 @@ public:
                 out[m++] = hits[j];
             }
         }
-        trace_coherent_packets<N>(scene_, interleave_, coherent, out, m, lane);
+        if (primary_ == nullptr) {
+            trace_coherent_packets<N>(scene_, interleave_, coherent, out, m, lane);
+        } else if (primary_interleave_) {
+            closest_wide_packets<N, kWidePacketsInFlight>(*primary_, coherent, out, m, lane);
+        } else {
+            closest_wide_packets<N, 1>(*primary_, coherent, out, m, lane);
+        }
     }
 
     std::int32_t prim_id(const Hit& hit) const { return static_cast<std::int32_t>(scene_.input_id(hit.prim)); }
@@ -319,6 +365,8 @@ private:
     bool interleave_;
     const WideBvh* wide_;  // null: secondary rays walk the kd-tree
     bool wide_interleave_;
+    const WideBvh* primary_;  // null: primary rays walk the kd-tree
+    bool primary_interleave_;
     float ao_distance_ = 1;
 };
 

@@ -110,9 +110,11 @@ struct QuadRay {
 
 // The float part of intersect_triangle for the four triangles of a quad at once: each lane
 // does its float operations in its order (the kernels do not contract them into FMAs), so
-// a lane's values are the scalar test's. `in`: the lanes whose hit lies in [tmin, tmax);
-// `exact`: the lanes with an edge function exactly zero, which only the scalar test
-// decides (in double).
+// a lane's values are the scalar test's. `in`: the lanes whose hit lies in [tmin, tmax)
+// (with `Closed`, every lane whose t lies in [tmin, tmax], and a few beyond: quad_closest's
+// candidates); `exact`: the lanes with an edge function exactly zero, which only the
+// scalar test decides (in double).
+template <bool Closed = false>
 struct QuadTest {
     using vf = QuadRay::vf;
     vf u, v, w, det, t_scaled, ts, abs_det, inv_det, t;
@@ -143,9 +145,9 @@ struct QuadTest {
         abs_det = simd::abs(det);
         inv_det = vf::broadcast(1.0f) / det;
         t = t_scaled * inv_det;
-        in = static_cast<unsigned>((andnot(negative & positive, det != zero) &
-                                    andnot(ts < r.tmin * abs_det, ts < tmax * abs_det) & andnot(t < r.tmin, t < tmax))
-                                       .bits());
+        const auto below = Closed ? (ts <= tmax * abs_det) | (t <= tmax) : (ts < tmax * abs_det) & (t < tmax);
+        const auto after_tmin = andnot(ts < r.tmin * abs_det, below) & andnot(t < r.tmin, below);
+        in = static_cast<unsigned>((andnot(negative & positive, det != zero) & after_tmin).bits());
     }
 };
 
@@ -163,7 +165,7 @@ struct QuadTest {
 [[gnu::always_inline]] inline bool quad_hit(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
                                             const Ray& ray, const ShearedRay& sheared, std::uint32_t skip) {
     const unsigned lanes = quad_lanes(quad, count, skip);
-    const QuadTest q(quad, r, r.tmax);
+    const QuadTest<> q(quad, r, r.tmax);
     if ((q.in & lanes & ~q.exact) != 0) return true;
     for (unsigned e = q.exact & lanes; e != 0; e &= e - 1) {
         const int lane = __builtin_ctz(e);
@@ -176,16 +178,28 @@ struct QuadTest {
     return false;
 }
 
-// The nearest of the first `count` triangles of `quad` other than `skip` in [tmin, hit.t),
-// as intersect_triangle tests them one after the other in lane order: `hit` gets it (t, u,
-// v and prim); false if there is none.
+// Whether a hit at t on triangle `prim` replaces `hit`: it is nearer, or as near and of a
+// lower index. That is a strict order on (t, index), so every walk of the wide BVH (one
+// ray, a packet, in flight or not) gives a ray the same answer whatever order it meets
+// the triangles in: a walk skips a box only when it starts beyond the hit, so it meets
+// every triangle that could win.
+[[gnu::always_inline]] inline bool wins(float t, std::uint32_t prim, const Hit& hit) {
+    return t < hit.t || (t == hit.t && hit.prim != kNoHit && prim < hit.prim);
+}
+
+// The winner (wins) among `hit` and the first `count` triangles of `quad` other than
+// `skip` that intersect_triangle finds on the ray in [tmin, tmax): `hit` gets it (t, u, v
+// and prim); false if it stays. (The scalar test also compares its t with the hit so far
+// in a second form, t_scaled against hit.t * |det|, which makes its answer depend on the
+// order of the triangles; here only a triangle's own range test uses that form.)
 [[gnu::always_inline]] inline bool quad_closest(const WideQuad& quad, std::uint32_t count, const QuadRay& r,
                                                 const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
                                                 Hit& hit) {
     using vf = QuadRay::vf;
     const unsigned lanes = quad_lanes(quad, count, skip);
-    const QuadTest q(quad, r, vf::broadcast(hit.t));
-    unsigned candidates = ((q.in & ~q.exact) | q.exact) & lanes;
+    // Candidates: every lane with t <= hit.t (and some beyond it), in the ray's range.
+    const QuadTest<true> q(quad, r, vf::broadcast(hit.t));
+    unsigned candidates = (q.in | q.exact) & lanes;
     if (candidates == 0) return false;
     alignas(16) float t[WideQuad::kLanes], ts[WideQuad::kLanes], abs_det[WideQuad::kLanes], u[WideQuad::kLanes],
         v[WideQuad::kLanes];
@@ -197,18 +211,23 @@ struct QuadTest {
     bool found = false;
     for (; candidates != 0; candidates &= candidates - 1) {
         const int lane = __builtin_ctz(candidates);
+        const std::uint32_t prim = quad.prim[lane];
         if (q.exact >> lane & 1u) {
-            if (intersect_triangle(ray, sheared, quad.corner(lane, 0), quad.corner(lane, 1), quad.corner(lane, 2),
-                                   hit)) {
-                hit.prim = quad.prim[lane];
+            Hit h;
+            h.t = ray.tmax;
+            if (intersect_triangle(ray, sheared, quad.corner(lane, 0), quad.corner(lane, 1), quad.corner(lane, 2), h) &&
+                wins(h.t, prim, hit)) {
+                hit.t = h.t;
+                hit.u = h.u;
+                hit.v = h.v;
+                hit.prim = prim;
                 found = true;
             }
-        } else if (ts[lane] < hit.t * abs_det[lane] && t[lane] < hit.t) {
-            // (A lane before it may have moved hit.t since `in` was computed.)
+        } else if (ts[lane] < ray.tmax * abs_det[lane] && t[lane] < ray.tmax && wins(t[lane], prim, hit)) {
             hit.t = t[lane];
             hit.u = u[lane];
             hit.v = v[lane];
-            hit.prim = quad.prim[lane];
+            hit.prim = prim;
             found = true;
         }
     }
@@ -413,9 +432,10 @@ struct WideEntry {
 // diffuse rays, which start anywhere on the model in any direction. One walk to its end,
 // its state in registers; a node's hit children are taken nearest first, a hit shortens
 // the box tests, and a popped child that starts beyond the hit is skipped. The answer is
-// the kd-tree walk's up to the order of ties: each leaf answers as intersect_triangle one
-// triangle after the other, but the two trees hold the triangles in other orders, so of
-// two triangles hit at exactly the same t either may be reported.
+// the nearest triangle, of two at the same t the lower index (quad_closest), whatever the
+// order of the walk; the kd-tree walk keeps the first it tests of two such, and of two
+// triangles nearly as near (where intersect_triangle's two comparisons disagree) the one
+// it tests first, so the two differ on a few pixels in a million.
 inline void closest_wide(const WideBvh& bvh, const Ray& ray, Hit& hit, TraversalCounters& counters,
                          std::uint32_t skip = kNoHit) {
     WideBoxTest test(ray);
