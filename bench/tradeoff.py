@@ -12,7 +12,8 @@ with plots (tradeoff-*.png); every table names the kernels' ISA path (native.isa
            without (PoE 0, full detail), single rays against 2x2 and 4x4 packets, sun and
            indirect beside headlight, the instant-on time (open + first frame, page cache
            dropped), and up to 10^7 the in-core renderer on the same model decoded whole
-           (ModelFile.to_scene), side by side: the out-of-core / in-core ratio.
+           (ModelFile.to_scene), side by side: the out-of-core / in-core ratio (against the
+           renderer's wide-BVH primary rays, and against its kd-tree packets, the same walk).
   pixels   Working set and time to complete of one view against its pixel count (320x180
            ... 1920x1080) at PoE 2: with level of detail the pixels, not the triangles,
            should set the working set.
@@ -239,12 +240,24 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
             # same threads, in this process: the out-of-core full-detail ratio.
             with ModelFile(path) as f:
                 scene = f.to_scene()
+            scene.any_hit_stats()  # the wide BVH the primary rays walk, built before the clock
             cam = camera.to_native()
             for packets in (1, 16):
                 frames = [trace(scene, cam, packets=packets) for _ in range(args.repeats)]
                 row[f"incore_p{packets}_ms"] = statistics.median(f.stats.milliseconds for f in frames)
+            # The kd-tree's packets, the out-of-core walk's in-core twin (the same tree).
+            walk = os.environ.get("VASTRAY_PRIMARY")
+            os.environ["VASTRAY_PRIMARY"] = "kd"
+            try:
+                frames = [trace(scene, cam, packets=16) for _ in range(args.repeats)]
+            finally:
+                if walk is None:
+                    del os.environ["VASTRAY_PRIMARY"]
+                else:
+                    os.environ["VASTRAY_PRIMARY"] = walk
+            row["incore_kd_p16_ms"] = statistics.median(f.stats.milliseconds for f in frames)
             del scene
-            for tag in ("p1", "p16"):
+            for tag in ("p1", "p16", "kd_p16"):
                 ooc = row.get("full_ms" if tag == "p1" else "full_packets16_ms", math.nan)
                 row[f"full_{tag}_over_incore"] = row[f"incore_{tag}_ms"] / ooc
             row["full_fastest_over_incore_fastest"] = min(
@@ -525,8 +538,9 @@ def main() -> int:
                 args.out,
                 f"{header}; plant, {args.image[0]}x{args.image[1]} headlight, "
                 "overview, single rays unless packets are named; page cache dropped before opening; "
-                "incore_*: the in-core renderer on the same model decoded whole, *_over_incore: its "
-                "frame time over the out-of-core full-detail one (above 1: out of core is faster)",
+                "incore_*: the in-core renderer on the same model decoded whole (its primary rays "
+                "through the wide BVH; incore_kd_p16: through the kd-tree, as out of core), *_over_incore: "
+                "its frame time over the out-of-core full-detail one (above 1: out of core is faster)",
             )
         )
         plot_size(rows, args.out)
