@@ -495,7 +495,7 @@ def test_diffuse_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
     pipes at all angles and on the corner scene, whose walls meet at right angles (rays
     that leave one wall hit the other), with walks one after the other and in flight (as
     on a large tree). The node visits drop, as they should with eight boxes a step; the
-    primary rays, on the kd-tree either way, are the same."""
+    primary rays, on the wide BVH either way, are the same."""
     from vastray.camera import frame_bounds
 
     corner = scene_data[0]

@@ -150,7 +150,8 @@ def test_full_detail_out_of_core_equals_in_core_with_sections(
 ) -> None:
     # The out-of-core walk is the kd-tree's, so its in-core twin is the reference: the wide
     # BVH's primary rays may take the other of two triangles hit at the same float t (on
-    # this view a plate's two faces, one of them facing away: a cap where kd sees the face).
+    # this view two coincident triangles facing opposite ways, the lower index facing away:
+    # a cap where the kd walk shows the other's face).
     monkeypatch.setenv("VASTRAY_PRIMARY", "kd")
     source = "scene:plant:20000:3"
     incore = load_model(source)
