@@ -319,6 +319,26 @@ def plant_scene() -> native.Scene:
     return native.Scene(mesh.vertices, mesh.faces)
 
 
+@pytest.mark.parametrize("walk", ["wide", "kd"])
+def test_batch_queries_see_what_frames_see(
+    plant_scene: native.Scene, walk: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Scene.intersect (and so an in-core pick) takes the walk the frame's primary rays
+    take, so on the renderer's own rays (Camera.primary_rays) it reports, pixel for
+    pixel, the triangle and distance the frame shows, ties included."""
+    from vastray.camera import frame_bounds
+
+    monkeypatch.setenv("VASTRAY_PRIMARY", walk)
+    camera = frame_bounds(*plant_scene.bounds, width=160, height=120)
+    origins, directions = camera.primary_rays()
+    hits = plant_scene.intersect(origins, directions)
+    frame = render_camera(plant_scene, camera, shading="normal")
+    assert (frame.prim >= 0).mean() > 0.2
+    np.testing.assert_array_equal(hits["prim"], frame.prim.ravel())
+    seen = frame.prim.ravel() >= 0
+    np.testing.assert_allclose(hits["t"][seen], frame.depth.ravel()[seen], rtol=1e-6)
+
+
 def test_primary_hits_do_not_depend_on_the_order_of_the_walk(monkeypatch: pytest.MonkeyPatch) -> None:
     """Through the wide BVH a primary ray's hit is its nearest triangle, and of two at the
     same float t the one of lower index, whichever the walk met first, so single rays,

@@ -94,10 +94,10 @@ const WideBvh* any_hit_bvh(const Scene& scene) {
     return scene.wide_bvh();
 }
 
-// The structure the renderer's primary rays walk: the scene's wide BVH (its packets beat
-// the kd-tree's by 1.21-1.66x, docs/native-core.md), or null for the kd-tree
-// (VASTRAY_PRIMARY=kd: the walk the out-of-core renderer shares, whose full-detail frames
-// equal it bit for bit; or a scene too large for the wide BVH).
+// The structure closest-hit rays walk (the renderer's primary rays, the batch query): the
+// scene's wide BVH (its packets beat the kd-tree's by 1.21-1.66x, docs/native-core.md),
+// or null for the kd-tree (VASTRAY_PRIMARY=kd: the walk the out-of-core renderer shares,
+// whose full-detail frames equal it bit for bit; or a scene too large for the wide BVH).
 const WideBvh* primary_bvh(const Scene& scene) {
     const char* env = std::getenv("VASTRAY_PRIMARY");
     const std::string_view choice = env != nullptr ? env : "";
@@ -106,6 +106,21 @@ const WideBvh* primary_bvh(const Scene& scene) {
         throw std::invalid_argument("VASTRAY_PRIMARY must be 'kd' or 'wide' (got '" + std::string(choice) + "')");
     }
     return scene.wide_bvh();
+}
+
+// Closest hits of `count` coherent packets of N rays (rays[j], hits[j]) through the wide
+// BVH, or the kd-tree's packets where `bvh` is null; several in flight where `interleave`
+// says the structure walked is large.
+template <int N>
+void closest_packets(const Scene& scene, const WideBvh* bvh, bool interleave, const Ray* const* rays,
+                     Hit* const* hits, int count, TraversalCounters& counters) {
+    if (bvh == nullptr) {
+        trace_coherent_packets<N>(scene, interleave, rays, hits, count, counters);
+    } else if (interleave) {
+        closest_wide_packets<N, kWidePacketsInFlight>(*bvh, rays, hits, count, counters);
+    } else {
+        closest_wide_packets<N, 1>(*bvh, rays, hits, count, counters);
+    }
 }
 
 // A secondary ray of the in-core scene: never reports the triangle it starts on.
@@ -234,13 +249,8 @@ public:
                 out[m++] = hits[j];
             }
         }
-        if (primary_ == nullptr) {
-            trace_coherent_packets<N>(scene_, interleave_, coherent, out, m, lane);
-        } else if (primary_interleave_) {
-            closest_wide_packets<N, kWidePacketsInFlight>(*primary_, coherent, out, m, lane);
-        } else {
-            closest_wide_packets<N, 1>(*primary_, coherent, out, m, lane);
-        }
+        closest_packets<N>(scene_, primary_, primary_ != nullptr ? primary_interleave_ : interleave_, coherent, out, m,
+                           lane);
     }
 
     std::int32_t prim_id(const Hit& hit) const { return static_cast<std::int32_t>(scene_.input_id(hit.prim)); }
@@ -434,11 +444,14 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
     ThreadPool& pool = ThreadPool::global();
     std::vector<TraversalCounters> lane_counters(pool.lanes());
     // Runs of 16 rays from one origin whose directions share their signs (a row of camera
-    // rays) go as packets, several in flight on a large tree, as the renderer's do: the
-    // same walk and arithmetic per ray, so the same answers as one ray at a time. Other
-    // rays, and every ray when section planes cut the scene, go one at a time.
+    // rays) go as packets, several in flight on a large tree, as the renderer's do, through
+    // the structure the renderer's primary rays walk (primary_bvh): the same answers as one
+    // ray at a time, and as the frame's. Other rays, and every ray when section planes cut
+    // the scene, go one at a time.
     constexpr int kPacket = 16;
-    const bool interleave = interleaves(scene.tree().memory_bytes());
+    // (The wide BVH is built here, before the parallel loop: the build runs on the pool.)
+    const WideBvh* bvh = primary_bvh(scene);
+    const bool interleave = interleaves(bvh != nullptr ? bvh->memory_bytes() : scene.tree().memory_bytes());
     pool.parallel_for((n + kBatch - 1) / kBatch, [&](std::size_t b, unsigned lane) {
         TraversalCounters& c = lane_counters[lane];
         const std::size_t begin = b * kBatch, end = std::min(n, (b + 1) * kBatch);
@@ -463,7 +476,12 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
             Ray ray = scene.to_local(wr);
             int entered = -1;
             if (!sections.empty() && !sections.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered)) return;
-            if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) store(i, hit, ray, entered);
+            if (bvh != nullptr) {
+                closest_wide(*bvh, ray, hit, c);
+                if (hit.prim != kNoHit) store(i, hit, ray, entered);
+            } else if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) {
+                store(i, hit, ray, entered);
+            }
         };
         std::size_t i = begin;
         if (sections.empty()) {
@@ -472,8 +490,9 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
             Uninitialised<Hit, kBatch> hit_store;
             Ray* rays = ray_store.data();
             Hit* hits = hit_store.data();
-            const Ray* rays_of[kMaxPackets];
-            Hit* hits_of[kMaxPackets];
+            // (Cleared only for GCC, which cannot see that entries past m are never read.)
+            const Ray* rays_of[kMaxPackets] = {};
+            Hit* hits_of[kMaxPackets] = {};
             int m = 0;
             for (; i + kPacket <= end; i += kPacket) {
                 Ray* r = rays + (i - begin);
@@ -493,7 +512,7 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
                     for (int k = 0; k < kPacket; ++k) trace_one(i + static_cast<std::size_t>(k));
                 }
             }
-            trace_coherent_packets<kPacket>(scene, interleave, rays_of, hits_of, m, c);
+            closest_packets<kPacket>(scene, bvh, interleave, rays_of, hits_of, m, c);
             for (int j = 0; j < m; ++j) {
                 // A packet's rays and hits lie at its first ray's place in the batch.
                 const std::size_t first = begin + static_cast<std::size_t>(rays_of[j] - rays);
