@@ -401,11 +401,10 @@ struct WideEntry {
     return true;
 }
 
-// A leaf's quads in order for a closest hit; on a nearer hit the box test's segment ends
-// there, so boxes beyond it are no longer entered.
-[[gnu::always_inline]] inline void wide_leaf_closest(const WideBvh& bvh, std::uint32_t code, const QuadRay& r,
+// A leaf's quads in order for a closest hit (quad_closest); true when `hit` moved.
+[[gnu::always_inline]] inline bool wide_leaf_nearest(const WideBvh& bvh, std::uint32_t code, const QuadRay& r,
                                                      const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
-                                                     Hit& hit, WideBoxTest& test, std::uint64_t& triangle_tests) {
+                                                     Hit& hit, std::uint64_t& triangle_tests) {
     const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(code);
     std::uint32_t count = WideNode::leaf_count(code);
     triangle_tests += count;
@@ -415,7 +414,17 @@ struct WideEntry {
         found |= quad_closest(*quad, n, r, ray, sheared, skip, hit);
         if (count <= WideQuad::kLanes) break;
     }
-    if (found) test.tmax = WideBoxTest::vf::broadcast(hit.t);
+    return found;
+}
+
+// wide_leaf_nearest for a single walk: on a nearer hit the box test's segment ends there,
+// so boxes beyond it are no longer entered.
+[[gnu::always_inline]] inline void wide_leaf_closest(const WideBvh& bvh, std::uint32_t code, const QuadRay& r,
+                                                     const Ray& ray, const ShearedRay& sheared, std::uint32_t skip,
+                                                     Hit& hit, WideBoxTest& test, std::uint64_t& triangle_tests) {
+    if (wide_leaf_nearest(bvh, code, r, ray, sheared, skip, hit, triangle_tests)) {
+        test.tmax = WideBoxTest::vf::broadcast(hit.t);
+    }
 }
 
 // The next child to visit: the top entry that starts before the hit; false when none is
@@ -472,6 +481,15 @@ struct WideClosestWalk : WideWalkRay {
         hit = &hit_out;
         hit->t = ray_in.tmax;
         hit->prim = kNoHit;
+    }
+
+    // Goes on with a ray's walk below node `code`, its closest hit so far in `hit_out` (a
+    // packet's ray left alone in a subtree, wide_traverse_packet.h).
+    void resume(const Ray& ray_in, Hit& hit_out, std::uint32_t code) {
+        begin(ray_in, kNoHit);
+        hit = &hit_out;
+        test.tmax = WideBoxTest::vf::broadcast(hit_out.t);
+        cur = code;
     }
 
     // Visits `cur`; true when the walk is over (*hit is its answer).

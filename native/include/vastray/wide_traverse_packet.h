@@ -97,13 +97,8 @@ public:
         } else if ((lanes & (lanes - 1)) == 0) {
             // One ray left in this subtree: its own walk takes it, as closest_wide would
             // (handing over two or three as well measured the same).
-            const int i = __builtin_ctz(lanes);
-            lone = i;
-            lone_test = WideBoxTest(rays[i]);
-            lone_test.tmax = WideBoxTest::vf::broadcast(hits[i].t);
-            shear(i);
-            lone_cur = cur;
-            lone_top = 0;
+            lone = __builtin_ctz(lanes);
+            lone_walk.resume(rays[lone], hits[lone], cur);
             if (!lone_step(bvh, node_visits, triangle_tests)) return false;
         } else {
             ++node_visits;
@@ -133,22 +128,8 @@ private:
 
     // One step of the lone ray's walk (closest_wide's); true when it is over.
     bool lone_step(const WideBvh& bvh, std::uint64_t& node_visits, std::uint64_t& triangle_tests) {
-        const int i = lone;
-        Hit& hit = hits[i];
-        if (!WideNode::is_leaf(lone_cur)) {
-            ++node_visits;
-            if (wide_descend_nearest(bvh.nodes[lone_cur], lone_test, lone_cur, lone_stack, lone_top)) {
-                WideWalkRay::prefetch(bvh, lone_cur);
-                return false;
-            }
-        } else {
-            wide_leaf_closest(bvh, lone_cur, quad_ray[i], rays[i], sheared[i], kNoHit, hit, lone_test, triangle_tests);
-        }
-        if (wide_pop_nearer(lone_stack, lone_top, hit.t, lone_cur)) {
-            WideWalkRay::prefetch(bvh, lone_cur);
-            return false;
-        }
-        hit_t[i] = hit.t;
+        if (!lone_walk.step(bvh, node_visits, triangle_tests)) return false;
+        hit_t[lone] = hits[lone].t;
         lone = -1;
         return true;
     }
@@ -253,14 +234,7 @@ private:
         for (std::uint32_t l = lanes; l != 0; l &= l - 1) {
             const int i = __builtin_ctz(l);
             shear(i);
-            const WideQuad* quad = bvh.quads.data() + WideNode::leaf_first(cur);
-            std::uint32_t count = WideNode::leaf_count(cur);
-            triangle_tests += count;
-            for (;; ++quad, count -= WideQuad::kLanes) {
-                const std::uint32_t m = count < WideQuad::kLanes ? count : WideQuad::kLanes;
-                quad_closest(*quad, m, quad_ray[i], rays[i], sheared[i], kNoHit, hits[i]);
-                if (count <= WideQuad::kLanes) break;
-            }
+            wide_leaf_nearest(bvh, cur, quad_ray[i], rays[i], sheared[i], kNoHit, hits[i], triangle_tests);
             hit_t[i] = hits[i].t;
         }
     }
@@ -277,12 +251,8 @@ private:
     ShearedRay sheared[N];
     QuadRay quad_ray[N];
     Entry stack[kWideStack];
-    // The lone ray's walk.
-    int lone = -1;
-    WideBoxTest lone_test;
-    std::uint32_t lone_cur = 0;
-    int lone_top = 0;
-    WideEntry lone_stack[kWideStack];
+    int lone = -1;  // the ray walking alone below `cur`, or -1
+    WideClosestWalk lone_walk;
 };
 #pragma GCC diagnostic pop
 
