@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,9 +14,14 @@ from PIL import Image
 from vastray.ingest import load_mesh
 
 
-def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+def run_cli(*args: str, cwd: Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "vastray", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "vastray", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=None if env is None else {**os.environ, **env},
     )
 
 
@@ -80,6 +86,38 @@ def test_render_with_explicit_camera_and_every_shading(spheres_ply: Path, tmp_pa
         means[shading] = np.asarray(Image.open(png), dtype=np.float64).mean()
     # Different shading modes give different pictures of the same view.
     assert len({round(m, 3) for m in means.values()}) == 4
+
+
+@pytest.mark.parametrize(
+    ("env", "shading", "wide", "kd"),
+    [
+        ({}, "sun", True, False),
+        ({"VASTRAY_PRIMARY": "kd"}, "headlight", False, True),
+        ({"VASTRAY_PRIMARY": "kd"}, "sun", True, True),
+        ({"VASTRAY_ANYHIT": "kd"}, "ao", True, True),
+    ],
+)
+def test_render_builds_only_what_its_rays_walk(
+    spheres_ply: Path, tmp_path: Path, env: dict[str, str], shading: str, wide: bool, kd: bool
+) -> None:
+    """An in-core scene's structures are built on first use: the CLI builds and reports
+    the ones the frame's rays walk before the frame, and no other."""
+    png = tmp_path / "frame.png"
+    result = run_cli(
+        "render",
+        str(spheres_ply),
+        "--size",
+        "64x48",
+        "--shading",
+        shading,
+        "-o",
+        str(png),
+        cwd=tmp_path,
+        env=env,
+    )
+    assert result.returncode == 0, result.stderr
+    assert ("wide BVH   8-wide BVH in" in result.stdout) == wide, result.stdout
+    assert ("kd-tree    kd-tree in" in result.stdout) == kd, result.stdout
 
 
 def test_render_builtin_scene_spec(tmp_path: Path) -> None:

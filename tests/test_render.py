@@ -444,6 +444,54 @@ def test_batch_shadow_packets_change_speed_not_answers(
         np.testing.assert_array_equal(scene.occluded(origins, directions), alone, err_msg=interleave)
 
 
+def test_the_kd_tree_is_built_only_when_a_walk_needs_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scene builds its kd-tree on first use: frames in every mode, the batch queries
+    and the bounds leave it unbuilt (the wide BVH serves them), a frame whose rays walk
+    it (VASTRAY_PRIMARY=kd, VASTRAY_ANYHIT=kd) builds it first and draws what the
+    scene built at once draws. The scene's bounds, known before the tree, are the tree's
+    root cell: the triangles of non-zero area, not the degenerate one far away."""
+    from vastray.camera import frame_bounds
+    from vastray.renderer import render_params, trace
+    from vastray.scenes import to_mesh
+
+    mesh = to_mesh("plant", 20_000, 2)
+    far = len(mesh.vertices)
+    vertices = np.concatenate([mesh.vertices, [[1e3, 1e3, 1e3], [2e3, 3e3, 4e3]]])
+    faces = np.concatenate([mesh.faces, [[far, far, far + 1]]]).astype(np.uint32)  # no area
+
+    def make() -> native.Scene:
+        return native.Scene(np.ascontiguousarray(vertices), np.ascontiguousarray(faces))
+
+    lazy, eager = make(), make()
+    stats = eager.build_stats  # builds the kd-tree
+    assert eager.kd_tree_built and stats["degenerate"] == 1
+    lo, hi = (np.asarray(b) for b in lazy.bounds)
+    assert hi.max() < 1e3
+    centre = np.asarray(eager.centre)
+    np.testing.assert_array_equal(lo, centre + np.asarray(stats["root_cell"][0], dtype=np.float64))
+    np.testing.assert_array_equal(hi, centre + np.asarray(stats["root_cell"][1], dtype=np.float64))
+    assert lazy.bounds == eager.bounds
+
+    camera = frame_bounds(*lazy.bounds, width=48, height=32)
+    for shading in ("normal", "headlight", "sun", "ao", "indirect"):
+        params = render_params(shading=shading, ao_samples=2)
+        image = trace(lazy, camera, params).image
+        assert image.std() > 0, shading
+    eye, rays = camera.primary_rays()
+    lazy.intersect(eye, rays)
+    lazy.occluded(eye, rays)
+    assert not lazy.kd_tree_built
+
+    for variable, shading in (("VASTRAY_ANYHIT", "ao"), ("VASTRAY_PRIMARY", "headlight")):
+        with monkeypatch.context() as m:
+            m.setenv(variable, "kd")
+            fresh = make()
+            params = render_params(shading=shading, ao_samples=2)
+            image = trace(fresh, camera, params).image
+            assert fresh.kd_tree_built, variable
+            np.testing.assert_array_equal(image, trace(eager, camera, params).image, err_msg=variable)
+
+
 def test_any_hit_rays_walk_the_wide_bvh_with_the_kd_trees_answers(
     plant_scene: native.Scene, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -609,8 +657,8 @@ def test_a_large_in_core_tree_lies_on_huge_pages() -> None:
     faces = np.ascontiguousarray(mesh.faces, dtype=np.uint32)
     before = _anon_huge_pages_kib()
     scene = native.Scene(vertices, faces, threads=0)
+    tree_mib = scene.build_stats["memory_bytes"] / 2**20  # (builds the tree: on first use)
     grown_mib = (_anon_huge_pages_kib() - before) / 1024
-    tree_mib = scene.build_stats["memory_bytes"] / 2**20
     # The arrays below the threshold (8 MiB) and each array's last partial huge page
     # stay small; most of the tree (about 40 MiB here) must not.
     assert tree_mib > 16

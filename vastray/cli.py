@@ -41,6 +41,32 @@ def _print_render(camera: Any, shading: str, s: Any) -> None:
     )
 
 
+def _build_walked_structures(scene: Any, shading: str) -> None:
+    """Builds, and reports, what the frame's rays will walk, so that the frame's time is
+    the frame's alone: the 8-wide BVH (primary rays unless VASTRAY_PRIMARY=kd, and
+    secondary rays unless VASTRAY_ANYHIT=kd), and the kd-tree only where some ray walks it
+    (or the scene is too large for the wide BVH)."""
+    secondary = shading in ANY_HIT_SHADINGS
+    primary_kd = os.environ.get("VASTRAY_PRIMARY") == "kd"
+    secondary_kd = os.environ.get("VASTRAY_ANYHIT") == "kd"
+    kd = primary_kd or (secondary and secondary_kd)
+    if not primary_kd or (secondary and not secondary_kd):
+        wide = scene.any_hit_stats()
+        if wide["structure"] == "wide-bvh":
+            print(
+                f"wide BVH   8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
+                f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
+            )
+        else:
+            kd = True
+    if kd:
+        stats = scene.build_stats
+        print(
+            f"kd-tree    kd-tree in {stats['build_ms'] / 1000:.2f} s ({stats['nodes']:,} nodes, "
+            f"depth {stats['max_depth']}, {stats['memory_bytes'] / 2**20:.1f} MiB with the geometry)"
+        )
+
+
 def _check_output(path: str) -> None:
     """Fail before rendering, not after, when the image cannot be written."""
     from PIL import Image
@@ -90,21 +116,11 @@ def _cmd_render(args: argparse.Namespace) -> int:
                 f"opened in {renderer.open_seconds * 1000:.0f} ms; cache {args.cache}"
             )
         elif isinstance(renderer, SceneRenderer):
-            stats = renderer.scene.build_stats
             print(
                 f"model      {renderer.name}: {renderer.triangle_count:,} triangles, "
-                f"loaded in {renderer.load_seconds:.2f} s, kd-tree in {stats['build_ms'] / 1000:.2f} s "
-                f"({stats['nodes']:,} nodes, depth {stats['max_depth']}, "
-                f"{stats['memory_bytes'] / 2**20:.1f} MiB)"
+                f"loaded in {renderer.load_seconds + renderer.build_seconds:.2f} s"
             )
-            if args.shading in ANY_HIT_SHADINGS or os.environ.get("VASTRAY_PRIMARY") != "kd":
-                # Primary rays (unless VASTRAY_PRIMARY=kd) and secondary rays walk the 8-wide
-                # BVH. Built here, on first use, so the frame's time below is the frame's alone.
-                wide = renderer.scene.any_hit_stats()
-                print(
-                    f"wide BVH   8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
-                    f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
-                )
+            _build_walked_structures(renderer.scene, args.shading)
         lo, hi = renderer.bounds
         camera = _camera_from_args(args, lo, hi)
         frame = renderer.render_complete(camera, params)

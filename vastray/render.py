@@ -1,5 +1,5 @@
 """In-core rendering: a mesh file, a procedural scene or a built model decoded whole,
-as a native scene with its kd-tree, behind the `Renderer` interface
+as a native scene (its 8-wide BVH and kd-tree built on first use), behind the `Renderer` interface
 (vastray/renderer.py). Always complete, always full detail: the reference the
 out-of-core renderer is tested against, and the quick way to look at a mesh."""
 
@@ -20,7 +20,8 @@ from vastray.sources import MODEL_SUFFIX, SOURCE_HELP, is_model_file, parse_scen
 
 
 class SceneRenderer:
-    """An in-core scene. `load_seconds` and `build_seconds` say what opening it cost."""
+    """An in-core scene. `load_seconds` and `build_seconds` say what opening it cost (the
+    scene's own set-up; the structures its rays walk are built on first use)."""
 
     def __init__(self, scene: native.Scene, name: str, load_seconds: float = 0.0, build_seconds: float = 0.0):
         self.scene = scene
@@ -96,9 +97,11 @@ def resolve_mesh(source: str) -> Mesh:
 def load_model(
     source: str, *, on_phase: Callable[[str], None] | None = None, **build_options: Any
 ) -> SceneRenderer:
-    """Load (or generate) a model and build its kd-tree, or decode a built model at full
-    detail. `on_phase` hears about each phase as it starts, so a CLI or a job can tell
-    the user what the wait is for."""
+    """Load (or generate) a model as an in-core scene, or decode a built model at full
+    detail. The structures rays walk are built on first use (`Scene.any_hit_stats()`
+    builds the 8-wide BVH every frame walks; `Scene.build_stats` the kd-tree, which only
+    VASTRAY_PRIMARY=kd or VASTRAY_ANYHIT=kd frames walk). `on_phase` hears about each
+    phase as it starts, so a CLI or a job can tell the user what the wait is for."""
     start = time.perf_counter()
     if is_model_file(source):
         from vastray.modelfile import ModelFile
@@ -113,6 +116,6 @@ def load_model(
     mesh = resolve_mesh(source)
     loaded = time.perf_counter()
     if on_phase is not None:
-        on_phase(f"building kd-tree over {mesh.triangle_count:,} triangles")
+        on_phase(f"preparing {mesh.triangle_count:,} triangles")
     scene = scene_from_mesh(mesh, **build_options)
     return SceneRenderer(scene, mesh.name, loaded - start, time.perf_counter() - loaded)

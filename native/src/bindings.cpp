@@ -79,7 +79,12 @@ std::shared_ptr<Scene> make_scene(DoubleArray vertices, UIntArray faces, py::obj
 }
 
 py::dict build_stats(const Scene& s) {
-    const KdBuildStats& st = s.tree().stats;
+    const KdTree* tree;
+    {
+        py::gil_scoped_release release;  // the first call builds the tree
+        tree = &s.tree();
+    }
+    const KdBuildStats& st = tree->stats;
     py::dict d;
     d["nodes"] = st.nodes;
     d["leaves"] = st.leaves;
@@ -91,6 +96,9 @@ py::dict build_stats(const Scene& s) {
     d["sah_cost"] = st.sah_cost;
     d["build_ms"] = st.build_ms;
     d["memory_bytes"] = s.memory_bytes();
+    const Box3f& cell = tree->bounds;  // model-local, relative to the scene's centre
+    d["root_cell"] = std::make_pair(std::vector<float>{cell.lo.x, cell.lo.y, cell.lo.z},
+                                    std::vector<float>{cell.hi.x, cell.hi.y, cell.hi.z});
     return d;
 }
 
@@ -241,7 +249,9 @@ PYBIND11_MODULE(native, m) {
     m.def("hardware_threads", &hardware_threads, "Lanes the global thread pool uses");
     bind_render_types(m);
 
-    py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene", "An in-core triangle model with its kd-tree")
+    py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene",
+                                              "An in-core triangle model; the 8-wide BVH and the kd-tree its rays "
+                                              "walk are built on first use")
         .def(py::init(&make_scene), py::arg("vertices"), py::arg("faces"), py::arg("colours") = py::none(),
              py::arg("triangle_ids") = py::none(), py::arg("leaf_size") = KdBuildParams{}.leaf_size,
              py::arg("traversal_cost") = KdBuildParams{}.traversal_cost,
@@ -266,7 +276,12 @@ PYBIND11_MODULE(native, m) {
             const Vec3d lo = s.world_lo(), hi = s.world_hi();
             return std::make_pair(std::vector<double>{lo.x, lo.y, lo.z}, std::vector<double>{hi.x, hi.y, hi.z});
         })
-        .def_property_readonly("build_stats", &build_stats)
+        .def_property_readonly("build_stats", &build_stats,
+                               "The kd-tree's nodes, leaves, depth, SAH cost, build time and the scene's "
+                               "bytes with it; builds the kd-tree if not yet built (no frame needs it "
+                               "unless VASTRAY_PRIMARY=kd or VASTRAY_ANYHIT=kd)")
+        .def_property_readonly("kd_tree_built", &Scene::kd_tree_built,
+                               "Whether the kd-tree is built (it is built on first use)")
         .def("any_hit_stats", &any_hit_stats,
              "Builds the scene's 8-wide BVH, which the renderer's rays walk (primary rays unless "
              "VASTRAY_PRIMARY=kd; occluded; AO, sun and indirect shading), if not yet built; its nodes, "

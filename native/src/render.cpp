@@ -183,19 +183,22 @@ public:
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
         : scene_(scene),
           camera_(camera),
-          interleave_(interleaves(scene.tree().memory_bytes())),
-          // (Built here, before the frame's parallel loop: the build runs on the pool too.)
+          // (Built here, before the frame's parallel loop: the builds run on the pool too.)
           wide_(traces_any_hit_rays(params.shading) ? any_hit_bvh(scene) : nullptr),
           wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())),
           primary_(primary_bvh(scene)),
-          primary_interleave_(primary_ != nullptr && interleaves(primary_->memory_bytes())) {
+          primary_interleave_(primary_ != nullptr && interleaves(primary_->memory_bytes())),
+          // The kd-tree only where some ray of the frame walks it.
+          kd_(primary_ == nullptr || (traces_any_hit_rays(params.shading) && wide_ == nullptr) ? &scene.tree()
+                                                                                                : nullptr),
+          interleave_(kd_ != nullptr && interleaves(kd_->memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
     }
 
     Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
-    Box3f bounds() const { return scene_.tree().bounds; }
+    Box3f bounds() const { return scene_.bounds(); }
     void primary_rays4(int x0, int y, Ray* out) const {
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);
@@ -206,7 +209,7 @@ public:
         if (primary_ != nullptr) {
             closest_wide(*primary_, ray, hit, lane);
         } else {
-            traverse<false>(scene_.tree(), scene_.tri_vertices(), ray, hit, lane);
+            traverse<false>(*kd_, scene_.tri_vertices(), ray, hit, lane);
         }
     }
     void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {
@@ -230,7 +233,7 @@ public:
         if (primary_ != nullptr) {
             closest_wide_packets<N, 1>(*primary_, &rays, &hits, 1, lane);
         } else {
-            traverse_packet<N>(scene_.tree(), scene_.tri_vertices(), rays, hits, lane);
+            traverse_packet<N>(*kd_, scene_.tri_vertices(), rays, hits, lane);
         }
         return true;
     }
@@ -322,7 +325,7 @@ public:
                         r_of[j] = r[j];
                         skip_of[j] = skip[j];
                     }
-                    occluded_packets<N, kOcclusionInFlight>(scene_.tree(), scene_.tri_vertices(), r_of, skip_of,
+                    occluded_packets<N, kOcclusionInFlight>(*kd_, scene_.tri_vertices(), r_of, skip_of,
                                                            mask + j0, blocked + j0, m, lane);
                 }
                 return;
@@ -352,7 +355,7 @@ public:
         }
         for (; mask; mask &= mask - 1) {
             const int i = __builtin_ctz(mask);
-            traverse<false>(scene_.tree(), scene_.tri_vertices(), rays[i].ray, hits[i], lane, rays[i].skip);
+            traverse<false>(*kd_, scene_.tri_vertices(), rays[i].ray, hits[i], lane, rays[i].skip);
         }
     }
 
@@ -372,11 +375,12 @@ private:
 
     const Scene& scene_;
     shading::CameraRays camera_;
-    bool interleave_;
     const WideBvh* wide_;  // null: secondary rays walk the kd-tree
     bool wide_interleave_;
     const WideBvh* primary_;  // null: primary rays walk the kd-tree
     bool primary_interleave_;
+    const KdTree* kd_;  // null where no ray of the frame walks the kd-tree
+    bool interleave_;
     float ao_distance_ = 1;
 };
 

@@ -3,11 +3,14 @@
 #include <stdexcept>
 #include <string>
 
+#include "vastray/thread_pool.h"
+
 namespace vastray {
 
 Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32_t* faces,
              std::size_t face_count, const std::uint8_t* colours, const std::uint32_t* input_ids,
-             const KdBuildParams& params) {
+             const KdBuildParams& params)
+    : kd_params_(params) {
     if (face_count == 0) throw std::invalid_argument("scene has no triangles");
     Vec3d lo(std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
              std::numeric_limits<double>::infinity());
@@ -36,10 +39,28 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
             }
             tri_vertices_[3 * f + static_cast<std::size_t>(k)] = local;
         }
+        // The bounds the kd-tree's build takes for its root cell (build_kdtree): of the
+        // triangles with area in double arithmetic on the float corners.
+        const Vec3f* v = tri_vertices_.data() + 3 * f;
+        const Vec3d n = cross(Vec3d(v[1]) - Vec3d(v[0]), Vec3d(v[2]) - Vec3d(v[0]));
+        if (n.x != 0 || n.y != 0 || n.z != 0) {
+            for (int k = 0; k < 3; ++k) bounds_.extend(v[k]);
+        }
     }
+    if (bounds_.empty()) bounds_ = Box3f{{0, 0, 0}, {0, 0, 0}};
     if (colours != nullptr) colours_.assign(colours, colours + 3 * face_count);
     if (input_ids != nullptr) input_ids_.assign(input_ids, input_ids + face_count);
-    tree_ = build_kdtree(TriangleSoup{tri_vertices_.data(), face_count}, params);
+}
+
+void Scene::build_tree() const {
+    if (ThreadPool::in_task()) {
+        throw std::logic_error("the scene's kd-tree was first asked for inside a thread-pool task; "
+                               "its build runs on the pool, so build it before the parallel loop");
+    }
+    std::call_once(kd_once_, [this] {
+        tree_ = build_kdtree(TriangleSoup{tri_vertices_.data(), triangle_count()}, kd_params_);
+        kd_built_.store(true, std::memory_order_release);
+    });
 }
 
 const WideBvh* Scene::wide_bvh() const {
@@ -51,7 +72,8 @@ const WideBvh* Scene::wide_bvh() const {
 }
 
 std::size_t Scene::memory_bytes() const {
-    return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + 4 * input_ids_.size() + tree_.memory_bytes();
+    return tri_vertices_.size() * sizeof(Vec3f) + colours_.size() + 4 * input_ids_.size() +
+           (kd_tree_built() ? tree_.memory_bytes() : 0);
 }
 
 }  // namespace vastray

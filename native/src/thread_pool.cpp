@@ -50,8 +50,18 @@ ThreadPool& ThreadPool::global() {
     return pool;
 }
 
+namespace {
+thread_local bool t_in_task = false;
+}  // namespace
+
+bool ThreadPool::in_task() { return t_in_task; }
+
 void ThreadPool::run_lane(unsigned lane) {
     if (lane >= job_lanes_) return;
+    struct InTask {
+        InTask() { t_in_task = true; }
+        ~InTask() { t_in_task = false; }
+    } in_task;
     for (;;) {
         const std::size_t task = next_.fetch_add(1, std::memory_order_relaxed);
         if (task >= job_count_) break;

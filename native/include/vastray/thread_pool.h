@@ -35,6 +35,10 @@ public:
     // The process-wide pool, sized to the hardware (VASTRAY_THREADS overrides).
     static ThreadPool& global();
 
+    // Whether the calling thread is running a task of some pool's parallel_for: a
+    // parallel_for from there would wait for itself.
+    static bool in_task();
+
 private:
     void worker_loop(unsigned lane);
     void run_lane(unsigned lane);
