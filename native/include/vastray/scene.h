@@ -47,7 +47,7 @@ public:
     Vec3d world_hi() const { return centre_ + Vec3d(bounds_.hi); }
     // The kd-tree, built on first use with the parameters the scene was made with. By
     // default no ray of the renderer walks it (the wide BVH serves them all), so a scene
-    // made to be rendered never pays for it: at 10^7 triangles 6.7 s and 604 MB. Like
+    // made to be rendered never pays for it: at 10^7 triangles 6-7 s and about 250 MB. Like
     // wide_bvh(), it is built on the pool: asked for from inside a ThreadPool task before
     // it is built, it throws std::logic_error rather than wait on itself.
     const KdTree& tree() const {
