@@ -50,7 +50,9 @@ def _build_walked_structures(scene: Any, shading: str) -> None:
     primary_kd = os.environ.get("VASTRAY_PRIMARY") == "kd"
     secondary_kd = os.environ.get("VASTRAY_ANYHIT") == "kd"
     kd = primary_kd or (secondary and secondary_kd)
+    triangles = f"{scene.triangle_count:,} triangles"
     if not primary_kd or (secondary and not secondary_kd):
+        print(f"building 8-wide BVH over {triangles} ...", file=sys.stderr, flush=True)
         wide = scene.any_hit_stats()
         if wide["structure"] == "wide-bvh":
             print(
@@ -60,6 +62,7 @@ def _build_walked_structures(scene: Any, shading: str) -> None:
         else:
             kd = True
     if kd:
+        print(f"building kd-tree over {triangles} ...", file=sys.stderr, flush=True)
         stats = scene.build_stats
         print(
             f"kd-tree    kd-tree in {stats['build_ms'] / 1000:.2f} s ({stats['nodes']:,} nodes, "
