@@ -6,10 +6,13 @@
 #include <algorithm>
 #include <array>
 #include <chrono>
+#include <cstdint>
 #include <limits>
 #include <stdexcept>
 #include <utility>
 #include <vector>
+
+#include <emmintrin.h>
 
 #include "vastray/thread_pool.h"
 #include "vastray/wide_bvh.h"
@@ -38,18 +41,49 @@ struct Range {
 
 float area(const Box3f& b) { return b.empty() ? 0.0f : b.half_area(); }
 
+// A box as two SSE vectors (x, y, z in lanes 0-2; lane 3 unused), so that extending it
+// takes two instructions. _mm_min_ps(p, lo) and _mm_max_ps(p, hi) keep the old bound on
+// a tie, as Box3f::extend's std::min / std::max do: the bounds are the same bits.
+struct BoxV {
+    __m128 lo = _mm_set1_ps(std::numeric_limits<float>::infinity());
+    __m128 hi = _mm_set1_ps(-std::numeric_limits<float>::infinity());
+
+    void extend(__m128 p_lo, __m128 p_hi) {
+        lo = _mm_min_ps(p_lo, lo);
+        hi = _mm_max_ps(p_hi, hi);
+    }
+    Box3f box() const {
+        alignas(16) float l[4], h[4];
+        _mm_store_ps(l, lo);
+        _mm_store_ps(h, hi);
+        return Box3f{{l[0], l[1], l[2]}, {h[0], h[1], h[2]}};
+    }
+};
+
+// Box3f's six floats as two vectors (lane 3 holds a neighbouring coordinate, unused),
+// read within the box's own 24 bytes.
+inline void load_box(const Box3f& b, __m128& lo, __m128& hi) {
+    lo = _mm_loadu_ps(&b.lo.x);  // lo.x lo.y lo.z hi.x
+    const __m128 tail = _mm_loadu_ps(&b.lo.z);  // lo.z hi.x hi.y hi.z
+    hi = _mm_shuffle_ps(tail, tail, _MM_SHUFFLE(0, 3, 2, 1));
+}
+
 class Builder {
 public:
     Builder(const std::vector<Box3f>& boxes, const std::vector<Vec3f>& centres, std::vector<std::uint32_t>& order)
         : boxes_(boxes), centres_(centres), order_(order) {}
 
     Range range(std::uint32_t begin, std::uint32_t end) const {
-        Range r{begin, end, {}, {}};
+        BoxV bounds, centroids;
+        const __m128 half = _mm_set1_ps(0.5f);
         for (std::uint32_t i = begin; i < end; ++i) {
-            r.bounds.extend(boxes_[order_[i]]);
-            r.centroids.extend(centres_[order_[i]]);
+            __m128 lo, hi;
+            load_box(boxes_[order_[i]], lo, hi);
+            const __m128 c = _mm_mul_ps(_mm_add_ps(lo, hi), half);  // = centres_[t], bit for bit
+            bounds.extend(lo, hi);
+            centroids.extend(c, c);
         }
-        return r;
+        return Range{begin, end, bounds.box(), centroids.box()};
     }
 
     // Splits `r` in two along the cheapest of kBins planes per axis; where the centroids
@@ -59,17 +93,37 @@ public:
         const Vec3f lo = r.centroids.lo, ext = r.centroids.extent();
         int best_axis = -1, best_plane = 0;
         float best_cost = kInf;
-        std::array<std::array<Box3f, kBins>, 3> bin_boxes;
         std::array<std::array<std::uint32_t, kBins>, 3> bin_counts{};
         float scale[3];
         for (int a = 0; a < 3; ++a) scale[a] = ext[a] > 0 ? kBins * (1.0f - 1e-6f) / ext[a] : 0.0f;
-        for (std::uint32_t i = r.begin; i < r.end; ++i) {
-            const std::uint32_t t = order_[i];
-            for (int a = 0; a < 3; ++a) {
-                const int b = bin_of(centres_[t][a], lo[a], scale[a]);
-                bin_boxes[a][b].extend(boxes_[t]);
-                ++bin_counts[a][b];
+        // The three axes' bins of a triangle at once: bin_of's float arithmetic and
+        // truncation lane by lane (cvttps gives what static_cast<int> gives, INT_MIN out of
+        // range), then its clamp to [0, kBins) on the integers. Same bins, same bounds.
+        std::array<std::array<BoxV, kBins>, 3> bins;
+        {
+            const __m128 v_lo = _mm_setr_ps(lo.x, lo.y, lo.z, 0.0f);
+            const __m128 v_scale = _mm_setr_ps(scale[0], scale[1], scale[2], 0.0f);
+            const __m128 half = _mm_set1_ps(0.5f);
+            const __m128i zero = _mm_setzero_si128(), top = _mm_set1_epi32(kBins - 1);
+            for (std::uint32_t i = r.begin; i < r.end; ++i) {
+                __m128 b_lo, b_hi;
+                load_box(boxes_[order_[i]], b_lo, b_hi);
+                const __m128 c = _mm_mul_ps(_mm_add_ps(b_lo, b_hi), half);
+                __m128i b = _mm_cvttps_epi32(_mm_mul_ps(_mm_sub_ps(c, v_lo), v_scale));
+                b = _mm_and_si128(b, _mm_cmpgt_epi32(b, zero));
+                const __m128i over = _mm_cmpgt_epi32(b, top);
+                b = _mm_or_si128(_mm_andnot_si128(over, b), _mm_and_si128(over, top));
+                alignas(16) std::int32_t bin[4];
+                _mm_store_si128(reinterpret_cast<__m128i*>(bin), b);
+                for (int a = 0; a < 3; ++a) {
+                    bins[a][bin[a]].extend(b_lo, b_hi);
+                    ++bin_counts[a][bin[a]];
+                }
             }
+        }
+        std::array<std::array<Box3f, kBins>, 3> bin_boxes;
+        for (int a = 0; a < 3; ++a) {
+            for (int b = 0; b < kBins; ++b) bin_boxes[a][b] = bins[a][b].box();
         }
         for (int a = 0; a < 3; ++a) {
             if (scale[a] == 0.0f) continue;
