@@ -42,10 +42,10 @@ def _print_render(camera: Any, shading: str, s: Any) -> None:
 
 
 def _build_walked_structures(scene: Any, shading: str) -> None:
-    """Builds, and reports, what the frame's rays will walk, so that the frame's time is
-    the frame's alone: the 8-wide BVH (primary rays unless VASTRAY_PRIMARY=kd, and
-    secondary rays unless VASTRAY_ANYHIT=kd), and the kd-tree only where some ray walks it
-    (or the scene is too large for the wide BVH)."""
+    """Builds, and reports, what the frame's rays will walk (a frame's time never
+    includes these first-use builds): the 8-wide BVH (primary rays unless
+    VASTRAY_PRIMARY=kd, and secondary rays unless VASTRAY_ANYHIT=kd), and the kd-tree only
+    where some ray walks it (or the scene is too large for the wide BVH)."""
     secondary = shading in ANY_HIT_SHADINGS
     primary_kd = os.environ.get("VASTRAY_PRIMARY") == "kd"
     secondary_kd = os.environ.get("VASTRAY_ANYHIT") == "kd"

