@@ -474,6 +474,8 @@ def test_the_kd_tree_is_built_only_when_a_walk_needs_it(monkeypatch: pytest.Monk
 
     camera = frame_bounds(*lazy.bounds, width=48, height=32)
     for shading in ("normal", "headlight", "sun", "ao", "indirect"):
+        # The renderer's rule, asked without building (what the CLI builds ahead).
+        assert lazy.walked_structures(shading) == {"wide_bvh": True, "kd_tree": False}, shading
         params = render_params(shading=shading, ao_samples=2)
         image = trace(lazy, camera, params).image
         assert image.std() > 0, shading
@@ -486,6 +488,7 @@ def test_the_kd_tree_is_built_only_when_a_walk_needs_it(monkeypatch: pytest.Monk
         with monkeypatch.context() as m:
             m.setenv(variable, "kd")
             fresh = make()
+            assert fresh.walked_structures(shading)["kd_tree"], variable
             params = render_params(shading=shading, ao_samples=2)
             image = trace(fresh, camera, params).image
             assert fresh.kd_tree_built, variable

@@ -10,7 +10,7 @@ from typing import Any
 
 from vastray import __version__
 from vastray.layouts import LAYOUTS
-from vastray.renderer import ANY_HIT_SHADINGS, SHADING_MODES
+from vastray.renderer import SHADING_MODES
 
 
 def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequence[float]) -> Any:
@@ -42,26 +42,18 @@ def _print_render(camera: Any, shading: str, s: Any) -> None:
 
 
 def _build_walked_structures(scene: Any, shading: str) -> None:
-    """Builds, and reports, what the frame's rays will walk (a frame's time never
-    includes these first-use builds): the 8-wide BVH (primary rays unless
-    VASTRAY_PRIMARY=kd, and secondary rays unless VASTRAY_ANYHIT=kd), and the kd-tree only
-    where some ray walks it (or the scene is too large for the wide BVH)."""
-    secondary = shading in ANY_HIT_SHADINGS
-    primary_kd = os.environ.get("VASTRAY_PRIMARY") == "kd"
-    secondary_kd = os.environ.get("VASTRAY_ANYHIT") == "kd"
-    kd = primary_kd or (secondary and secondary_kd)
+    """Builds, and reports, what the frame's rays will walk (by the renderer's own rule,
+    `Scene.walked_structures`; a frame's time never includes these first-use builds)."""
+    walked = scene.walked_structures(shading)
     triangles = f"{scene.triangle_count:,} triangles"
-    if not primary_kd or (secondary and not secondary_kd):
+    if walked["wide_bvh"]:
         print(f"building 8-wide BVH over {triangles} ...", file=sys.stderr, flush=True)
         wide = scene.any_hit_stats()
-        if wide["structure"] == "wide-bvh":
-            print(
-                f"wide BVH   8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
-                f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
-            )
-        else:
-            kd = True
-    if kd:
+        print(
+            f"wide BVH   8-wide BVH in {wide['build_ms'] / 1000:.2f} s ({wide['nodes']:,} nodes, "
+            f"depth {wide['max_depth']}, {wide['memory_bytes'] / 2**20:.1f} MiB)"
+        )
+    if walked["kd_tree"]:
         print(f"building kd-tree over {triangles} ...", file=sys.stderr, flush=True)
         stats = scene.build_stats
         print(

@@ -282,6 +282,18 @@ PYBIND11_MODULE(native, m) {
                                "unless VASTRAY_PRIMARY=kd or VASTRAY_ANYHIT=kd)")
         .def_property_readonly("kd_tree_built", &Scene::kd_tree_built,
                                "Whether the kd-tree is built (it is built on first use)")
+        .def(
+            "walked_structures",
+            [](const Scene& s, const std::string& shading) {
+                const FrameStructures f = frame_structures(s, parse_shading(shading));
+                py::dict d;
+                d["wide_bvh"] = f.wide();
+                d["kd_tree"] = f.kd();
+                return d;
+            },
+            py::arg("shading"),
+            "Which structures a frame of `shading` walks (wide_bvh, kd_tree: bools), by the renderer's "
+            "own rule (VASTRAY_PRIMARY, VASTRAY_ANYHIT, the scene's size), without building them")
         .def("any_hit_stats", &any_hit_stats,
              "Builds the scene's 8-wide BVH, which the renderer's rays walk (primary rays unless "
              "VASTRAY_PRIMARY=kd; occluded; AO, sun and indirect shading), if not yet built; its nodes, "

@@ -2,11 +2,7 @@
 // frame-loop backend (frame_renderer.h), and closest/any-hit queries of world rays.
 #include <algorithm>
 #include <cmath>
-#include <cstdlib>
 #include <limits>
-#include <stdexcept>
-#include <string>
-#include <string_view>
 #include <vector>
 
 #include "vastray/frame_renderer.h"
@@ -86,26 +82,25 @@ void closest_wide_rays(const WideBvh& bvh, bool interleave, std::size_t count, R
 }
 
 // The structure secondary rays walk (any-hit rays, and the indirect mode's diffuse rays):
-// the scene's wide BVH, or null for the kd-tree (VASTRAY_ANYHIT=kd, for comparisons, or a
-// scene too large for the wide BVH).
+// the scene's wide BVH, or null for the kd-tree (any_hits_walk_wide_bvh).
 const WideBvh* any_hit_bvh(const Scene& scene) {
-    const char* env = std::getenv("VASTRAY_ANYHIT");
-    if (env != nullptr && std::string_view(env) == "kd") return nullptr;
-    return scene.wide_bvh();
+    return any_hits_walk_wide_bvh(scene) ? scene.wide_bvh() : nullptr;
 }
 
 // The structure closest-hit rays walk (the renderer's primary rays, the batch query): the
 // scene's wide BVH (its packets beat the kd-tree's by 1.21-1.66x, docs/native-core.md),
-// or null for the kd-tree (VASTRAY_PRIMARY=kd: the walk the out-of-core renderer shares,
-// whose full-detail frames equal it bit for bit; or a scene too large for the wide BVH).
+// or null for the kd-tree (closest_hits_walk_wide_bvh; VASTRAY_PRIMARY=kd gives the walk
+// the out-of-core renderer shares, whose full-detail frames equal it bit for bit).
 const WideBvh* primary_bvh(const Scene& scene) {
-    const char* env = std::getenv("VASTRAY_PRIMARY");
-    const std::string_view choice = env != nullptr ? env : "";
-    if (choice == "kd") return nullptr;
-    if (!choice.empty() && choice != "wide") {
-        throw std::invalid_argument("VASTRAY_PRIMARY must be 'kd' or 'wide' (got '" + std::string(choice) + "')");
-    }
-    return scene.wide_bvh();
+    return closest_hits_walk_wide_bvh(scene) ? scene.wide_bvh() : nullptr;
+}
+
+// The closest hit of one ray through the wide BVH, or the kd-tree where `bvh` is null;
+// true on a hit.
+bool closest_ray(const Scene& scene, const WideBvh* bvh, const Ray& ray, Hit& hit, TraversalCounters& counters) {
+    if (bvh == nullptr) return traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, counters);
+    closest_wide(*bvh, ray, hit, counters);
+    return hit.prim != kNoHit;
 }
 
 // Closest hits of `count` coherent packets of N rays (rays[j], hits[j]) through the wide
@@ -181,16 +176,18 @@ public:
     using Secondary = SceneSecondary;
 
     SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params)
+        : SceneBackend(scene, camera, params, frame_structures(scene, params.shading)) {}
+
+    // (The structures are built here, before the frame's parallel loop: the builds run on
+    // the pool too. The kd-tree only where some ray of the frame walks it.)
+    SceneBackend(const Scene& scene, const Camera& camera, const RenderParams& params, const FrameStructures& walked)
         : scene_(scene),
           camera_(camera),
-          // (Built here, before the frame's parallel loop: the builds run on the pool too.)
-          wide_(traces_any_hit_rays(params.shading) ? any_hit_bvh(scene) : nullptr),
+          wide_(walked.secondary && walked.secondary_wide ? scene.wide_bvh() : nullptr),
           wide_interleave_(wide_ != nullptr && interleaves(wide_->memory_bytes())),
-          primary_(primary_bvh(scene)),
+          primary_(walked.primary_wide ? scene.wide_bvh() : nullptr),
           primary_interleave_(primary_ != nullptr && interleaves(primary_->memory_bytes())),
-          // The kd-tree only where some ray of the frame walks it.
-          kd_(primary_ == nullptr || (traces_any_hit_rays(params.shading) && wide_ == nullptr) ? &scene.tree()
-                                                                                                : nullptr),
+          kd_(walked.kd() ? &scene.tree() : nullptr),
           interleave_(kd_ != nullptr && interleaves(kd_->memory_bytes())) {
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
@@ -205,13 +202,7 @@ public:
         for (int k = 0; k < 4; ++k) out[k] = primary_along(dirs[k]);
     }
 
-    void trace(Lane& lane, const Ray& ray, Hit& hit) const {
-        if (primary_ != nullptr) {
-            closest_wide(*primary_, ray, hit, lane);
-        } else {
-            traverse<false>(*kd_, scene_.tri_vertices(), ray, hit, lane);
-        }
-    }
+    void trace(Lane& lane, const Ray& ray, Hit& hit) const { closest_ray(scene_, primary_, ray, hit, lane); }
     void trace_stream(Lane& lane, const Ray* rays, Hit* hits, int n) const {
         if (primary_ == nullptr) {
             for (int i = 0; i < n; ++i) trace(lane, rays[i], hits[i]);
@@ -230,11 +221,7 @@ public:
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {
         constexpr int N = Side * Side;
         if (!packet_is_coherent(rays, N)) return false;
-        if (primary_ != nullptr) {
-            closest_wide_packets<N, 1>(*primary_, &rays, &hits, 1, lane);
-        } else {
-            traverse_packet<N>(*kd_, scene_.tri_vertices(), rays, hits, lane);
-        }
+        closest_packets<N>(scene_, primary_, false, &rays, &hits, 1, lane);
         return true;
     }
 
@@ -483,12 +470,7 @@ BatchResult intersect_scene(const Scene& scene, const double* origins, const dou
             Ray ray = scene.to_local(wr);
             int entered = -1;
             if (!sections.empty() && !sections.clip(ray.org, ray.dir, ray.tmin, ray.tmax, entered)) return;
-            if (bvh != nullptr) {
-                closest_wide(*bvh, ray, hit, c);
-                if (hit.prim != kNoHit) store(i, hit, ray, entered);
-            } else if (traverse<false>(scene.tree(), scene.tri_vertices(), ray, hit, c)) {
-                store(i, hit, ray, entered);
-            }
+            if (closest_ray(scene, bvh, ray, hit, c)) store(i, hit, ray, entered);
         };
         std::size_t i = begin;
         if (sections.empty()) {

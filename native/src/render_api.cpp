@@ -1,8 +1,10 @@
 // The public side of rendering, built for the portable baseline: checks of cameras and
 // parameters, and the entry points, which run the kernels of the active ISA (isa.h).
 #include <cmath>
+#include <cstdlib>
 #include <stdexcept>
 #include <string>
+#include <string_view>
 
 #include "vastray/kernels.h"
 #include "vastray/lod_render.h"
@@ -48,6 +50,29 @@ const char* shading_name(Shading shading) {
 
 bool traces_any_hit_rays(Shading shading) {
     return shading == Shading::Sun || shading == Shading::AmbientOcclusion || shading == Shading::Indirect;
+}
+
+bool closest_hits_walk_wide_bvh(const Scene& scene) {
+    const char* env = std::getenv("VASTRAY_PRIMARY");
+    const std::string_view choice = env != nullptr ? env : "";
+    if (choice == "kd") return false;
+    if (!choice.empty() && choice != "wide") {
+        throw std::invalid_argument("VASTRAY_PRIMARY must be 'kd' or 'wide' (got '" + std::string(choice) + "')");
+    }
+    return scene.fits_wide_bvh();
+}
+
+bool any_hits_walk_wide_bvh(const Scene& scene) {
+    const char* env = std::getenv("VASTRAY_ANYHIT");
+    return !(env != nullptr && std::string_view(env) == "kd") && scene.fits_wide_bvh();
+}
+
+FrameStructures frame_structures(const Scene& scene, Shading shading) {
+    FrameStructures s;
+    s.primary_wide = closest_hits_walk_wide_bvh(scene);
+    s.secondary = traces_any_hit_rays(shading);
+    s.secondary_wide = s.secondary && any_hits_walk_wide_bvh(scene);
+    return s;
 }
 
 void RenderParams::validate() const {

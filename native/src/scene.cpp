@@ -64,7 +64,7 @@ void Scene::build_tree() const {
 }
 
 const WideBvh* Scene::wide_bvh() const {
-    if (triangle_count() > WideNode::kMaxFirst) return nullptr;
+    if (!fits_wide_bvh()) return nullptr;
     std::call_once(wide_once_, [this] {
         wide_ = std::make_unique<WideBvh>(build_wide_bvh(tri_vertices_.data(), triangle_count(), 0));
     });

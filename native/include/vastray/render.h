@@ -37,6 +37,24 @@ const char* shading_name(Shading shading);
 // Whether the mode traces any-hit (shadow, AO) rays: in core they walk the scene's 8-wide BVH.
 bool traces_any_hit_rays(Shading shading);
 
+// Which structures the in-core scene's rays walk, decided without building anything: its
+// wide BVH, unless VASTRAY_PRIMARY=kd (closest-hit rays: a frame's primary rays and the
+// batch query) or VASTRAY_ANYHIT=kd (any-hit rays, and the indirect mode's diffuse rays)
+// ask for the kd-tree, or the scene is too large for the wide BVH. One rule for the
+// renderer, which builds what a frame walks before the frame, and for the tools that
+// build and report the same ahead (the CLI). A VASTRAY_PRIMARY other than kd or wide
+// throws std::invalid_argument.
+bool closest_hits_walk_wide_bvh(const Scene& scene);
+bool any_hits_walk_wide_bvh(const Scene& scene);
+struct FrameStructures {
+    bool primary_wide = false;    // the primary rays walk the wide BVH (else the kd-tree)
+    bool secondary = false;       // the mode traces secondary rays
+    bool secondary_wide = false;  // they walk the wide BVH (else the kd-tree)
+    bool wide() const { return primary_wide || (secondary && secondary_wide); }
+    bool kd() const { return !primary_wide || (secondary && !secondary_wide); }
+};
+FrameStructures frame_structures(const Scene& scene, Shading shading);
+
 // A section (clipping) plane in world coordinates: geometry where dot(normal, p) +
 // offset < 0 is cut away. Where a ray enters a solid through the cut it sees a cap.
 struct SectionPlane {

@@ -58,6 +58,7 @@ public:
     // The 8-wide BVH for secondary rays (wide_bvh.h), built on first use (not from inside
     // a ThreadPool task: the build runs on the pool); null for a scene too large for it.
     const WideBvh* wide_bvh() const;
+    bool fits_wide_bvh() const { return triangle_count() <= WideNode::kMaxFirst; }
     const Vec3f* tri_vertices() const { return tri_vertices_.data(); }
     const std::uint8_t* colour(std::uint32_t prim) const { return colours_.data() + 3 * static_cast<std::size_t>(prim); }
     // The input's id of triangle `prim`: what frames and ray queries report.
