@@ -47,6 +47,7 @@ import sys
 import time
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 
@@ -246,15 +247,8 @@ def study_size(args: argparse.Namespace) -> list[dict[str, Any]]:
                 frames = [trace(scene, cam, packets=packets) for _ in range(args.repeats)]
                 row[f"incore_p{packets}_ms"] = statistics.median(f.stats.milliseconds for f in frames)
             # The kd-tree's packets, the out-of-core walk's in-core twin (the same tree).
-            walk = os.environ.get("VASTRAY_PRIMARY")
-            os.environ["VASTRAY_PRIMARY"] = "kd"
-            try:
+            with mock.patch.dict(os.environ, {"VASTRAY_PRIMARY": "kd"}):
                 frames = [trace(scene, cam, packets=16) for _ in range(args.repeats)]
-            finally:
-                if walk is None:
-                    del os.environ["VASTRAY_PRIMARY"]
-                else:
-                    os.environ["VASTRAY_PRIMARY"] = walk
             row["incore_kd_p16_ms"] = statistics.median(f.stats.milliseconds for f in frames)
             del scene
             for tag in ("p1", "p16", "kd_p16"):
