@@ -388,9 +388,7 @@ Records make_records_core(std::size_t n, const Corners& corners, const std::uint
             }
             float f[12] = {};
             for (int k = 0; k < 9; ++k) f[k] = static_cast<float>(v[k] - centre[k % 3]);
-            const Vec3d a(f[0], f[1], f[2]), bb(f[3], f[4], f[5]), d(f[6], f[7], f[8]);
-            const Vec3d nrm = cross(bb - a, d - a);
-            if (nrm.x == 0 && nrm.y == 0 && nrm.z == 0) {
+            if (!has_area(Vec3f(f[0], f[1], f[2]), Vec3f(f[3], f[4], f[5]), Vec3f(f[6], f[7], f[8]))) {
                 ++r.dropped;
                 continue;
             }

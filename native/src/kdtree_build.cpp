@@ -948,17 +948,14 @@ KdTree build_kdtree(const TriangleSoup& soup, const KdBuildParams& params, const
     const std::size_t chunks = (soup.count + chunk - 1) / chunk;
     std::vector<Box3f> chunk_bounds(chunks);
     std::vector<std::size_t> chunk_dropped(chunks, 0), chunk_kept(chunks, 0);
-    // Zero-area triangles (collinear in the stored float coordinates) cover no surface
-    // and are left out: the sheared 2D test could otherwise give them a sliver of area.
+    // Zero-area triangles (collinear in the stored float coordinates) are left out (has_area).
     constexpr std::uint32_t kDropped = 0xffffffffu, kOutside = 0xfffffffeu;
     pool.parallel_for(chunks, [&](std::size_t c, unsigned) {
         Box3f bounds;
         std::size_t dropped = 0, kept = 0;
         const std::size_t end = std::min(soup.count, (c + 1) * chunk);
         for (std::size_t i = c * chunk; i < end; ++i) {
-            const Vec3d a(soup.v(i, 0)), b(soup.v(i, 1)), cc(soup.v(i, 2));
-            const Vec3d n = cross(b - a, cc - a);
-            if (n.x == 0 && n.y == 0 && n.z == 0) {
+            if (!has_area(soup.v(i, 0), soup.v(i, 1), soup.v(i, 2))) {
                 refs[i] = {Box3f{}, kDropped};
                 ++dropped;
                 continue;

@@ -40,10 +40,9 @@ Scene::Scene(const double* vertices, std::size_t vertex_count, const std::uint32
             tri_vertices_[3 * f + static_cast<std::size_t>(k)] = local;
         }
         // The bounds the kd-tree's build takes for its root cell (build_kdtree): of the
-        // triangles with area in double arithmetic on the float corners.
+        // triangles with area.
         const Vec3f* v = tri_vertices_.data() + 3 * f;
-        const Vec3d n = cross(Vec3d(v[1]) - Vec3d(v[0]), Vec3d(v[2]) - Vec3d(v[0]));
-        if (n.x != 0 || n.y != 0 || n.z != 0) {
+        if (has_area(v[0], v[1], v[2])) {
             for (int k = 0; k < 3; ++k) bounds_.extend(v[k]);
         }
     }

@@ -322,10 +322,7 @@ WideBvh build_wide_bvh(const Vec3f* tri_vertices, std::size_t triangle_count, un
         const std::size_t end = std::min<std::size_t>(total, (c + 1) * kChunk);
         for (std::size_t t = c * kChunk; t < end; ++t) {
             const Vec3f* v = tri_vertices + 3 * t;
-            // Zero-area triangles are left out, as the kd-tree leaves them out (the sheared
-            // 2D test could give them a sliver of area).
-            const Vec3d normal = cross(Vec3d(v[1]) - Vec3d(v[0]), Vec3d(v[2]) - Vec3d(v[0]));
-            kept[t] = normal.x != 0 || normal.y != 0 || normal.z != 0;
+            kept[t] = has_area(v[0], v[1], v[2]);
             Box3f b;
             for (int k = 0; k < 3; ++k) b.extend(v[k]);
             boxes[t] = b;

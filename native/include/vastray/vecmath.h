@@ -43,6 +43,16 @@ template <typename T>
 inline Vec3<T> cross(const Vec3<T>& a, const Vec3<T>& b) {
     return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
+
+// Whether a triangle covers any surface: its normal, in double arithmetic on the float
+// corners, is not zero. The others are left out everywhere: by the kd-tree, the wide BVH,
+// the in-core scene's bounds (the kd-tree's root cell) and the out-of-core builder's
+// records. The sheared 2D test could otherwise give a zero-area triangle a sliver of area.
+inline bool has_area(const Vec3<float>& a, const Vec3<float>& b, const Vec3<float>& c) {
+    const Vec3<double> n = cross(Vec3<double>(b) - Vec3<double>(a), Vec3<double>(c) - Vec3<double>(a));
+    return n.x != 0 || n.y != 0 || n.z != 0;
+}
+
 template <typename T>
 inline T length(const Vec3<T>& a) { return std::sqrt(dot(a, a)); }
 template <typename T>
