@@ -26,6 +26,7 @@ from vastray.protocol import (
     PointerMessage,
     RenameMessage,
     SaveViewMessage,
+    StreamQuality,
 )
 from vastray.server.views import View
 
@@ -108,6 +109,11 @@ class ReviewSession:
     def initial_camera(self) -> CameraState | None:
         camera = self.saved_state.get("camera")
         return CameraState(**camera) if camera else None
+
+    def initial_quality(self) -> StreamQuality | None:
+        """The quality the shared view was left at, or was started with."""
+        quality = self.saved_state.get("quality")
+        return StreamQuality(**quality) if quality else None
 
     # -- telling everyone ------------------------------------------------------------------
 

@@ -459,7 +459,7 @@ class Connection:
                     review.id,
                     review.initial_camera() or camera,
                     viewport,
-                    quality,
+                    review.initial_quality() or quality,
                     [SectionPlane(**p) for p in review.saved_state.get("sections", [])],
                     review.saved_state.get("highlight", []),
                 )

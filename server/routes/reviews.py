@@ -8,7 +8,8 @@ from typing import Any
 from fastapi import APIRouter, Request, Response
 from pydantic import Field
 
-from vastray.schemas import Strict
+from vastray.protocol import CameraState, StreamQuality
+from vastray.schemas import SectionPlane, Strict
 from vastray.server.auth import credential
 from vastray.server.deps import Admin, state_of
 from vastray.server.errors import ApiError
@@ -17,11 +18,25 @@ from vastray.server.reviews import new_review_id, review_urls
 router = APIRouter(prefix="/api/reviews", tags=["reviews"])
 
 
+class ReviewView(Strict):
+    """Where the shared view starts: what a saved view keeps."""
+
+    camera: CameraState
+    quality: StreamQuality | None = None
+    sections: list[SectionPlane] = Field(default_factory=list, max_length=6)
+    highlight: list[int] = Field(default_factory=list, max_length=4096)
+
+
 class ReviewRequest(Strict):
     model: str
     title: str = Field("review", max_length=200)
     ttl_seconds: float = Field(
         7 * 24 * 3600.0, gt=0, le=365 * 24 * 3600.0, description="how long the links work"
+    )
+    view: ReviewView | None = Field(
+        None,
+        description="where the shared view starts (the page sends what it shows); "
+        "without it, the first participant's camera",
     )
 
 
@@ -43,6 +58,8 @@ def create_review(body: ReviewRequest, request: Request, _: Admin) -> dict[str, 
     state.store.row(body.model, ready=True)
     review_id = new_review_id()
     state.registry.add_review(review_id, body.model, body.title)
+    if body.view is not None:
+        state.registry.update_review_state(review_id, body.view.model_dump(exclude_none=True))
     presenter, _row = state.auth.issue(
         "review", review_id, body.ttl_seconds, role="presenter", label="presenter"
     )

@@ -1,5 +1,5 @@
-"""A design review in two browser contexts: the presenter starts it from the page, a
-follower opens the join link; the follower sees the presenter's camera, pointer and
+"""A design review in two browser contexts: the presenter starts it from the page (from
+the view it shows), a follower opens the join link; the follower sees the presenter's camera, pointer and
 annotation, can look around on its own and go back to following."""
 
 from __future__ import annotations
@@ -23,16 +23,27 @@ def a_hit(api: Any, model_id: str, viewer: Any) -> tuple[tuple[float, float], di
 def test_a_follower_sees_the_presenters_camera_pointer_and_annotation(
     open_viewer: Any, server: Any, api: Any, model: dict[str, Any]
 ) -> None:
-    # The presenter starts a review from the page.
+    # The presenter starts a review from the page, from where it has looked around to.
     presenter = open_viewer(server.open_url, "presenter")
     presenter.wait_final()
     p = presenter.page
+    presenter.drag(-90, 20)
+    presenter.wait_final(seq=presenter.js("window.vastray.seq"))
+    n = presenter.frames()
+    p.select_option("#shading", "normal")
+    presenter.wait_final(n)
+    eye, target = presenter.js("[window.vastray.camera.eye, window.vastray.camera.target]")
     p.locator("#review-panel summary").click()
     p.get_by_role("button", name="Start a review").click()
     p.wait_for_url("**/?review=*")
     presenter.wait_final()
     review_id = presenter.js("window.vastray.reviewId")
     assert p.locator("#review-role").inner_text().startswith("You present")
+    # The page reloaded into the review, and the shared view starts where it looked.
+    assert presenter.js("window.vastray.camera.eye") == pytest.approx(eye)
+    assert presenter.js("window.vastray.camera.target") == pytest.approx(target)
+    assert presenter.shown()["camera"]["eye"] == pytest.approx(eye)
+    assert p.locator("#shading").input_value() == "normal"
     join = p.locator("#review-link").input_value()
     # The link to share is the follower's, never the presenter's own.
     assert f"review={review_id}" in join and "token=vt_" in join

@@ -229,3 +229,40 @@ def test_review_links_are_checked(srv: ServerProcess, model: dict[str, Any], rev
     assert asyncio.run(refused({"review": "rev-000000000000", "token": srv.key})) == 4404
     with httpx.Client(base_url=srv.url) as anon:
         assert anon.get(f"/api/reviews/{rid}").status_code == 401
+
+
+def test_a_review_starts_from_the_view_it_was_started_with(srv: ServerProcess, model: dict[str, Any]) -> None:
+    """The page starts a review from what it shows: the shared view starts there (camera,
+    shading, section planes), not at the model's overview, for whoever joins first."""
+    camera = {"seq": 7, **orbit(model, 3), "fov": 40.0}
+    (lx, _, _), (hx, _, _) = model["bounds"]
+    plane = {"normal": [1.0, 0.0, 0.0], "offset": -(lx + hx) / 2}  # cuts away the half below x's middle
+    view = {"camera": camera, "quality": {"shading": "sun", "pixels_of_error": 2.0}, "sections": [plane]}
+    with srv.client() as api:
+        r = api.post("/api/reviews", json={"model": model["id"], "title": "from here", "view": view})
+        assert r.status_code == 201, r.text
+        started = r.json()
+        # A view that is not one is refused, with what is wrong, and no review is made.
+        before = len(api.get("/api/reviews").json())
+        bad = api.post("/api/reviews", json={"model": model["id"], "view": {"camera": {"eye": [0, 0, 0]}}})
+        assert bad.status_code == 422 and bad.json()["error"]["code"] == "invalid_request"
+        assert "target" in bad.json()["error"]["message"]
+        assert len(api.get("/api/reviews").json()) == before
+
+    async def run() -> None:
+        rid = started["review"]["id"]
+        # The follower joins first: it, too, sees the view the review was started with.
+        async with Participant(srv, model["id"], rid, started["join_token"], "early") as early:
+            assert early.welcome["camera"]["eye"] == pytest.approx(camera["eye"])
+            assert early.welcome["camera"]["target"] == pytest.approx(camera["target"])
+            assert early.welcome["camera"]["fov"] == camera["fov"]
+            assert early.welcome["quality"]["shading"] == "sun"
+            assert early.welcome["quality"]["pixels_of_error"] == 2.0
+            assert early.welcome["sections"] == [{**plane, "enabled": True}]
+            async with Participant(srv, model["id"], rid, started["presenter_token"], "lead") as lead:
+                assert lead.welcome["review"]["role"] == "presenter"
+                assert lead.welcome["camera"]["eye"] == pytest.approx(camera["eye"])
+                assert lead.welcome["quality"]["shading"] == "sun"
+                await lead.final()
+
+    asyncio.run(run())

@@ -47,7 +47,10 @@ export class Api {
     return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams({ q: query, limit })}`);
   }
   review(id) { return this.request("GET", `/api/reviews/${id}`); }
-  createReview(model, title) { return this.request("POST", "/api/reviews", { model, title }); }
+  // `view`: where the shared view starts (camera, quality, sections, highlight), or null.
+  createReview(model, title, view = null) {
+    return this.request("POST", "/api/reviews", view ? { model, title, view } : { model, title });
+  }
 
   // Registers an upload (a mesh starts a build with these options).
   register(upload, options) { return this.request("POST", "/api/models", { upload, options }); }

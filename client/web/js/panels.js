@@ -493,7 +493,13 @@ export class Panels {
 
   async #startReview() {
     try {
-      const r = await this.app.api.createReview(this.app.modelId, `${this.app.model?.name ?? "model"} review`);
+      // The review starts from what this page shows: the page reloads into it, and the
+      // shared view would otherwise start from the model's overview.
+      const camera = this.app.camera?.toMessage(this.app.seq);
+      const view = camera
+        ? { camera, quality: this.quality(), sections: this.sections, highlight: [...this.highlight] }
+        : null;
+      const r = await this.app.api.createReview(this.app.modelId, `${this.app.model?.name ?? "model"} review`, view);
       // The presenter joins through its own link: the page reloads into the review,
       // with the join link (to show and share) in the fragment.
       location.href = `${r.presenter_url}#${new URLSearchParams({ join: r.join_url })}`;
