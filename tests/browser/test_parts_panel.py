@@ -46,6 +46,11 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     before = v.pixels_at(row).astype(int)
     v.shot("before")
 
+    # A search that finds nothing says so.
+    page.locator("#parts-search").fill("no such thing")
+    v.wait_for("() => document.getElementById('parts').innerText.includes('no part matches')")
+    assert page.locator("#parts li").count() == 1
+
     page.locator("#parts-search").fill("valve")
     v.wait_for("() => document.querySelectorAll('#parts li').length === 1")
     sent = [m for m in v.sent if m["type"] == "highlight"]

@@ -330,6 +330,7 @@ export class Panels {
       return item;
     });
     if (total > shown.length) items.push(li(`… ${(total - shown.length).toLocaleString()} more: refine the search`, {}));
+    if (!total && matches) items.push(li("no part matches this search", {}));
     list.replaceChildren(...items);
     this.#sendHighlight(matches ?? [...this.highlight]);
   }
