@@ -1,6 +1,6 @@
 """A design review in two browser contexts: the presenter starts it from the page (from
-the view it shows), a follower opens the join link; the follower sees the presenter's camera, pointer and
-annotation, can look around on its own and go back to following."""
+the view it shows), a follower opens the join link; the follower sees the presenter's
+camera, pointer and annotation, can look around on its own and go back to following."""
 
 from __future__ import annotations
 
