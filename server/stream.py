@@ -51,7 +51,7 @@ from vastray.protocol import (
 from vastray.schemas import PartInfo, describe_errors
 from vastray.server.errors import ApiError
 from vastray.server.reviews import REVIEW_MESSAGES, Participant, ReviewSession
-from vastray.server.views import RenderedFrame, View, default_camera
+from vastray.server.views import RenderedFrame, View, camera_problem, default_camera
 
 log = logging.getLogger("vastray.stream")
 router = APIRouter(tags=["stream"])
@@ -427,6 +427,12 @@ class Connection:
         if problem:
             await self._fail(CLOSE_BAD_HELLO, "viewport_too_large", problem)
             return
+        # A camera no frame can be rendered from is refused here, as a camera message is,
+        # rather than failing every render of the view.
+        problem = camera_problem(hello.camera) if hello.camera is not None else None
+        if problem:
+            await self._fail(CLOSE_BAD_HELLO, "bad_camera", f"hello: {problem}")
+            return
         self.viewport = viewport
         # Everything the welcome needs from disk comes first: once this connection
         # subscribes to a view, its sender may send that view's frame, and no frame may
@@ -590,7 +596,7 @@ class Connection:
                 return
         if kind == "camera":
             assert isinstance(msg, CameraMessage)
-            problem = _camera_problem(msg)
+            problem = camera_problem(msg)
             if problem:
                 self._error("bad_camera", problem)
                 return
@@ -777,16 +783,6 @@ class Connection:
             rays=s.rays,
         )
         await self.ws.send_text(stats.model_dump_json())
-
-
-def _camera_problem(msg: CameraMessage) -> str | None:
-    from vastray.camera import Camera
-
-    try:
-        Camera(msg.eye, msg.target, msg.up, msg.fov, 16, 16).validate()
-    except ValueError as exc:
-        return f"camera: {exc}"
-    return None
 
 
 @router.websocket("/api/stream")

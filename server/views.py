@@ -425,6 +425,16 @@ class View:
         }
 
 
+def camera_problem(camera: CameraState) -> str | None:
+    """Why no frame can be rendered from this camera (eye on the target, up along the
+    view, ...), or None. Pydantic checks each field; this checks them together."""
+    try:
+        Camera(camera.eye, camera.target, camera.up, camera.fov, 16, 16).validate()
+    except ValueError as exc:
+        return f"camera: {exc}"
+    return None
+
+
 def default_camera(model: OutOfCoreModel, viewport: Viewport) -> CameraState:
     from vastray.camera import frame_bounds
 

@@ -14,6 +14,7 @@ from vastray.server.auth import credential
 from vastray.server.deps import Admin, state_of
 from vastray.server.errors import ApiError
 from vastray.server.reviews import new_review_id, review_urls
+from vastray.server.views import camera_problem
 
 router = APIRouter(prefix="/api/reviews", tags=["reviews"])
 
@@ -56,6 +57,9 @@ def review_or_404(request: Request, review_id: str) -> dict[str, Any]:
 def create_review(body: ReviewRequest, request: Request, _: Admin) -> dict[str, Any]:
     state = state_of(request)
     state.store.row(body.model, ready=True)
+    problem = camera_problem(body.view.camera) if body.view is not None else None
+    if problem:
+        raise ApiError(422, "invalid_camera", f"view.{problem}")
     review_id = new_review_id()
     state.registry.add_review(review_id, body.model, body.title)
     if body.view is not None:

@@ -247,6 +247,10 @@ def test_a_review_starts_from_the_view_it_was_started_with(srv: ServerProcess, m
         bad = api.post("/api/reviews", json={"model": model["id"], "view": {"camera": {"eye": [0, 0, 0]}}})
         assert bad.status_code == 422 and bad.json()["error"]["code"] == "invalid_request"
         assert "target" in bad.json()["error"]["message"]
+        on_target = {"camera": {"eye": camera["target"], "target": camera["target"]}}
+        bad = api.post("/api/reviews", json={"model": model["id"], "view": on_target})
+        assert bad.status_code == 422 and bad.json()["error"]["code"] == "invalid_camera"
+        assert "coincide" in bad.json()["error"]["message"]
         assert len(api.get("/api/reviews").json()) == before
 
     async def run() -> None:

@@ -284,6 +284,7 @@ def test_refusals(streaming: ServerProcess, two_models: dict[str, str]) -> None:
             return closed.value.rcvd.code, message
 
     base = {"type": "hello", "protocol": 1, "model": two_models["plant"]}
+    on_target = {"eye": [1, 2, 3], "target": [1, 2, 3]}
     for hello, code, text in [
         (base, 4401, "needs an API key or a viewing token"),
         ({**base, "token": "nope"}, 4401, "not valid"),
@@ -292,6 +293,8 @@ def test_refusals(streaming: ServerProcess, two_models: dict[str, str]) -> None:
         ({**base, "token": streaming.key, "protocol": 99}, 4400, "protocol"),
         ("hello?", 4400, "hello"),
         ({**base, "token": streaming.key, "viewport": {"width": 9000, "height": 9000}}, 4400, "pixel budget"),
+        # A camera no frame can come from (each field valid, together not).
+        ({**base, "token": streaming.key, "camera": on_target}, 4400, "coincide"),
     ]:
         got, message = run(closed_with(hello))
         assert got == code and text in message["message"] and message["fatal"], (hello, got, message)
