@@ -14,6 +14,7 @@ from urllib.parse import parse_qs, urlsplit, urlunsplit
 import httpx
 
 from vastray.client.frames import Frame, decode_image
+from vastray.protocol import CameraState
 from vastray.schemas import TERMINAL_JOB_STATES, JobInfo, ModelInfo, PartInfo, PickHit, TokenInfo, UploadInfo
 
 UPLOAD_CHUNK = 1 << 20
@@ -148,6 +149,34 @@ class AsyncClient:
             "POST", f"/api/models/{_model_id(model)}/tokens", json={"ttl_seconds": ttl, "label": label}
         )
         return TokenInfo(**out).token
+
+    # -- design reviews --------------------------------------------------------------------
+
+    async def start_review(
+        self,
+        model: str | ModelInfo,
+        *,
+        title: str = "review",
+        camera: CameraState | dict[str, Any] | None = None,
+        quality: dict[str, Any] | None = None,
+        ttl: float = 7 * 24 * 3600.0,
+    ) -> dict[str, Any]:
+        """Starts a design review of a model: `presenter_url` and `join_url` (the page's
+        links to open and to send), their tokens, and `review` (id, expiry). The shared
+        view starts at `camera` (a live view's `camera` will do) with `quality`; without
+        a camera, at the first participant's."""
+        body: dict[str, Any] = {"model": _model_id(model), "title": title, "ttl_seconds": ttl}
+        if camera is not None:
+            cam = camera.model_dump() if isinstance(camera, CameraState) else dict(camera)
+            body["view"] = {"camera": cam, **({"quality": quality} if quality else {})}
+        elif quality:
+            raise ValueError("a review's starting quality goes with a starting camera")
+        return await self._json("POST", "/api/reviews", json=body)
+
+    async def review(self, review_id: str) -> dict[str, Any]:
+        """A review: its model, who is in it now, where its shared view is (`view`),
+        annotations and saved views."""
+        return await self._json("GET", f"/api/reviews/{review_id}")
 
     # -- jobs ------------------------------------------------------------------------------
 

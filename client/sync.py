@@ -119,6 +119,8 @@ class Client:
     register = _blocking(AsyncClient.register)
     delete = _blocking(AsyncClient.delete)
     token = _blocking(AsyncClient.token)
+    start_review = _blocking(AsyncClient.start_review)
+    review = _blocking(AsyncClient.review)
     build = _blocking(AsyncClient.build)
     job = _blocking(AsyncClient.job)
     jobs = _blocking(AsyncClient.jobs)

@@ -77,6 +77,19 @@ def test_blocking_client_end_to_end(url: str, mesh: Path, tmp_path: Path) -> Non
             view.set_quality(shading="normal", aa_passes=1)
             normal = view.final()
             assert normal.header.pass_number == 1
+            # A design review started from this view starts there.
+            started = vr.start_review(
+                model, title="pump check", camera=view.camera, quality={"shading": "normal"}
+            )
+            rid = started["review"]["id"]
+            assert f"review={rid}" in started["join_url"] and started["join_token"] in started["join_url"]
+            review = vr.review(rid)
+            assert review["title"] == "pump check" and review["participants"] == []
+            assert review["view"]["camera"]["eye"] == pytest.approx(eye)
+            assert review["view"]["quality"]["shading"] == "normal"
+            with pytest.raises(VastrayError) as err:
+                vr.start_review(model, camera={"eye": eye, "target": eye})
+            assert err.value.status == 422 and err.value.code == "invalid_camera"
 
         with pytest.raises(VastrayError) as err:
             vr.render("mdl-nosuch")
