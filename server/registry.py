@@ -394,11 +394,14 @@ class Registry:
 
     # -- reviews ---------------------------------------------------------------------------
 
-    def add_review(self, review_id: str, model_id: str, title: str) -> None:
+    def add_review(
+        self, review_id: str, model_id: str, title: str, state: dict[str, Any] | None = None
+    ) -> None:
+        """`state`: where its shared view starts (as update_review_state keeps it)."""
         with self._tx() as db:
             db.execute(
-                "INSERT INTO reviews (id, model_id, title, created_at) VALUES (?, ?, ?, ?)",
-                (review_id, model_id, title, time.time()),
+                "INSERT INTO reviews (id, model_id, title, created_at, state) VALUES (?, ?, ?, ?, ?)",
+                (review_id, model_id, title, time.time(), json.dumps(state or {})),
             )
 
     def review(self, review_id: str) -> dict[str, Any] | None:

@@ -61,9 +61,8 @@ def create_review(body: ReviewRequest, request: Request, _: Admin) -> dict[str, 
     if problem:
         raise ApiError(422, "invalid_camera", f"view.{problem}")
     review_id = new_review_id()
-    state.registry.add_review(review_id, body.model, body.title)
-    if body.view is not None:
-        state.registry.update_review_state(review_id, body.view.model_dump(exclude_none=True))
+    start = body.view.model_dump(exclude_none=True) if body.view is not None else None
+    state.registry.add_review(review_id, body.model, body.title, start)
     presenter, _row = state.auth.issue(
         "review", review_id, body.ttl_seconds, role="presenter", label="presenter"
     )
