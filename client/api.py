@@ -137,6 +137,18 @@ class AsyncClient:
         out = await self._json("POST", "/api/models", json={"path": path, "name": name})
         return ModelInfo(**out["model"]), JobInfo(**out["job"]) if out.get("job") else None
 
+    async def update_model(
+        self,
+        model: str | ModelInfo,
+        *,
+        name: str | None = None,
+        up: tuple[float, float, float] | None = None,
+    ) -> ModelInfo:
+        """Renames a model, or says which way is up in it (views opened after this start
+        upright: a z-up scan takes `up=(0, 0, 1)`)."""
+        body = {k: v for k, v in (("name", name), ("up", up)) if v is not None}
+        return ModelInfo(**await self._json("PATCH", f"/api/models/{_model_id(model)}", json=body))
+
     async def delete(self, model: str | ModelInfo) -> bool:
         """True if deleted now, False if it goes when its last viewer leaves."""
         r = await self._http.delete(f"/api/models/{_model_id(model)}")

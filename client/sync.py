@@ -117,6 +117,7 @@ class Client:
     parts = _blocking(AsyncClient.parts)
     upload = _blocking(AsyncClient.upload)
     register = _blocking(AsyncClient.register)
+    update_model = _blocking(AsyncClient.update_model)
     delete = _blocking(AsyncClient.delete)
     token = _blocking(AsyncClient.token)
     start_review = _blocking(AsyncClient.start_review)

@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from vastray.camera import Y_UP, Vec3
 from vastray.modelfile import FLAG_COLOURS, FLAG_PART_IDS, ModelError, ModelFile
 from vastray.outofcore import OutOfCoreModel, make_cache
 from vastray.schemas import LevelInfo, ModelInfo
@@ -95,6 +96,7 @@ class ModelStore:
             levels=[LevelInfo(**lv) for lv in i.get("levels", [])] or None,
             build=i.get("build"),
             in_use=in_use,
+            up=row.up or Y_UP,
         )
 
     def row(self, model_id: str, *, ready: bool = False) -> ModelRow:
@@ -177,6 +179,16 @@ class ModelStore:
         self.registry.add_model(row)
         log.info("model %s (%s): registered, %s triangles", model_id, name, f"{info['triangles']:,}")
         return row
+
+    def patch(self, model_id: str, *, name: str | None = None, up: Vec3 | None = None) -> ModelRow:
+        """A model renamed or given its up (a model being built may be, too: the build
+        does not touch either)."""
+        self.row(model_id)
+        fields = {k: v for k, v in (("name", name), ("up", up)) if v is not None}
+        if fields:
+            self.registry.update_model(model_id, **fields)
+            log.info("model %s: %s", model_id, ", ".join(f"{k} set to {v}" for k, v in fields.items()))
+        return self.row(model_id)
 
     def reserve(self, name: str, source: str, job_id: str) -> ModelRow:
         """A model that a build job will make: listed as building until it is done."""

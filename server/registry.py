@@ -105,6 +105,10 @@ MIGRATIONS: tuple[str, ...] = (
     );
     CREATE INDEX saved_views_by_review ON saved_views (review_id, created_at);
     """,
+    # 3: which way is up in a model (JSON [x, y, z]; NULL: +y), set by PATCH.
+    """
+    ALTER TABLE models ADD COLUMN up TEXT;
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 JOB_LOG_KEEP = 200  # lines kept per job
@@ -124,6 +128,7 @@ class ModelRow:
     job_id: str | None
     created_at: float
     info: dict[str, Any]
+    up: tuple[float, float, float] | None = None  # None: +y
 
 
 @dataclass
@@ -161,6 +166,7 @@ class TokenRow:
 def _model(row: sqlite3.Row) -> ModelRow:
     d = dict(row)
     d["info"] = json.loads(d["info"] or "{}")
+    d["up"] = tuple(json.loads(d["up"])) if d["up"] else None
     return ModelRow(**d)
 
 
@@ -246,8 +252,8 @@ class Registry:
     def add_model(self, row: ModelRow) -> None:
         with self._tx() as db:
             db.execute(
-                "INSERT INTO models (id, name, state, file, source, job_id, created_at, info) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO models (id, name, state, file, source, job_id, created_at, info, up) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     row.id,
                     row.name,
@@ -257,6 +263,7 @@ class Registry:
                     row.job_id,
                     row.created_at,
                     json.dumps(row.info),
+                    json.dumps(list(row.up)) if row.up else None,
                 ),
             )
 
@@ -272,6 +279,8 @@ class Registry:
     def update_model(self, model_id: str, **fields: Any) -> None:
         if "info" in fields:
             fields["info"] = json.dumps(fields["info"])
+        if fields.get("up") is not None:
+            fields["up"] = json.dumps(list(fields["up"]))
         sets = ", ".join(f"{k} = ?" for k in fields)
         with self._tx() as db:
             db.execute(f"UPDATE models SET {sets} WHERE id = ?", (*fields.values(), model_id))

@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from vastray.camera import Camera, resolve_camera
+from vastray.camera import Y_UP, Camera, Vec3, resolve_camera
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, RenderCancelledError
 from vastray.parts import PartTable
 from vastray.renderer import Frame, Renderer
@@ -44,9 +44,10 @@ class RenderedImage:
     encode_ms: float
 
 
-def camera_for(spec: CameraSpec, renderer: Renderer, max_pixels: int) -> Camera:
+def camera_for(spec: CameraSpec, renderer: Renderer, max_pixels: int, model_up: Vec3 | None) -> Camera:
     """The camera a request describes, checked before any work: the pixel budget, then
-    the native checks (finite values, eye != target, up not along the view, fov)."""
+    the native checks (finite values, eye != target, up not along the view, fov). A
+    spec without an up takes the model's."""
     if spec.pixels > max_pixels:
         side = int(math.sqrt(max_pixels))
         raise ApiError(
@@ -62,7 +63,7 @@ def camera_for(spec: CameraSpec, renderer: Renderer, max_pixels: int) -> Camera:
             hi,
             eye=spec.eye,
             target=spec.target,
-            up=spec.up,
+            up=spec.up or model_up or Y_UP,
             fov=spec.fov,
             width=spec.width,
             height=spec.height,
@@ -108,7 +109,7 @@ class RenderService:
 
     def _render_image(self, model_id: str, request: RenderRequest, params: Any) -> RenderedImage:
         with self.store.lease(model_id) as model:
-            camera = camera_for(request.camera, model, self.max_pixels)
+            camera = camera_for(request.camera, model, self.max_pixels, self.store.row(model_id).up)
             frame = self._complete(model, camera, params, request.timeout)
             start = time.perf_counter()
             data = encode(frame.image, request.format, quality=request.jpeg_quality)
@@ -143,7 +144,7 @@ class RenderService:
             origins, directions = [], []
             if request.points:
                 assert request.camera is not None
-                camera = camera_for(request.camera, model, self.max_pixels)
+                camera = camera_for(request.camera, model, self.max_pixels, self.store.row(model_id).up)
                 o, d = camera.image_rays(np.asarray(request.points, dtype=np.float64))
                 origins.append(o)
                 directions.append(d)

@@ -448,7 +448,7 @@ class Connection:
             sections, highlight = session.sections, session.highlight
         else:
             sections, highlight = [], []
-            camera = hello.camera or default_camera(model, viewport)
+            camera = hello.camera or default_camera(model, viewport, row.up)
             quality = hello.quality or StreamQuality()
         review_info = None
         if hello.review is not None:

@@ -24,7 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from vastray import native
-from vastray.camera import Camera
+from vastray.camera import Camera, Vec3
 from vastray.outofcore import OutOfCoreModel
 from vastray.parts import PartTable
 from vastray.protocol import (
@@ -435,9 +435,10 @@ def camera_problem(camera: CameraState) -> str | None:
     return None
 
 
-def default_camera(model: OutOfCoreModel, viewport: Viewport) -> CameraState:
-    from vastray.camera import frame_bounds
+def default_camera(model: OutOfCoreModel, viewport: Viewport, up: Vec3 | None = None) -> CameraState:
+    """The whole model from a three-quarter view, turned about its `up`."""
+    from vastray.camera import Y_UP, frame_bounds
 
     lo, hi = model.bounds
-    c = frame_bounds(lo, hi, width=viewport.width, height=viewport.height)
+    c = frame_bounds(lo, hi, width=viewport.width, height=viewport.height, up=up or Y_UP)
     return CameraState(seq=0, eye=c.eye, target=c.target, up=c.up, fov=c.fov)

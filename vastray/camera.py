@@ -15,6 +15,33 @@ Vec3 = tuple[float, float, float]
 # A three-quarter view from above: shows three faces of a box-like model, the usual
 # default of CAD viewers.
 DEFAULT_VIEW_DIRECTION: Vec3 = (1.0, 0.7, 1.3)
+Y_UP: Vec3 = (0.0, 1.0, 0.0)
+
+
+def unit_up(up: Sequence[float]) -> Vec3:
+    """`up` as a unit vector; a clear error for a zero or non-finite one."""
+    a = np.asarray(up, dtype=np.float64)
+    n = float(np.linalg.norm(a))
+    if a.shape != (3,) or not math.isfinite(n) or n == 0.0:
+        raise ValueError("up must be a finite, non-zero 3-vector")
+    return (float(a[0] / n), float(a[1] / n), float(a[2] / n))
+
+
+def view_direction(up: Sequence[float] = Y_UP) -> Vec3:
+    """The default three-quarter view direction for a model whose up is `up`: the
+    y-up direction turned by the shortest rotation that takes +y to `up`, so a z-up
+    model is seen from its front (-y) and above, as a y-up one is from +z and above."""
+    u = np.asarray(unit_up(up))
+    d = np.asarray(DEFAULT_VIEW_DIRECTION, dtype=np.float64)
+    y = np.array([0.0, 1.0, 0.0])
+    c = float(y @ u)
+    if c < -1.0 + 1e-12:  # upside down: half a turn about x
+        r = np.array([d[0], -d[1], -d[2]])
+    else:
+        # Rodrigues' formula for the rotation about y x u by the angle between them.
+        k = np.cross(y, u)
+        r = d * c + np.cross(k, d) + k * (k @ d) / (1.0 + c)
+    return (float(r[0]), float(r[1]), float(r[2]))
 
 
 @dataclass(frozen=True)
@@ -88,12 +115,15 @@ def frame_bounds(
     fov: float = 45.0,
     width: int = 960,
     height: int = 540,
-    direction: Sequence[float] = DEFAULT_VIEW_DIRECTION,
-    up: Vec3 = (0.0, 1.0, 0.0),
+    direction: Sequence[float] | None = None,
+    up: Vec3 = Y_UP,
 ) -> Camera:
     """A camera that shows the whole bounding box, seen from `direction` (pointing from
-    the model towards the eye): the eye backs off along that direction until all eight
-    corners of the box project inside the frame, with a small margin."""
+    the model towards the eye; by default the three-quarter view for this `up`): the eye
+    backs off along that direction until all eight corners of the box project inside
+    the frame, with a small margin."""
+    if direction is None:
+        direction = view_direction(up)
     if not 0.0 < fov < 180.0:
         raise ValueError("fov must be between 0 and 180 degrees (exclusive)")
     lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
@@ -148,7 +178,7 @@ def resolve_camera(
     up3 = (float(up[0]), float(up[1]), float(up[2]))
     if eye is None and target is None:
         return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
-    framed = frame_bounds(lo, hi, fov=fov, width=width, height=height)
+    framed = frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
     e = framed.eye if eye is None else (float(eye[0]), float(eye[1]), float(eye[2]))
     t = framed.target if target is None else (float(target[0]), float(target[1]), float(target[2]))
     return Camera(eye=e, target=t, up=up3, fov=fov, width=width, height=height)

@@ -422,7 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--output", required=True, help="output image (PNG, JPEG, ...)")
     r.add_argument("--eye", help="camera position x,y,z (default: framed automatically)")
     r.add_argument("--target", help="point looked at x,y,z (default: the model's centre)")
-    r.add_argument("--up", default="0,1,0", help="up vector x,y,z (default 0,1,0)")
+    r.add_argument(
+        "--up",
+        default="0,1,0",
+        help="up vector x,y,z (default 0,1,0; 0,0,1 for a z-up mesh: the framed view turns with it)",
+    )
     r.add_argument("--fov", type=float, default=45.0, help="vertical field of view in degrees")
     r.add_argument("--size", default="960x540", help="image size WIDTHxHEIGHT")
     r.add_argument("--shading", default="headlight", choices=SHADING_MODES)

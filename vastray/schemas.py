@@ -50,11 +50,11 @@ class Strict(BaseModel):
 class CameraSpec(Strict):
     """A pinhole camera in world coordinates (double precision). Without an eye the
     camera frames the whole model from a three-quarter view; without a target it looks
-    at the model's centre."""
+    at the model's centre; without an up it takes the model's (`ModelInfo.up`)."""
 
     eye: Vec3 | None = None
     target: Vec3 | None = None
-    up: Vec3 = (0.0, 1.0, 0.0)
+    up: Vec3 | None = None
     fov: float = Field(45.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
     width: int = Field(960, ge=1, le=MAX_IMAGE_SIDE)
     height: int = Field(540, ge=1, le=MAX_IMAGE_SIDE)
@@ -65,7 +65,7 @@ class CameraSpec(Strict):
             d = [t - e for t, e in zip(self.target, self.eye, strict=True)]
             if not any(d):
                 raise ValueError("eye and target coincide: the view direction has zero length")
-        if not any(self.up):
+        if self.up is not None and not any(self.up):
             raise ValueError("up vector has zero length")
         return self
 
@@ -237,6 +237,9 @@ class ModelInfo(BaseModel):
     levels: list[LevelInfo] | None = None
     build: dict[str, Any] | None = None  # build parameters and report
     in_use: int = 0  # viewers, renders and jobs using it now
+    # Which way is up in the model (a unit vector): default cameras, framing and orbits
+    # turn about it. Meshes come either way (CAD and scans are often z-up).
+    up: Vec3 = (0.0, 1.0, 0.0)
 
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
@@ -350,6 +353,21 @@ class ModelRequest(Strict):
         if (self.path is None) == (self.upload is None):
             raise ValueError("give exactly one of path and upload")
         return self
+
+
+def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    n = math.sqrt(sum(x * x for x in v))
+    if n == 0.0:
+        raise ValueError("up vector has zero length")
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+class ModelPatch(Strict):
+    """What an admin may change on a model: its name, and which way is up (stored as a
+    unit vector; views opened after the change start from it)."""
+
+    name: str | None = Field(None, min_length=1, max_length=200)
+    up: Annotated[Vec3, AfterValidator(_unit)] | None = None
 
 
 class ModelCreated(BaseModel):

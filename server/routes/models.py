@@ -9,6 +9,7 @@ from fastapi.responses import JSONResponse
 from vastray.schemas import (
     ModelCreated,
     ModelInfo,
+    ModelPatch,
     ModelRequest,
     PartInfo,
     PartList,
@@ -99,6 +100,12 @@ def get_model(model_id: str, request: Request) -> ModelInfo:
     state = state_of(request)
     state.auth.require_model_view(request, model_id)
     return state.store.info(state.store.row(model_id))
+
+
+@router.patch("/models/{model_id}", summary="Rename a model, or say which way is up in it")
+def patch_model(model_id: str, body: ModelPatch, request: Request, _: Admin) -> ModelInfo:
+    state = state_of(request)
+    return state.store.info(state.store.patch(model_id, name=body.name, up=body.up))
 
 
 @router.get("/models/{model_id}/parts", summary="Parts (name, bounds, triangles), searched by name")

@@ -91,6 +91,15 @@ def test_blocking_client_end_to_end(url: str, mesh: Path, tmp_path: Path) -> Non
                 vr.start_review(model, camera={"eye": eye, "target": eye})
             assert err.value.status == 422 and err.value.code == "invalid_camera"
 
+        # Said to be z-up (and renamed): a new view starts upright about +z.
+        turned = vr.update_model(model, name="pump (z-up)", up=(0, 0, 3))
+        assert turned.up == (0.0, 0.0, 1.0) and vr.model(model).name == "pump (z-up)"
+        with vr.view(model, viewport=(240, 160)) as view:
+            assert view.camera.up == (0.0, 0.0, 1.0) and view.model_info["up"] == [0.0, 0.0, 1.0]
+        with pytest.raises(VastrayError) as err:
+            vr.update_model(model, up=(0, 0, 0))
+        assert err.value.status == 422 and "zero length" in str(err.value)
+
         with pytest.raises(VastrayError) as err:
             vr.render("mdl-nosuch")
         assert err.value.status == 404 and err.value.code == "model_not_found"

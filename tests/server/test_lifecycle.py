@@ -213,21 +213,30 @@ def test_a_viewer_leaving_a_deleted_model_mid_frame(tmp_path: Path) -> None:
 def test_a_new_registry_says_so_and_an_old_one_says_what_it_migrates(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from vastray.server.registry import SCHEMA_VERSION, Registry
+    from vastray.server.registry import MIGRATIONS, SCHEMA_VERSION, Registry
 
     caplog.set_level(logging.INFO, logger="vastray.registry")
     Registry(tmp_path).close()
     said = [r.getMessage() for r in caplog.records]
     assert any(m.startswith("registry: new at") for m in said), said
     assert not any("migrating" in m for m in said), said
-    # The same file as schema 1 left it (annotations and saved views came with schema 2):
-    # reopening names each step it runs.
+    # A file as schema 1 made it, with a model in it: reopening names each step it runs,
+    # and the model is still there, upright (+y) as models were before they had an up.
     caplog.clear()
-    with sqlite3.connect(tmp_path / "registry.sqlite3") as db:
-        db.executescript("DROP TABLE saved_views; DROP TABLE annotations; PRAGMA user_version = 1;")
-    Registry(tmp_path).close()
+    old = tmp_path / "old"
+    old.mkdir()
+    with sqlite3.connect(old / "registry.sqlite3") as db:
+        db.executescript(MIGRATIONS[0] + "PRAGMA user_version = 1;")
+        db.execute(
+            "INSERT INTO models (id, name, state, file, created_at, info) "
+            "VALUES ('mdl_old', 'old', 'ready', 'old.vast', 0, '{}')"
+        )
+    registry = Registry(old)
     said = [r.getMessage() for r in caplog.records if "registry:" in r.getMessage()]
     assert said == [f"registry: migrating schema {v} -> {v + 1}" for v in range(1, SCHEMA_VERSION)], said
+    row = registry.model("mdl_old")
+    registry.close()
+    assert row is not None and row.name == "old" and row.up is None
 
 
 def test_registry_from_a_newer_release_is_refused(tmp_path: Path) -> None:

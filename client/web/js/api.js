@@ -43,6 +43,8 @@ export class Api {
 
   models() { return this.request("GET", "/api/models"); }
   model(id) { return this.request("GET", `/api/models/${id}`); }
+  // Renames a model or says which way is up in it (`{ name, up }`); needs the API key.
+  updateModel(id, changes) { return this.request("PATCH", `/api/models/${id}`, changes); }
   parts(id, query, limit = 500) {
     return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams({ q: query, limit })}`);
   }

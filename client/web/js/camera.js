@@ -87,10 +87,22 @@ export class Camera {
   }
 }
 
+// The three-quarter view direction (from the model towards the eye) for a model whose
+// up is `up`, as the server's (vastray/camera.py view_direction): the y-up direction
+// turned by the shortest rotation that takes +y to `up`.
+export function viewDirection(up = [0, 1, 0]) {
+  const u = normalize(up);
+  const d = [1, 0.7, 1.3];
+  const c = u[1];
+  if (c < -1 + 1e-12) return [d[0], -d[1], -d[2]]; // upside down: half a turn about x
+  const k = cross([0, 1, 0], u);
+  return add(add(scale(d, c), cross(k, d)), scale(k, dot(k, d) / (1 + c)));
+}
+
 // A camera that shows the whole box from a three-quarter view (as the server frames).
 export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0]) {
   const centre = scale(add(lo, hi), 0.5);
-  const dir = normalize([1, 0.7, 1.3]);
+  const dir = normalize(viewDirection(up));
   const radius = length(sub(hi, lo)) / 2;
   const t = Math.tan((fov * Math.PI) / 360);
   const fit = radius / Math.min(t, t * aspect);

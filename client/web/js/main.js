@@ -275,8 +275,28 @@ class App {
     if (!this.model) return;
     const [lo, hi] = this.model.bounds;
     this.camera = frameBounds(lo, hi, this.camera?.fov ?? 45, this.viewport.width / this.viewport.height,
-      this.camera?.up ?? [0, 1, 0]);
+      this.model.up ?? [0, 1, 0]);
     this.cameraChanged();
+  }
+
+  // Which way is up in the model: the view is framed upright about it at once, and with
+  // the API key it is saved with the model, so everyone's next view of it starts upright.
+  async setUp(up) {
+    if (!this.model) return;
+    const model = this.model;
+    model.up = up;
+    this.frameAll();
+    if (!hasKey) {
+      this.notice("Up is changed on this page only: saving it with the model needs the API key.");
+      return;
+    }
+    try {
+      const saved = await this.api.updateModel(model.id, { up });
+      model.up = saved.up;
+      this.notice(`Saved with ${saved.name}: views of it start with this side up.`);
+    } catch (e) {
+      this.notice(`Up is changed on this page only: ${e.message}`);
+    }
   }
 
   // -- frames ---------------------------------------------------------------------------

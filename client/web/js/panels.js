@@ -45,6 +45,7 @@ export class Panels {
     this.pointerMode = false;
     this.#wireQuality();
     this.#wireTools();
+    $("model-up").addEventListener("change", (e) => this.app.setUp(e.target.value.split(",").map(Number)));
   }
 
   // -- quality ---------------------------------------------------------------------------
@@ -99,6 +100,7 @@ export class Panels {
 
   welcome(w, { reconnected = false } = {}) {
     this.#welcomeReview(w.review);
+    this.showUp(w.model.up);
     const q = w.quality;
     $("shading").value = q.shading;
     $("poe").value = q.pixels_of_error;
@@ -127,6 +129,13 @@ export class Panels {
     this.#renderSections();
   }
 
+  // The up picker shows the model's up: one of the axes, or "other" (set over the API).
+  showUp(up = [0, 1, 0]) {
+    const value = up.map((v) => Math.round(v * 1e6) / 1e6).join(",");
+    const axis = [...$("model-up").options].find((o) => o.value === value);
+    $("model-up").value = axis ? value : "custom";
+  }
+
   // Whether this page's settings drive what it shows: not while following a presenter.
   mayDrive() {
     return !(this.review && this.app.role === "follower" && this.app.following);
@@ -136,7 +145,8 @@ export class Panels {
   #syncDriving() {
     const drive = this.mayDrive();
     const why = drive ? "" : "You follow the presenter: stop following to change this";
-    const controls = "#quality-panel input, #quality-panel select, #sections-panel button, #sections-panel input";
+    const controls = "#quality-panel input, #quality-panel select, #sections-panel button, #sections-panel input, " +
+      "#model-up";
     for (const el of document.querySelectorAll(controls)) {
       if (el.dataset.title === undefined) el.dataset.title = el.title;
       el.disabled = !drive;
