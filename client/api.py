@@ -75,6 +75,8 @@ class AsyncClient:
         base, url_key = split_url(url)
         self.url = base
         self.key = key or url_key or os.environ.get("VASTRAY_KEY")
+        # A review's join (or presenter) link names its review: `join()` joins that one.
+        self.review_id: str | None = (parse_qs(urlsplit(url).query).get("review") or [None])[0]
         headers = {"Authorization": f"Bearer {self.key}"} if self.key else {}
         self._http = httpx.AsyncClient(base_url=base, headers=headers, timeout=timeout)
 
@@ -346,6 +348,16 @@ class AsyncClient:
         from vastray.client.stream import AsyncView
 
         return AsyncView(self.url, _model_id(model), key=self.key, **kw)
+
+    async def join(self, review: str | None = None, *, name: str | None = None, **kw: Any) -> Any:
+        """A live view in a design review (by default the one the client's link names):
+        a follower's frames are the presenter's view, and its `camera` follows theirs;
+        `follow(False)` gives it a view of its own. `async with await client.join() as v:`."""
+        review_id = review or self.review_id
+        if review_id is None:
+            raise ValueError("which review? pass its id, or make the client from a review's link")
+        info = await self.review(review_id)
+        return self.view(info["model"], review=review_id, name=name, **kw)
 
 
 class _ProgressBar:

@@ -48,6 +48,8 @@ class AsyncView:
         quality: dict[str, Any] | None = None,
         reconnect: bool = True,
         on_event: Callable[[dict[str, Any]], None] | None = None,
+        review: str | None = None,
+        name: str | None = None,
     ) -> None:
         self.ws_url = url.replace("https://", "wss://").replace("http://", "ws://") + "/api/stream"
         self.model = model
@@ -57,6 +59,12 @@ class AsyncView:
         self.quality: StreamQuality | None = StreamQuality(**quality) if quality else None
         self.reconnect = reconnect
         self.on_event = on_event
+        self.review = review  # the design review this view joined, or None
+        self.name = name
+        self.role: str | None = None  # in a review: "presenter" or "follower"
+        self._follows = False  # in a review: shows the shared view (as the server says)
+        self.participants: list[dict[str, Any]] = []
+        self.annotations: list[dict[str, Any]] = []
         self.session: str | None = None
         self.welcome: dict[str, Any] = {}
         self.model_info: dict[str, Any] = {}
@@ -114,9 +122,12 @@ class AsyncView:
             "session": self.session,
             "viewport": self.viewport.model_dump(),
         }
-        if self.camera is not None:
+        if self.review is not None:
+            hello.update(review=self.review, name=self.name)
+        # A review's shared view is the presenter's to set: a participant joins it as it is.
+        if self.camera is not None and self.review is None:
             hello["camera"] = self.camera.model_dump()
-        if self.quality is not None:
+        if self.quality is not None and self.review is None:
             hello["quality"] = self.quality.model_dump()
         await self._ws.send(json.dumps(hello))
         while True:  # job events come first while the model is still being built
@@ -132,6 +143,9 @@ class AsyncView:
         self.camera = CameraState(**message["camera"])
         self._seq = max(self._seq, self.camera.seq)
         self.quality = StreamQuality(**message["quality"])
+        if message.get("review"):
+            self.role = message["review"]["role"]
+            self._follows = bool(message["review"]["following"])
         self.connects += 1
         self._connected.set()
 
@@ -183,6 +197,8 @@ class AsyncView:
                 frame = self._pending.pop(event["frame"], None)
                 if frame is not None:
                     frame.stats = event
+                    if self.following:  # the presenter moved: this view is where they are
+                        self.camera = CameraState(**event["camera"])
                     self._frames.put_nowait(frame)
             elif kind == "pick_result":
                 future = self._picks.pop(event["id"], None)
@@ -193,6 +209,13 @@ class AsyncView:
                 future_shot = self._shots.pop(event["id"], None)
                 if shot is not None and future_shot is not None and not future_shot.done():
                     future_shot.set_result(shot)
+            elif kind == "role":  # a handover: either way, onto the shared view
+                self.role, self._follows = event["role"], True
+                self._note(event)
+            elif kind == "participants":
+                self.participants = event["participants"]
+            elif kind == "annotations":
+                self.annotations = event["annotations"]
             elif kind == "closing":
                 self._note(event)
             elif kind not in ("heartbeat", "pong"):
@@ -235,6 +258,8 @@ class AsyncView:
     ) -> int:
         """Moves the camera; returns the seq that frames of this camera carry."""
         assert self.camera is not None
+        if self.following:
+            raise VastrayError(0, "following", "this view follows the presenter: follow(False) first")
         self._seq += 1
         self.camera = CameraState(
             seq=self._seq,
@@ -245,6 +270,22 @@ class AsyncView:
         )
         await self._send({"type": "camera", **self.camera.model_dump()})
         return self._seq
+
+    @property
+    def following(self) -> bool:
+        """In a review, a follower showing the presenter's view: its `camera` is theirs,
+        and it cannot move it."""
+        return self.role == "follower" and self._follows
+
+    async def follow(self, follow: bool = True) -> None:
+        """In a review: show the presenter's view (True), or a view of one's own that
+        starts where the shared one is (False: then this view's camera may move)."""
+        await self._send({"type": "follow", "follow": follow})
+        self._follows = follow
+
+    async def annotate(self, text: str, position: Sequence[float]) -> None:
+        """In a review: a note at a world position (a pick's), for everyone."""
+        await self._send({"type": "annotate", "text": text, "position": list(position)})
 
     async def set_viewport(self, width: int, height: int) -> None:
         self.viewport = Viewport(width=width, height=height)

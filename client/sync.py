@@ -68,6 +68,22 @@ class View:
     def events(self) -> list[dict[str, Any]]:
         return self._async.events
 
+    @property
+    def role(self) -> str | None:
+        return self._async.role
+
+    @property
+    def following(self) -> bool:
+        return self._async.following
+
+    @property
+    def participants(self) -> list[dict[str, Any]]:
+        return self._async.participants
+
+    @property
+    def annotations(self) -> list[dict[str, Any]]:
+        return self._async.annotations
+
     set_camera = _blocking(AsyncView.set_camera)
     set_viewport = _blocking(AsyncView.set_viewport)
     set_quality = _blocking(AsyncView.set_quality)
@@ -77,6 +93,8 @@ class View:
     final = _blocking(AsyncView.final)
     screenshot = _blocking(AsyncView.screenshot)
     pick = _blocking(AsyncView.pick)
+    follow = _blocking(AsyncView.follow)
+    annotate = _blocking(AsyncView.annotate)
     close = _blocking(AsyncView.close)
 
     def frames(self, timeout: float | None = 30.0) -> Iterator[Frame]:
@@ -133,6 +151,12 @@ class Client:
     def view(self, model: Any, **kw: Any) -> View:
         """A live view of a model (opened; close it, or use it in a `with`)."""
         view = self._async.view(model, **kw)
+        self._portal.call(view.open())
+        return View(self._portal, view)
+
+    def join(self, review: str | None = None, **kw: Any) -> View:
+        """A live view in a design review (opened): see AsyncClient.join."""
+        view = self._portal.call(self._async.join(review, **kw))
         self._portal.call(view.open())
         return View(self._portal, view)
 

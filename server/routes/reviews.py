@@ -97,8 +97,9 @@ def get_review(review_id: str, request: Request) -> dict[str, Any]:
         "title": review["title"],
         "created_at": review["created_at"],
         "participants": [p.describe() for p in live.participants.values()] if live else [],
-        # Where the shared view was left (or, before anyone joined, where it starts).
-        "view": review["state"] or None,
+        # Where the shared view is now; with nobody in it, where it was left (or, before
+        # anyone joined, where it starts).
+        "view": live.shared.state() if live and live.shared else review["state"] or None,
         "annotations": state.registry.annotations(review_id),
         "views": [
             {"id": v["id"], "name": v["name"], **v["state"]} for v in state.registry.saved_views(review_id)

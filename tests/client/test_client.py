@@ -146,6 +146,51 @@ def test_async_client_end_to_end(url: str) -> None:
     asyncio.run(go())
 
 
+def test_scripts_present_and_follow_a_review(url: str) -> None:
+    """Two scripts in one review, each from its link: the presenter moves, the follower
+    gets frames of the presenter's camera and knows where it is; a follower cannot move
+    until it stops following; notes and the participant list reach both, and the
+    review says where its shared view is."""
+    with Client(url) as admin:
+        job = admin.wait(admin.build("scene:spheres:5000:3"))
+        started = admin.start_review(job.model_id, title="scripted")
+    with (
+        Client(started["presenter_url"]) as pat,
+        Client(started["join_url"]) as fay,
+        pat.join(name="pat", viewport=(160, 100)) as lead,
+        fay.join(name="fay", viewport=(120, 90)) as follower,
+    ):
+        assert (lead.role, follower.role) == ("presenter", "follower") and follower.following
+        eye, target = orbit_eye(tuple(lead.model_info["bounds"]), 1.3)
+        seq = lead.set_camera(eye, target)
+        shown = lead.final(seq)
+        # The follower's frames are the presenter's (the same pixels, its aspect).
+        got = follower.final(seq)
+        assert got.header.camera_seq == seq and got.image.shape == shown.image.shape == (100, 160, 3)
+        assert np.array_equal(got.image, shown.image)
+        assert follower.camera.eye == pytest.approx(eye)
+        with pytest.raises(VastrayError) as err:  # (looking back) not while following
+            follower.set_camera(target, eye)
+        assert err.value.code == "following" and follower.camera.eye == pytest.approx(eye)
+        # On its own, it moves where it likes; the presenter's view stays put.
+        follower.follow(False)
+        own = follower.set_camera(target, eye)
+        mine = follower.final(own)
+        assert mine.image.shape == (90, 120, 3) and not follower.following
+        lead.annotate("check this flange", target)
+        deadline = time.monotonic() + 30
+        while not (follower.annotations and {p["name"] for p in follower.participants} == {"pat", "fay"}):
+            assert time.monotonic() < deadline, (follower.annotations, follower.participants)
+            time.sleep(0.05)
+        assert follower.annotations[0]["text"] == "check this flange"
+        assert admin_review_view(url, started["review"]["id"])["camera"]["eye"] == pytest.approx(eye)
+
+
+def admin_review_view(url: str, review_id: str) -> dict:
+    with Client(url) as admin:
+        return admin.review(review_id)["view"]
+
+
 def test_a_view_reconnects_after_a_server_restart(tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
