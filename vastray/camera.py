@@ -21,10 +21,12 @@ Y_UP: Vec3 = (0.0, 1.0, 0.0)
 def unit_up(up: Sequence[float]) -> Vec3:
     """`up` as a unit vector; a clear error for a zero or non-finite one."""
     a = np.asarray(up, dtype=np.float64)
-    n = float(np.linalg.norm(a))
-    if a.shape != (3,) or not math.isfinite(n) or n == 0.0:
+    big = float(np.abs(a).max()) if a.shape == (3,) else math.nan
+    if not (math.isfinite(big) and big > 0.0):
         raise ValueError("up must be a finite, non-zero 3-vector")
-    return (float(a[0] / n), float(a[1] / n), float(a[2] / n))
+    a = a / big  # scaled first: the squares of huge components overflow
+    a /= np.linalg.norm(a)
+    return (float(a[0]), float(a[1]), float(a[2]))
 
 
 def view_direction(up: Sequence[float] = Y_UP) -> Vec3:

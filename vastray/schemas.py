@@ -356,10 +356,12 @@ class ModelRequest(Strict):
 
 
 def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
-    n = math.sqrt(sum(x * x for x in v))
-    if n == 0.0:
+    big = max(abs(x) for x in v)  # scaled first: the squares of huge components overflow
+    if big == 0.0:
         raise ValueError("up vector has zero length")
-    return (v[0] / n, v[1] / n, v[2] / n)
+    s = tuple(x / big for x in v)
+    n = math.sqrt(sum(x * x for x in s))
+    return (s[0] / n, s[1] / n, s[2] / n)
 
 
 class ModelPatch(Strict):

@@ -143,8 +143,9 @@ def test_up_and_name_outlive_a_restart(tmp_path: Path) -> None:
         with s.client() as api:
             build_model("scene:spheres:3000:1", s.data_dir / "s.vast", BuildOptions(memory=64 << 20))
             model_id = api.post("/api/models", json={"path": "s.vast"}).json()["model"]["id"]
-            r = api.patch(f"/api/models/{model_id}", json={"up": [-1, 0, 0], "name": "on its side"})
-            assert r.status_code == 200, r.text
+            # (Any length will do: even one whose squares overflow a double.)
+            r = api.patch(f"/api/models/{model_id}", json={"up": [-1e300, 0, 0], "name": "on its side"})
+            assert r.status_code == 200 and r.json()["up"] == [-1.0, 0.0, 0.0], r.text
         s.stop()
         s.start()
         with s.client() as api:
