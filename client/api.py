@@ -112,9 +112,17 @@ class AsyncClient:
         )
         return [PartInfo(**p) for p in found["parts"]]
 
-    async def upload(self, path: str | Path, *, name: str | None = None, register: bool = True) -> UploadInfo:
+    async def upload(
+        self,
+        path: str | Path,
+        *,
+        name: str | None = None,
+        register: bool = True,
+        up: tuple[float, float, float] | None = None,
+    ) -> UploadInfo:
         """Uploads a mesh or a built model, streamed from disk. With `register` a built
-        model is served at once and a mesh starts its build (see `.created`)."""
+        model is served at once and a mesh starts its build (see `.created`); `up` says
+        which way is up in it (default +y; a z-up mesh takes (0, 0, 1))."""
         path = Path(path)
 
         async def chunks() -> AsyncIterator[bytes]:
@@ -125,6 +133,8 @@ class AsyncClient:
         params: dict[str, Any] = {"filename": path.name, "register": str(register).lower()}
         if name:
             params["name"] = name
+        if up is not None:
+            params["up"] = ",".join(repr(float(c)) for c in up)
         r = await self._http.post(
             "/api/uploads",
             params=params,
@@ -134,9 +144,11 @@ class AsyncClient:
         raise_for_error(r)
         return UploadInfo(**r.json())
 
-    async def register(self, path: str, *, name: str | None = None) -> tuple[ModelInfo, JobInfo | None]:
+    async def register(
+        self, path: str, *, name: str | None = None, up: tuple[float, float, float] | None = None
+    ) -> tuple[ModelInfo, JobInfo | None]:
         """A file already in the server's data directory (relative path)."""
-        out = await self._json("POST", "/api/models", json={"path": path, "name": name})
+        out = await self._json("POST", "/api/models", json={"path": path, "name": name, "up": up})
         return ModelInfo(**out["model"]), JobInfo(**out["job"]) if out.get("job") else None
 
     async def update_model(
@@ -209,6 +221,7 @@ class AsyncClient:
         traversal_cost: float | None = None,
         lz4_hc_level: int | None = None,
         voxel_errors: bool | None = None,
+        up: tuple[float, float, float] | None = None,
     ) -> JobInfo:
         """Queues a build of 'demo', 'scene:NAME:TRIANGLES:SEED' or a mesh in the data
         directory; wait for it with `wait`. `layout`: what the file is for, "balanced" (the
@@ -225,7 +238,8 @@ class AsyncClient:
         `lz4_hc_level`: LZ4 HC for the blocks (1-12; default 0, LZ4's fast compressor): the same
         format, read as fast, smaller, a slower build; `voxel_errors`: LOD tests compare a bound
         on how far a voxel's box lies from its triangles, not the box's size (default on with
-        quantized splits; §15)."""
+        quantized splits; §15). `up`: which way is up in the model (default +y; a z-up
+        mesh takes (0, 0, 1)), as `update_model` sets it."""
         chosen = {
             "layout": layout,
             "quantized_splits": quantized_splits,
@@ -237,7 +251,7 @@ class AsyncClient:
             "voxel_errors": voxel_errors,
         }
         options = {"memory": memory, "threads": threads, **{k: v for k, v in chosen.items() if v is not None}}
-        body = {"source": source, "name": name, "options": options}
+        body = {"source": source, "name": name, "options": options, "up": up}
         return JobInfo(**await self._json("POST", "/api/jobs", json=body))
 
     async def job(self, job: str | JobInfo) -> JobInfo:

@@ -152,7 +152,7 @@ class ModelStore:
 
     # -- changing --------------------------------------------------------------------------
 
-    def register_file(self, source: Path, name: str, *, move: bool) -> ModelRow:
+    def register_file(self, source: Path, name: str, *, move: bool, up: Vec3 | None = None) -> ModelRow:
         """A built model already on disk becomes a served model: moved into models/
         (uploads), or served where it is (a file the user put in the data directory,
         which deleting the model then leaves alone). ApiError 422 if it is no model."""
@@ -175,6 +175,7 @@ class ModelStore:
             None,
             time.time(),
             info,
+            up,
         )
         self.registry.add_model(row)
         log.info("model %s (%s): registered, %s triangles", model_id, name, f"{info['triangles']:,}")
@@ -190,9 +191,9 @@ class ModelStore:
             log.info("model %s: %s", model_id, ", ".join(f"{k} set to {v}" for k, v in fields.items()))
         return self.row(model_id)
 
-    def reserve(self, name: str, source: str, job_id: str) -> ModelRow:
+    def reserve(self, name: str, source: str, job_id: str, up: Vec3 | None = None) -> ModelRow:
         """A model that a build job will make: listed as building until it is done."""
-        row = ModelRow(new_id("mdl"), name, "building", None, source, job_id, time.time(), {})
+        row = ModelRow(new_id("mdl"), name, "building", None, source, job_id, time.time(), {}, up)
         self.registry.add_model(row)
         return row
 

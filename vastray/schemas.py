@@ -27,6 +27,20 @@ def _finite(v: tuple[float, float, float]) -> tuple[float, float, float]:
 
 
 Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite)]
+
+
+def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    big = max(abs(x) for x in v)  # scaled first: the squares of huge components overflow
+    if big == 0.0:
+        raise ValueError("up vector has zero length")
+    s = tuple(x / big for x in v)
+    n = math.sqrt(sum(x * x for x in s))
+    return (s[0] / n, s[1] / n, s[2] / n)
+
+
+UnitVec3 = Annotated[Vec3, AfterValidator(_unit)]
+UP_DESCRIPTION = "which way is up in the model (default +y; CAD exports and scans are often z-up: [0, 0, 1])"
+
 ShadingName = Literal["normal", "headlight", "sun", "ao", "indirect"]
 assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of modes
 
@@ -330,6 +344,7 @@ class JobRequest(Strict):
     source: str | None = None
     upload: str | None = None
     name: str | None = Field(None, max_length=200)
+    up: UnitVec3 | None = Field(None, description=UP_DESCRIPTION)
     options: BuildOptionsIn = BuildOptionsIn()
 
     @model_validator(mode="after")
@@ -346,6 +361,7 @@ class ModelRequest(Strict):
     path: str | None = None
     upload: str | None = None
     name: str | None = Field(None, max_length=200)
+    up: UnitVec3 | None = Field(None, description=UP_DESCRIPTION)
     options: BuildOptionsIn = BuildOptionsIn()
 
     @model_validator(mode="after")
@@ -355,21 +371,12 @@ class ModelRequest(Strict):
         return self
 
 
-def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
-    big = max(abs(x) for x in v)  # scaled first: the squares of huge components overflow
-    if big == 0.0:
-        raise ValueError("up vector has zero length")
-    s = tuple(x / big for x in v)
-    n = math.sqrt(sum(x * x for x in s))
-    return (s[0] / n, s[1] / n, s[2] / n)
-
-
 class ModelPatch(Strict):
     """What an admin may change on a model: its name, and which way is up (stored as a
     unit vector; views opened after the change start from it)."""
 
     name: str | None = Field(None, min_length=1, max_length=200)
-    up: Annotated[Vec3, AfterValidator(_unit)] | None = None
+    up: UnitVec3 | None = Field(None, description=UP_DESCRIPTION)
 
 
 class ModelCreated(BaseModel):

@@ -13,6 +13,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse, StreamingResponse
 
 from vastray.build import INCORE_BYTES_PER_TRIANGLE, MIN_INCORE_TRIANGLES
+from vastray.camera import Vec3
 from vastray.layouts import LAYOUT_FLAGS, layout_options
 from vastray.schemas import TERMINAL_JOB_STATES, BuildOptionsIn, JobInfo, JobRequest
 from vastray.server.aio import ShutdownError, get_or_stop
@@ -96,14 +97,20 @@ def build_options(state: State, options: BuildOptionsIn | None) -> dict[str, int
 
 
 def submit_build(
-    state: State, *, source: str, name: str | None, options: BuildOptionsIn | None, upload: str | None = None
+    state: State,
+    *,
+    source: str,
+    name: str | None,
+    options: BuildOptionsIn | None,
+    upload: str | None = None,
+    up: Vec3 | None = None,
 ) -> JobInfo:
     """Queues a build of `source` (or an upload) into a new model, listed as building."""
     reads, default_name = resolve_source(state, source if upload is None else None, upload)
     opts = build_options(state, options)
     job_id = f"job-{secrets.token_hex(6)}"
     label = name or default_name
-    model = state.store.reserve(label, source if upload is None else f"upload:{upload}", job_id)
+    model = state.store.reserve(label, source if upload is None else f"upload:{upload}", job_id, up)
     job = JobRow(
         job_id,
         "build",
@@ -139,7 +146,12 @@ def job_or_404(state: State, job_id: str) -> JobInfo:
 )
 def create_job(body: JobRequest, request: Request, _: Admin) -> JobInfo:
     return submit_build(
-        state_of(request), source=body.source or "", name=body.name, options=body.options, upload=body.upload
+        state_of(request),
+        source=body.source or "",
+        name=body.name,
+        options=body.options,
+        upload=body.upload,
+        up=body.up,
     )
 
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
+from pydantic import ValidationError
 
+from vastray.camera import Vec3, parse_vec3
 from vastray.schemas import (
     ModelCreated,
     ModelInfo,
@@ -16,6 +18,7 @@ from vastray.schemas import (
     TokenInfo,
     TokenRequest,
     UploadInfo,
+    describe_errors,
 )
 from vastray.server.app import State
 from vastray.server.auth import credential
@@ -27,18 +30,34 @@ from vastray.server.routes.jobs import submit_build
 router = APIRouter(prefix="/api", tags=["models"])
 
 
+def parse_up(text: str) -> Vec3:
+    """An up vector given as 'x,y,z' in a query, as a unit vector; 422 if it is none."""
+    try:
+        return ModelPatch(up=parse_vec3(text)).up  # type: ignore[return-value]
+    except ValidationError as exc:
+        raise ApiError(422, "invalid_request", describe_errors(exc.errors())) from None
+    except ValueError as exc:
+        raise ApiError(422, "invalid_request", f"up: {exc}") from None
+
+
 def register(
-    state: State, *, path: str | None, upload: str | None, name: str | None, options: object = None
+    state: State,
+    *,
+    path: str | None,
+    upload: str | None,
+    name: str | None,
+    options: object = None,
+    up: Vec3 | None = None,
 ) -> ModelCreated:
     """A built model is served at once; a mesh starts the build that makes it."""
     file = state.uploads.path(upload) if upload is not None else inside(state.data_dir, path or "")
     label = name or file.stem
     if kind_of(file) == "model":
-        row = state.store.register_file(file, label, move=upload is not None)
+        row = state.store.register_file(file, label, move=upload is not None, up=up)
         if upload is not None:
             state.uploads.remove(upload)
         return ModelCreated(model=state.store.info(row))
-    job = submit_build(state, source=path or "", name=name, options=options, upload=upload)  # type: ignore[arg-type]
+    job = submit_build(state, source=path or "", name=name, options=options, upload=upload, up=up)  # type: ignore[arg-type]
     assert job.model_id is not None
     return ModelCreated(model=state.store.info(state.store.row(job.model_id)), job=job)
 
@@ -51,7 +70,12 @@ def register(
 )
 def create_model(body: ModelRequest, request: Request, response: Response, _: Admin) -> ModelCreated:
     created = register(
-        state_of(request), path=body.path, upload=body.upload, name=body.name, options=body.options
+        state_of(request),
+        path=body.path,
+        upload=body.upload,
+        name=body.name,
+        options=body.options,
+        up=body.up,
     )
     if created.job is not None:
         response.status_code = 202
@@ -69,8 +93,12 @@ async def upload(
         False, alias="register", description="register it at once (a mesh starts a build)"
     ),
     name: str | None = Query(None, max_length=200),
+    up: str | None = Query(
+        None, max_length=200, description="with register: which way is up in the model, 'x,y,z' (e.g. 0,0,1)"
+    ),
 ) -> UploadInfo:
     state = state_of(request)
+    up_vector = parse_up(up) if up is not None else None  # refused before the upload is read
     length = request.headers.get("content-length")
     declared = int(length) if length and length.isdigit() else None
     upload_id, path = await state.uploads.receive(filename, request.stream(), declared)
@@ -84,7 +112,9 @@ async def upload(
     if register_it:
         import asyncio
 
-        created = await asyncio.to_thread(register, state, path=None, upload=upload_id, name=name)
+        created = await asyncio.to_thread(
+            register, state, path=None, upload=upload_id, name=name, up=up_vector
+        )
     return UploadInfo(id=upload_id, filename=path.name, bytes=size, kind=kind, created=created)  # type: ignore[arg-type]
 
 

@@ -37,13 +37,14 @@ def orbit_eye(bounds: tuple, angle: float) -> tuple[tuple[float, ...], tuple[flo
 def test_blocking_client_end_to_end(url: str, mesh: Path, tmp_path: Path) -> None:
     with Client(url) as vr:
         assert vr.health()["status"] == "ready"
-        up = vr.upload(mesh, name="pump")
+        up = vr.upload(mesh, name="pump", up=(0, 0, 2))  # a z-up mesh, said so at once
         assert up.kind == "mesh" and up.bytes == mesh.stat().st_size and up.created is not None
         seen: list[JobInfo] = []
         job = vr.wait(up.created.job, progress=seen.append)
         assert job.state == "succeeded" and seen[-1].percent == 100.0 and len(seen) >= 2
         model = vr.model(job.model_id)
         assert model.state == "ready" and model.name == "pump" and model.triangles > 25_000
+        assert model.up == (0.0, 0.0, 1.0)
         assert model.id in {m.id for m in vr.models()}
 
         still = vr.render(model, camera={"width": 200, "height": 150}, quality={"shading": "sun"})
@@ -91,11 +92,11 @@ def test_blocking_client_end_to_end(url: str, mesh: Path, tmp_path: Path) -> Non
                 vr.start_review(model, camera={"eye": eye, "target": eye})
             assert err.value.status == 422 and err.value.code == "invalid_camera"
 
-        # Said to be z-up (and renamed): a new view starts upright about +z.
-        turned = vr.update_model(model, name="pump (z-up)", up=(0, 0, 3))
-        assert turned.up == (0.0, 0.0, 1.0) and vr.model(model).name == "pump (z-up)"
+        # Said to be x-up after all (and renamed): a new view starts upright about +x.
+        turned = vr.update_model(model, name="pump (x-up)", up=(3, 0, 0))
+        assert turned.up == (1.0, 0.0, 0.0) and vr.model(model).name == "pump (x-up)"
         with vr.view(model, viewport=(240, 160)) as view:
-            assert view.camera.up == (0.0, 0.0, 1.0) and view.model_info["up"] == [0.0, 0.0, 1.0]
+            assert view.camera.up == (1.0, 0.0, 0.0) and view.model_info["up"] == [1.0, 0.0, 0.0]
         with pytest.raises(VastrayError) as err:
             vr.update_model(model, up=(0, 0, 0))
         assert err.value.status == 422 and "zero length" in str(err.value)
@@ -152,7 +153,7 @@ def test_scripts_present_and_follow_a_review(url: str) -> None:
     until it stops following; notes and the participant list reach both, and the
     review says where its shared view is."""
     with Client(url) as admin:
-        job = admin.wait(admin.build("scene:spheres:5000:3"))
+        job = admin.wait(admin.build("scene:spheres:5000:3", up=(0, 0, 1)))
         started = admin.start_review(job.model_id, title="scripted")
     with (
         Client(started["presenter_url"]) as pat,
@@ -161,6 +162,7 @@ def test_scripts_present_and_follow_a_review(url: str) -> None:
         fay.join(name="fay", viewport=(120, 90)) as follower,
     ):
         assert (lead.role, follower.role) == ("presenter", "follower") and follower.following
+        assert lead.camera.up == follower.camera.up == (0.0, 0.0, 1.0)  # the model's up
         eye, target = orbit_eye(tuple(lead.model_info["bounds"]), 1.3)
         seq = lead.set_camera(eye, target)
         shown = lead.final(seq)

@@ -17,7 +17,7 @@ import pytest
 import trimesh
 import websockets
 from PIL import Image
-from serverproc import ServerProcess
+from serverproc import ServerProcess, wait_for_job
 
 from vastray import scenes
 from vastray.build import BuildOptions, build_model
@@ -135,6 +135,48 @@ def test_bad_patches_are_refused_and_change_nothing(
     assert r.status_code in (401, 403), r.text
     after = api.get(f"/api/models/{model_id}").json()
     assert (after["up"], after["name"]) == (before["up"], before["name"])
+
+
+def test_up_given_when_a_model_is_registered_uploaded_or_built(
+    server: ServerProcess, api: httpx.Client, tmp_path: Path
+) -> None:
+    """A script that knows its mesh is z-up says so in the call that adds it; a build
+    finishing later keeps it. A bad one is refused before anything is made."""
+    build_model("scene:spheres:3000:2", server.data_dir / "in-place.vast", BuildOptions(memory=64 << 20))
+    r = api.post("/api/models", json={"path": "in-place.vast", "up": [0, 0, 5]})
+    assert r.status_code == 201 and r.json()["model"]["up"] == [0.0, 0.0, 1.0], r.text
+
+    mesh = tmp_path / "part.ply"
+    scenes.write_scene("spheres", 2000, 3, mesh)
+    models_before = {m["id"] for m in api.get("/api/models").json()}
+    for up, says in [("0,0,0", "up: up vector has zero length"), ("z", "up: expected three")]:
+        r = api.post(
+            "/api/uploads",
+            params={"filename": "part.ply", "register": "true", "up": up},
+            content=mesh.read_bytes(),
+        )
+        assert r.status_code == 422 and says in r.json()["error"]["message"], r.text
+    assert {m["id"] for m in api.get("/api/models").json()} == models_before
+    assert not any((server.data_dir / "uploads").glob("*")), "a refused upload left a file"
+
+    r = api.post(
+        "/api/uploads",
+        params={"filename": "part.ply", "register": "true", "up": "0,0,1"},
+        content=mesh.read_bytes(),
+    )
+    assert r.status_code == 201, r.text
+    uploaded = r.json()["created"]
+    assert uploaded["model"]["state"] == "building" and uploaded["model"]["up"] == [0.0, 0.0, 1.0]
+    built = api.post("/api/jobs", json={"source": "scene:spheres:3000:4", "up": [-1, 0, 0]}).json()
+    for job_id, model_id, up in [
+        (uploaded["job"]["id"], uploaded["model"]["id"], [0.0, 0.0, 1.0]),
+        (built["id"], built["model_id"], [-1.0, 0.0, 0.0]),
+    ]:
+        assert wait_for_job(api, job_id)["state"] == "succeeded"
+        info = api.get(f"/api/models/{model_id}").json()
+        assert info["state"] == "ready" and info["up"] == up, info
+    r = api.post("/api/jobs", json={"source": "scene:spheres:3000:4", "up": [0, 0, 0]})
+    assert r.status_code == 422 and "up: up vector has zero length" in r.json()["error"]["message"]
 
 
 def test_up_and_name_outlive_a_restart(tmp_path: Path) -> None:
