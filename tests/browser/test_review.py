@@ -120,6 +120,16 @@ def test_a_follower_sees_the_presenters_camera_pointer_and_annotation(
     f.locator("#follow").check()
     follower.wait_final(n)
     assert follower.shown()["camera"]["eye"] == pytest.approx(presenter_eye)
+    # A standard view is navigation too: the follower goes free to look from the top
+    # (sending its camera while still following would be refused: errors_received below).
+    n = follower.frames()
+    f.locator("#standard-views button[data-view=top]").click()
+    assert not f.locator("#follow").is_checked()
+    follower.wait_final(n, follower.js("window.vastray.seq"))
+    assert presenter.js("window.vastray.camera.eye") == presenter_eye
+    n = follower.frames()
+    f.locator("#follow").check()
+    follower.wait_final(n)
 
     # The presenter hands the role over, explicitly; the new presenter drives the shared view.
     p.get_by_role("button", name="hand the presenter role to").click()

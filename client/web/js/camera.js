@@ -87,24 +87,42 @@ export class Camera {
   }
 }
 
-// The three-quarter view direction (from the model towards the eye) for a model whose
-// up is `up`, as the server's (vastray/camera.py view_direction): the y-up direction
-// turned by the shortest rotation that takes +y to `up`.
-export function viewDirection(up = [0, 1, 0]) {
+// `d`, a direction of a y-up model, for a model whose up is `up`: turned by the shortest
+// rotation that takes +y to `up` (as vastray/camera.py view_direction turns its view).
+function turnFromY(d, up) {
   const u = normalize(up);
-  const d = [1, 0.7, 1.3];
   const c = u[1];
   if (c < -1 + 1e-12) return [d[0], -d[1], -d[2]]; // upside down: half a turn about x
   const k = cross([0, 1, 0], u);
   return add(add(scale(d, c), cross(k, d)), scale(k, dot(k, d) / (1 + c)));
 }
 
-// A camera that shows the whole box from a three-quarter view (as the server frames).
-export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0]) {
+// The three-quarter view direction (from the model towards the eye), as the server's.
+export function viewDirection(up = [0, 1, 0]) {
+  return turnFromY([1, 0.7, 1.3], up);
+}
+
+// The standard views of CAD viewers: which way the eye lies from the model, and the
+// screen's up, for a y-up model (front: +z, right: +x; the top view has the front at
+// the bottom of the screen, the bottom view at the top). They turn with the model's up.
+export const STANDARD_VIEWS = {
+  iso: { dir: [1, 0.7, 1.3], up: [0, 1, 0] },
+  front: { dir: [0, 0, 1], up: [0, 1, 0] },
+  back: { dir: [0, 0, -1], up: [0, 1, 0] },
+  right: { dir: [1, 0, 0], up: [0, 1, 0] },
+  left: { dir: [-1, 0, 0], up: [0, 1, 0] },
+  top: { dir: [0, 1, 0], up: [0, 0, -1] },
+  bottom: { dir: [0, -1, 0], up: [0, 0, 1] },
+};
+
+// A camera that shows the whole box from the standard view `name` (the three-quarter
+// one by default, as the server frames) of a model whose up is `up`.
+export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0], name = "iso") {
+  const view = STANDARD_VIEWS[name];
   const centre = scale(add(lo, hi), 0.5);
-  const dir = normalize(viewDirection(up));
+  const dir = normalize(turnFromY(view.dir, up));
   const radius = length(sub(hi, lo)) / 2;
   const t = Math.tan((fov * Math.PI) / 360);
   const fit = radius / Math.min(t, t * aspect);
-  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up, fov });
+  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up: turnFromY(view.up, up), fov });
 }

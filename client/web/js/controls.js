@@ -1,14 +1,17 @@
 // Mouse, touch and keyboard to camera moves, the way CAD viewers do it:
 //   left drag: orbit   right drag / shift+left / two fingers: pan   wheel / pinch: zoom
 //   W A S D: fly, Q E: down and up (shift: faster)   F: frame the model
+//   1-7: the standard views (iso, front, back, left, right, top, bottom)
 // A click (press and release without moving) is a pick, not a move.
 
 const ORBIT_PER_PIXEL = 0.006; // radians
 const CLICK_SLOP = 4; // pixels a press may move and still be a click
 const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
+const VIEW_KEYS = ["iso", "front", "back", "left", "right", "top", "bottom"]; // keys 1-7
 
 export class Controls {
   constructor(element, { camera, onChange, onClick, onFrameAll, flySpeed }) {
+    // onFrameAll(view): the model framed from a standard view (F: "iso")
     this.element = element;
     this.camera = camera; // () => the Camera to change
     this.onChange = onChange;
@@ -102,7 +105,11 @@ export class Controls {
     if (k.length !== 1) return;
     if (down && (e.ctrlKey || e.metaKey || e.altKey)) return; // the browser's shortcuts (Ctrl+F, Ctrl+S, ...)
     if (down && k === "f") {
-      if (!e.repeat) this.onFrameAll();
+      if (!e.repeat) this.onFrameAll("iso");
+      return;
+    }
+    if (down && k >= "1" && k <= "7") {
+      if (!e.repeat) this.onFrameAll(VIEW_KEYS[Number(k) - 1]);
       return;
     }
     if (!"wasdqe".includes(k)) return;

@@ -66,7 +66,7 @@ class App {
       camera: () => this.#driveCamera(),
       onChange: () => this.cameraChanged(),
       onClick: (p) => this.#click(p),
-      onFrameAll: () => this.frameAll(),
+      onFrameAll: (name) => this.frameAll(name),
       flySpeed: () => (this.model ? 0.25 * length(sub(this.model.bounds[1], this.model.bounds[0])) : 1),
     });
     new ResizeObserver(() => this.#resize()).observe($("stage"));
@@ -271,11 +271,14 @@ class App {
     this.cameraChanged();
   }
 
-  frameAll() {
+  // The whole model from a standard view (iso: the three-quarter one), upright about its
+  // up. Navigation: a follower goes free, as when it drags.
+  frameAll(name = "iso") {
     if (!this.model) return;
+    this.#driveCamera();
     const [lo, hi] = this.model.bounds;
     this.camera = frameBounds(lo, hi, this.camera?.fov ?? 45, this.viewport.width / this.viewport.height,
-      this.model.up ?? [0, 1, 0]);
+      this.model.up ?? [0, 1, 0], name);
     this.cameraChanged();
   }
 

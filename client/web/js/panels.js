@@ -46,6 +46,9 @@ export class Panels {
     this.#wireQuality();
     this.#wireTools();
     $("model-up").addEventListener("change", (e) => this.app.setUp(e.target.value.split(",").map(Number)));
+    for (const b of document.querySelectorAll("#standard-views button")) {
+      b.addEventListener("click", () => this.app.frameAll(b.dataset.view));
+    }
   }
 
   // -- quality ---------------------------------------------------------------------------

@@ -1,0 +1,122 @@
+"""Which way up the page shows a model. A z-up model opens on its side; picking +Z in
+the up picker turns the view upright at once, saves the setting with the model (the
+page holds the API key), and after a reload the page opens it upright, showing what the
+y-up original shows. The standard views (buttons and keys 1-7) look at the named side,
+upright about the model's up."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from conftest import not_blank
+
+from vastray import scenes
+from vastray.build import BuildOptions, build_model
+
+Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # +y to +z
+
+
+def register(server: Any, api: Any, mesh: Path, name: str) -> str:
+    target = server.data_dir / f"{name}.vast"
+    build_model(str(mesh), target, BuildOptions(memory=64 << 20))
+    r = api.post("/api/models", json={"path": target.name, "name": name})
+    assert r.status_code == 201, r.text
+    return str(r.json()["model"]["id"])
+
+
+def test_the_up_picker_turns_the_view_and_saves_it(
+    open_viewer: Any, server: Any, api: Any, tmp_path: Path
+) -> None:
+    upright = tmp_path / "plant.ply"
+    scenes.write_scene("plant", 30_000, 4, upright)
+    turned = trimesh.load(upright, process=False)
+    turned.vertices = np.asarray(turned.vertices) @ Y_TO_Z.T
+    turned.export(tmp_path / "plant-z.ply")
+    y_id = register(server, api, upright, "plant-y")
+    z_id = register(server, api, tmp_path / "plant-z.ply", "plant-z")
+    try:
+        original = open_viewer(f"{server.open_url}&model={y_id}", "original")
+        original.wait_final()
+        reference = original.thumbnail()
+
+        v = open_viewer(f"{server.open_url}&model={z_id}")
+        n = v.wait_final()
+        v.shot("on-its-side")
+        picker = v.page.locator("#model-up")
+        assert picker.input_value() == "0,1,0"
+        assert np.abs(v.thumbnail() - reference).mean() > 8, "the z-up copy already looks upright"
+
+        picker.select_option("0,0,1")
+        v.wait_for("() => window.vastray.camera?.up?.[2] === 1")
+        v.wait_final(n, v.js("window.vastray.seq"))
+        v.shot("upright")
+        camera = v.shown()["camera"]
+        assert camera["up"] == [0, 0, 1]
+        # Framed from the front (-y) and above (+z), as a y-up model is from +z and above.
+        assert camera["eye"][2] > camera["target"][2] and camera["eye"][1] < camera["target"][1]
+        v.wait_for("() => /Saved with plant-z/.test(document.getElementById('banner').textContent)")
+        assert api.get(f"/api/models/{z_id}").json()["up"] == [0.0, 0.0, 1.0]
+
+        # Saved with the model: a new page opens it upright, with the original's picture.
+        v.page.reload()
+        v.wait_final()
+        v.shot("reloaded")
+        assert picker.input_value() == "0,0,1"
+        assert v.shown()["camera"]["up"] == [0, 0, 1]
+        assert np.abs(v.thumbnail() - reference).mean() < 3, "upright, yet not the original's picture"
+        # Its front is now -y: the front view looks along +y, with +z up the screen.
+        n = v.frames()
+        v.page.click("#standard-views button[data-view=front]")
+        v.wait_final(n, v.js("window.vastray.seq"))
+        camera = v.shown()["camera"]
+        np.testing.assert_allclose(direction(camera), [0, -1, 0], atol=1e-9)
+        np.testing.assert_allclose(camera["up"], [0, 0, 1], atol=1e-9)
+    finally:
+        api.delete(f"/api/models/{y_id}")  # the other tests open the server's URL: one model there
+        api.delete(f"/api/models/{z_id}")
+
+
+def direction(camera: dict[str, Any]) -> np.ndarray:
+    """Where the eye lies from the target, as a unit vector."""
+    d = np.asarray(camera["eye"]) - np.asarray(camera["target"])
+    return d / np.linalg.norm(d)
+
+
+# Which way the eye lies from the model, and the screen's up, for a y-up model.
+STANDARD = {
+    "front": ([0, 0, 1], [0, 1, 0]),
+    "right": ([1, 0, 0], [0, 1, 0]),
+    "back": ([0, 0, -1], [0, 1, 0]),
+    "left": ([-1, 0, 0], [0, 1, 0]),
+    "top": ([0, 1, 0], [0, 0, -1]),  # the front at the bottom of the screen
+    "bottom": ([0, -1, 0], [0, 0, 1]),
+}
+
+
+def test_standard_views_face_the_named_side(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:
+    v = open_viewer(server.open_url)
+    n = v.wait_final()
+    lo, hi = (np.asarray(b) for b in model["bounds"])
+    before = v.thumbnail()
+    for name, (side, up) in STANDARD.items():
+        v.page.click(f"#standard-views button[data-view={name}]")
+        n = v.wait_final(n, v.js("window.vastray.seq"))
+        v.shot(name)
+        camera = v.shown()["camera"]
+        np.testing.assert_allclose(direction(camera), side, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(camera["up"], up, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(camera["target"], (lo + hi) / 2, rtol=1e-9, err_msg=name)
+        shown = v.thumbnail()
+        assert not_blank(shown), f"the {name} view shows nothing"
+        assert np.abs(shown - before).mean() > 3, f"the {name} view looks like the one before it"
+        before = shown
+    # The keys: 1 is the three-quarter view the page opened with, 6 the top.
+    v.page.locator("#view").focus()
+    for key, side in [("6", STANDARD["top"][0]), ("1", [1, 0.7, 1.3] / np.linalg.norm([1, 0.7, 1.3]))]:
+        v.page.keyboard.press(key)
+        n = v.wait_final(n, v.js("window.vastray.seq"))
+        np.testing.assert_allclose(direction(v.shown()["camera"]), side, atol=1e-9, err_msg=key)
+    assert not v.errors_received()
