@@ -62,9 +62,12 @@ class AsyncView:
         self.review = review  # the design review this view joined, or None
         self.name = name
         self.role: str | None = None  # in a review: "presenter" or "follower"
+        self.participant_id: str | None = None  # in a review: this view's id in `participants`
         self._follows = False  # in a review: shows the shared view (as the server says)
         self.participants: list[dict[str, Any]] = []
         self.annotations: list[dict[str, Any]] = []
+        self.saved_views: list[dict[str, Any]] = []  # in a review: its saved views, newest last
+        self.pointers: dict[str, dict[str, Any]] = {}  # in a review: participant id -> pointer
         self.session: str | None = None
         self.welcome: dict[str, Any] = {}
         self.model_info: dict[str, Any] = {}
@@ -145,6 +148,7 @@ class AsyncView:
         self.quality = StreamQuality(**message["quality"])
         if message.get("review"):
             self.role = message["review"]["role"]
+            self.participant_id = message["review"]["participant"]
             self._follows = bool(message["review"]["following"])
         self.connects += 1
         self._connected.set()
@@ -197,8 +201,12 @@ class AsyncView:
                 frame = self._pending.pop(event["frame"], None)
                 if frame is not None:
                     frame.stats = event
-                    if self.following:  # the presenter moved: this view is where they are
-                        self.camera = CameraState(**event["camera"])
+                    camera = CameraState(**event["camera"])
+                    # Where the server moved this view (the presenter moved the shared view
+                    # it follows, or a jump to a saved view), this view is there now.
+                    if self.following or camera.seq > self._seq:
+                        self.camera = camera
+                        self._seq = max(self._seq, camera.seq)
                     self._frames.put_nowait(frame)
             elif kind == "pick_result":
                 future = self._picks.pop(event["id"], None)
@@ -216,6 +224,13 @@ class AsyncView:
                 self.participants = event["participants"]
             elif kind == "annotations":
                 self.annotations = event["annotations"]
+            elif kind == "views":
+                self.saved_views = event["views"]
+            elif kind == "pointer":
+                if event.get("position") is None:
+                    self.pointers.pop(event["from"], None)
+                else:
+                    self.pointers[event["from"]] = event
             elif kind == "closing":
                 self._note(event)
             elif kind not in ("heartbeat", "pong"):
@@ -286,6 +301,28 @@ class AsyncView:
     async def annotate(self, text: str, position: Sequence[float]) -> None:
         """In a review: a note at a world position (a pick's), for everyone."""
         await self._send({"type": "annotate", "text": text, "position": list(position)})
+
+    async def point(self, position: Sequence[float] | None) -> None:
+        """In a review: a 3D point everyone sees with this participant's name (None:
+        taken away)."""
+        await self._send({"type": "pointer", "position": None if position is None else list(position)})
+
+    async def save_view(self, name: str) -> None:
+        """In a review: keeps this view (camera, quality, sections, highlight) under a name;
+        `saved_views` lists them as the server says."""
+        await self._send({"type": "save_view", "name": name})
+
+    async def jump(self, view_id: str) -> None:
+        """In a review: go to a saved view (the presenter moves everyone's shared view;
+        anyone else goes free and moves there)."""
+        await self._send({"type": "jump", "view": view_id})
+        if self.role == "follower":
+            self._follows = False
+
+    async def handover(self, participant_id: str) -> None:
+        """In a review, the presenter only: hands the presenter role to a participant
+        (an id of `participants`)."""
+        await self._send({"type": "handover", "to": participant_id})
 
     async def set_viewport(self, width: int, height: int) -> None:
         self.viewport = Viewport(width=width, height=height)

@@ -84,6 +84,18 @@ class View:
     def annotations(self) -> list[dict[str, Any]]:
         return self._async.annotations
 
+    @property
+    def participant_id(self) -> str | None:
+        return self._async.participant_id
+
+    @property
+    def saved_views(self) -> list[dict[str, Any]]:
+        return self._async.saved_views
+
+    @property
+    def pointers(self) -> dict[str, dict[str, Any]]:
+        return self._async.pointers
+
     set_camera = _blocking(AsyncView.set_camera)
     set_viewport = _blocking(AsyncView.set_viewport)
     set_quality = _blocking(AsyncView.set_quality)
@@ -95,6 +107,10 @@ class View:
     pick = _blocking(AsyncView.pick)
     follow = _blocking(AsyncView.follow)
     annotate = _blocking(AsyncView.annotate)
+    point = _blocking(AsyncView.point)
+    save_view = _blocking(AsyncView.save_view)
+    jump = _blocking(AsyncView.jump)
+    handover = _blocking(AsyncView.handover)
     close = _blocking(AsyncView.close)
 
     def frames(self, timeout: float | None = 30.0) -> Iterator[Frame]:

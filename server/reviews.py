@@ -263,6 +263,11 @@ class ReviewSession:
                     self.shared.apply(target.conn.view.state())
                 target.following = True
                 target.conn.follow(self.shared)
+            # ... and in the shape of its own window, as the presenter's frames always are
+            # (everyone else letterboxes them).
+            if self.shared is not None and target.conn.viewport is not None:
+                if target.conn.viewport != self.shared.viewport:
+                    self.shared.set_viewport(target.conn.viewport)
             log.info("review %s: %s handed the presenter role to %s", self.id, participant.name, target.name)
             participant.conn.event({"type": "role", "role": "follower", "presenter": target.id})
             target.conn.event({"type": "role", "role": "presenter", "presenter": target.id})

@@ -9,6 +9,7 @@ import asyncio
 import socket
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -186,6 +187,36 @@ def test_scripts_present_and_follow_a_review(url: str) -> None:
             time.sleep(0.05)
         assert follower.annotations[0]["text"] == "check this flange"
         assert admin_review_view(url, started["review"]["id"])["camera"]["eye"] == pytest.approx(eye)
+
+        # A pointer and a saved view reach the other; the free follower jumps to the view.
+        lead.point(target)
+        lead.save_view("flange")
+        wait_until(lambda: follower.saved_views and lead.participant_id in follower.pointers)
+        assert follower.saved_views[-1]["name"] == "flange"
+        assert follower.pointers[lead.participant_id]["position"] == pytest.approx(target)
+        follower.jump(follower.saved_views[-1]["id"])
+        jumped = follower.final(follower.camera.seq + 1)
+        assert follower.camera.eye == pytest.approx(eye) and jumped.header.camera_seq == follower.camera.seq
+        assert jumped.image.shape == (90, 120, 3) and not follower.following
+
+        # The presenter hands over: the follower drives the shared view, pat follows it.
+        lead.handover(follower.participant_id)
+        wait_until(lambda: follower.role == "presenter" and lead.following)
+        follower.next_frame()  # the shared view, now its own to drive
+        eye2, _ = orbit_eye(tuple(lead.model_info["bounds"]), 2.6)
+        seq2 = follower.set_camera(eye2, target)
+        followed = lead.final(seq2)
+        # The shared view has the new presenter's window now (the others letterbox it).
+        assert lead.camera.eye == pytest.approx(eye2) and followed.image.shape == (90, 120, 3)
+        with pytest.raises(VastrayError):
+            lead.set_camera(eye, target)
+
+
+def wait_until(condition: Any, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "not within the time allowed"
+        time.sleep(0.05)
 
 
 def admin_review_view(url: str, review_id: str) -> dict:
