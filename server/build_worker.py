@@ -99,6 +99,7 @@ def run(conn: Connection, source: str, output: str, options: dict[str, Any]) -> 
             traversal_cost=float(options.get("traversal_cost", BuildOptions.traversal_cost)),
             lz4_hc_level=int(options.get("lz4_hc_level", 0)),
             voxel_errors=bool(options.get("voxel_errors", False)),
+            up=tuple(options["up"]) if options.get("up") else None,
         )
         report = build_model(source, output, build_options, progress=progress, cancel=cancel)
     except BuildCancelledError:

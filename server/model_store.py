@@ -52,6 +52,7 @@ def describe_file(path: Path) -> dict[str, Any]:
         "part_ids": bool(flags & FLAG_PART_IDS),
         "part_count": part_count,
         "format_version": stats["version"],
+        "up_in_file": stats["up"],  # as its builder was told (None: not said)
         "levels": [
             {k: lv.get(k) for k in ("level", "blocks", "raw_bytes", "stored_bytes", "nodes", "voxels")}
             for lv in stats["levels"]
@@ -160,6 +161,8 @@ class ModelStore:
             info = describe_file(source)
         except ModelError as exc:
             raise ApiError(422, "invalid_model", str(exc)) from None
+        if up is None and info["up_in_file"]:
+            up = (info["up_in_file"][0], info["up_in_file"][1], info["up_in_file"][2])
         model_id = new_id("mdl")
         target = source
         if move:

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from vastray import model_assembly, modelfile, native
+from vastray.camera import unit_up
 from vastray.mesh import MeshError, PartName
 from vastray.sources import SOURCE_HELP, is_model_file, parse_scene
 from vastray.triangle_readers import TriangleChunk, VertexTable
@@ -161,6 +162,10 @@ class BuildOptions:
     # choices"); False keeps version 7's test, for comparisons.
     voxel_errors: bool = True
     voxel_error_floor: float = 0.5
+    # Which way is up in the model: written into the header as a unit vector (bytes
+    # 236-247, docs/FORMAT.md §2), so `vastray render` and a server that registers the
+    # file frame it upright. None says nothing (readers take +y).
+    up: tuple[float, float, float] | None = None
 
     def check(self) -> None:
         """Raises ValueError naming the first option that cannot work."""
@@ -195,6 +200,8 @@ class BuildOptions:
             raise ValueError(f"empty_space_ratio must be in [0, 1), got {self.empty_space_ratio!r}")
         if not (0.0 <= number("voxel_error_floor", numbers.Real) <= 1.0):
             raise ValueError(f"voxel_error_floor must be in [0, 1], got {self.voxel_error_floor!r}")
+        if self.up is not None:
+            unit_up(self.up)  # (its own clear error)
 
     def incore_limit(self) -> int:
         return max(MIN_INCORE_TRIANGLES, self.memory // INCORE_BYTES_PER_TRIANGLE)
@@ -964,6 +971,7 @@ class _Builder:
             "voxels_six": stats["voxels_six"],
             "voxels_packed": stats["voxels_packed"],
             "references": stats["references"],
+            "up": unit_up(self.opt.up) if self.opt.up is not None else (0.0, 0.0, 0.0),
         }
         size, in_place = model_assembly.write_model(
             partial,

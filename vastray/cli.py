@@ -13,8 +13,14 @@ from vastray.layouts import LAYOUTS
 from vastray.renderer import SHADING_MODES
 
 
-def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequence[float]) -> Any:
-    from vastray.camera import parse_size, parse_vec3, resolve_camera
+def _camera_from_args(
+    args: argparse.Namespace,
+    lo: Sequence[float],
+    hi: Sequence[float],
+    model_up: Sequence[float] | None = None,
+) -> Any:
+    """The camera the arguments describe; without --up, the model's up (else +y)."""
+    from vastray.camera import Y_UP, parse_size, parse_vec3, resolve_camera
 
     width, height = parse_size(args.size)
     return resolve_camera(
@@ -22,7 +28,7 @@ def _camera_from_args(args: argparse.Namespace, lo: Sequence[float], hi: Sequenc
         hi,
         eye=parse_vec3(args.eye) if args.eye else None,
         target=parse_vec3(args.target) if args.target else None,
-        up=parse_vec3(args.up),
+        up=parse_vec3(args.up) if args.up else model_up or Y_UP,
         fov=args.fov,
         width=width,
         height=height,
@@ -117,7 +123,9 @@ def _cmd_render(args: argparse.Namespace) -> int:
             )
             _build_walked_structures(renderer.scene, args.shading)
         lo, hi = renderer.bounds
-        camera = _camera_from_args(args, lo, hi)
+        camera = _camera_from_args(
+            args, lo, hi, renderer.up if isinstance(renderer, OutOfCoreModel) else None
+        )
         frame = renderer.render_complete(camera, params)
         Image.fromarray(frame.image).save(args.output)
         s = frame.stats
@@ -200,6 +208,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         BuildOptions,
         build_model,
     )
+    from vastray.camera import parse_vec3
     from vastray.layouts import LAYOUT_FLAGS, layout_options
     from vastray.units import parse_bytes
 
@@ -213,6 +222,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         threads=args.threads,
         overwrite=args.force,
         scratch_dir=args.scratch_dir,
+        up=parse_vec3(args.up) if args.up else None,
         **layout,
     )
     options.check()  # a bad option is a clear error before any work
@@ -312,6 +322,7 @@ def _cmd_inspect(args: argparse.Namespace) -> int:
         f"{stats['degenerate']:,} degenerate dropped), colours: {'yes' if stats['colours'] else 'no'}"
     )
     print(f"bounds     {_fmt(lo)} .. {_fmt(hi)}")
+    print(f"up         {_fmt(stats['up']) if stats.get('up') else 'not said (taken as 0,1,0)'}")
     print(f"parts      {stats['part_count']:,}" + ("" if stats["part_count"] else " (the input named none)"))
     print(
         f"nodes      {stats['nodes']:,} ({stats['basic_nodes']:,} basic, {stats['lod_nodes']:,} LOD, "
@@ -424,8 +435,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--target", help="point looked at x,y,z (default: the model's centre)")
     r.add_argument(
         "--up",
-        default="0,1,0",
-        help="up vector x,y,z (default 0,1,0; 0,0,1 for a z-up mesh: the framed view turns with it)",
+        help="up vector x,y,z (default: the model's, as 'vastray build --up' wrote it, else 0,1,0; "
+        "the framed view turns with it)",
     )
     r.add_argument("--fov", type=float, default=45.0, help="vertical field of view in degrees")
     r.add_argument("--size", default="960x540", help="image size WIDTHxHEIGHT")
@@ -454,6 +465,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=int, default=0, help="build threads (0: all cores)")
     b.add_argument("--force", action="store_true", help="replace the output if it exists")
     b.add_argument("--scratch-dir", help="where temporary files go (default: next to the output)")
+    b.add_argument(
+        "--up",
+        help="which way is up in the mesh, x,y,z (e.g. 0,0,1 for a z-up scan or CAD export): kept in "
+        "the model, so renders and the server frame it upright (default: not said, taken as +y)",
+    )
     b.add_argument(
         "--layout",
         choices=list(LAYOUTS),

@@ -232,7 +232,7 @@ def _block_ranges(
 # The header fields a model's own header gives a copy of it (pack_head fills the rest).
 _KEPT_FIELDS = (
     "flags", "centre", "cell_lo", "cell_hi", "triangle_count", "input_triangles", "degenerate",
-    "basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six", "voxels_packed", "references",
+    "basic_nodes", "lod_nodes", "leaves", "voxels_one", "voxels_six", "voxels_packed", "references", "up",
 )  # fmt: skip
 
 

@@ -11,6 +11,7 @@ native core; their bit layouts are in native/include/vastray/format.h.
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 import zlib
@@ -127,6 +128,9 @@ _HEADER_FIELDS: tuple[tuple[str, str], ...] = (
     ("tier_count", "I"),
     # version 6: the six-sample voxels stored packed, in four words (padding before)
     ("voxels_packed", "Q"),
+    # since December 2026, without a new version: which way is up in the model, a unit
+    # vector; zero (what every earlier writer left in this padding): not said
+    ("up", "3f"),
 )
 _HEADER_STRUCT = struct.Struct("<" + "".join(code for _, code in _HEADER_FIELDS))
 
@@ -279,6 +283,7 @@ def pack_head(
     for offset, (stored, raw, crc, codec) in zip(offsets, entries, strict=True):
         index += _ENTRY.pack(offset, stored, raw, crc, codec)
     header = dict(fields)
+    header.setdefault("up", (0.0, 0.0, 0.0))  # (not said)
     if section:
         header["flags"] = header["flags"] | FLAG_PART_IDS
     else:
@@ -426,6 +431,9 @@ class ModelFile:
             h.update(voxels_packed=0)
         if h["voxels_packed"] > h["voxels_six"]:
             raise self._fail(f"implausible packed voxel count {h['voxels_packed']}")
+        up = h["up"]  # a unit vector, or zero (not said)
+        if not all(math.isfinite(c) for c in up) or (any(up) and not 0.99 < math.hypot(*up) < 1.01):
+            raise self._fail(f"implausible up vector {up}")
         tiered = bool(h["flags"] & FLAG_TIERED)
         if not tiered and h["tier_count"]:
             raise self._fail("tier count set without the tiered flag")
@@ -577,6 +585,13 @@ class ModelFile:
     def tiered(self) -> bool:
         """Levels split into streams by coarseness tier (version 5)."""
         return bool(self.header["flags"] & FLAG_TIERED)
+
+    @property
+    def up(self) -> tuple[float, float, float] | None:
+        """Which way is up in the model, as its builder was told (header bytes 236-247), or
+        None where it was not told (zero, as every file before December 2026 has)."""
+        up = self.header["up"]
+        return (float(up[0]), float(up[1]), float(up[2])) if any(up) else None
 
     def stream(self, level: int, tier: int) -> Stream:
         """The stream of `level` (0 ... node_levels, the last the triangle level) and tier."""
@@ -786,6 +801,7 @@ class ModelFile:
             "voxels_six": h["voxels_six"],
             "voxels_packed": h["voxels_packed"],
             "references": h["references"],
+            "up": list(self.up) if self.up else None,
             "blocks": len(self.blocks),
             "raw_bytes": h["raw_bytes"],
             "stored_bytes": stored,

@@ -142,6 +142,12 @@ class OutOfCoreModel:
         return os.path.basename(self.path)
 
     @property
+    def up(self) -> tuple[float, float, float] | None:
+        """Which way is up in the model, as its builder was told (ModelFile.up), or None."""
+        with ModelFile(self.path) as f:
+            return f.up
+
+    @property
     def bounds(self) -> tuple[list[float], list[float]]:
         return self._model.bounds
 

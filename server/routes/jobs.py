@@ -107,7 +107,9 @@ def submit_build(
 ) -> JobInfo:
     """Queues a build of `source` (or an upload) into a new model, listed as building."""
     reads, default_name = resolve_source(state, source if upload is None else None, upload)
-    opts = build_options(state, options)
+    opts: dict[str, object] = dict(build_options(state, options))
+    if up is not None:  # the file carries it too (the model's row is what the server goes by)
+        opts["up"] = list(up)
     job_id = f"job-{secrets.token_hex(6)}"
     label = name or default_name
     model = state.store.reserve(label, source if upload is None else f"upload:{upload}", job_id, up)

@@ -21,6 +21,7 @@ from serverproc import ServerProcess, wait_for_job
 
 from vastray import scenes
 from vastray.build import BuildOptions, build_model
+from vastray.modelfile import ModelFile
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -145,6 +146,13 @@ def test_up_given_when_a_model_is_registered_uploaded_or_built(
     build_model("scene:spheres:3000:2", server.data_dir / "in-place.vast", BuildOptions(memory=64 << 20))
     r = api.post("/api/models", json={"path": "in-place.vast", "up": [0, 0, 5]})
     assert r.status_code == 201 and r.json()["model"]["up"] == [0.0, 0.0, 1.0], r.text
+    # A file that says which way is up (vastray build --up) is registered with it, unless
+    # the request says otherwise.
+    said = BuildOptions(memory=64 << 20, up=(1.0, 0.0, 0.0))
+    build_model("scene:spheres:3000:2", server.data_dir / "x-up.vast", said)
+    for body, up in [({}, [1.0, 0.0, 0.0]), ({"up": [0, -1, 0]}, [0.0, -1.0, 0.0])]:
+        r = api.post("/api/models", json={"path": "x-up.vast", **body})
+        assert r.status_code == 201 and r.json()["model"]["up"] == up, r.text
 
     mesh = tmp_path / "part.ply"
     scenes.write_scene("spheres", 2000, 3, mesh)
@@ -175,6 +183,8 @@ def test_up_given_when_a_model_is_registered_uploaded_or_built(
         assert wait_for_job(api, job_id)["state"] == "succeeded"
         info = api.get(f"/api/models/{model_id}").json()
         assert info["state"] == "ready" and info["up"] == up, info
+        with ModelFile(server.data_dir / info["file"]) as built:  # the file carries it too
+            assert built.up == tuple(up)
     r = api.post("/api/jobs", json={"source": "scene:spheres:3000:4", "up": [0, 0, 0]})
     assert r.status_code == 422 and "up: up vector has zero length" in r.json()["error"]["message"]
 
