@@ -98,7 +98,12 @@ async def upload(
     ),
 ) -> UploadInfo:
     state = state_of(request)
-    up_vector = parse_up(up) if up is not None else None  # refused before the upload is read
+    # Refused before the upload is read.
+    if up is not None and not register_it:
+        raise ApiError(
+            422, "invalid_request", "up goes with register=true (or with POST /api/models {upload, up})"
+        )
+    up_vector = parse_up(up) if up is not None else None
     length = request.headers.get("content-length")
     declared = int(length) if length and length.isdigit() else None
     upload_id, path = await state.uploads.receive(filename, request.stream(), declared)

@@ -157,12 +157,13 @@ def test_up_given_when_a_model_is_registered_uploaded_or_built(
     mesh = tmp_path / "part.ply"
     scenes.write_scene("spheres", 2000, 3, mesh)
     models_before = {m["id"] for m in api.get("/api/models").json()}
-    for up, says in [("0,0,0", "up: up vector has zero length"), ("z", "up: expected three")]:
-        r = api.post(
-            "/api/uploads",
-            params={"filename": "part.ply", "register": "true", "up": up},
-            content=mesh.read_bytes(),
-        )
+    for up, register, says in [
+        ("0,0,0", "true", "up: up vector has zero length"),
+        ("z", "true", "up: expected three"),
+        ("0,0,1", "false", "up goes with register=true"),
+    ]:
+        params = {"filename": "part.ply", "register": register, "up": up}
+        r = api.post("/api/uploads", params=params, content=mesh.read_bytes())
         assert r.status_code == 422 and says in r.json()["error"]["message"], r.text
     assert {m["id"] for m in api.get("/api/models").json()} == models_before
     assert not any((server.data_dir / "uploads").glob("*")), "a refused upload left a file"
