@@ -12,7 +12,8 @@ vertices: grid origin plus bit-packed offsets, FORMAT.md §11; compact triangle 
 leaf records, group headers and bit-packed group data, §11a) and LOD nodes with
 their radius and voxel samples. `walk(model)` yields one `Node` per node in depth-first
 order (left before right). `read_parts(path)` reads the parts section (FORMAT.md §4a)
-from the file's bytes alone, checking that it follows the last block to the file's end.
+from the file's bytes alone, checking that it follows the last block to the file's end;
+`read_up(path)` the header's up (§2).
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ SPLIT_STEPS = 1 << 20
 QUANTIZED_VERTICES = 1 << 4  # header flag (version 4): vertices on the root cell's grid, packed per block
 TIERED = 1 << 6  # header flag (version 5): each level in streams by coarseness tier
 TIER_COUNT_AT = 224  # the header's u32 tier count (tiers per level)
+UP_AT = 236  # the header's f32[3] up: a unit vector, or zero (not said; padding before)
 TIER_SHIFT = 26  # a block reference: tier in bits 26-31, stream-relative id below
 COMPACT_TRIANGLES = 1 << 5  # header flag (version 5): compact triangle blocks
 PACKED_TREELETS = 1 << 7  # header flag (version 7): LOD words in 4-byte units, treelets unpadded
@@ -187,6 +189,19 @@ def read_streams(path: str | os.PathLike[str]) -> tuple[int, list[list[tuple[int
         table = f.read(24 * level_count * tiers)
     records = [struct.unpack_from("<II", table, 24 * i) for i in range(level_count * tiers)]
     return tiers, [records[level * tiers : (level + 1) * tiers] for level in range(level_count)]
+
+
+def read_up(path: str | os.PathLike[str]) -> tuple[float, float, float] | None:
+    """Which way is up in the model, from the header's bytes alone (None: not said)."""
+    with open(path, "rb") as f:
+        head = f.read(256)
+    up = struct.unpack_from("<3f", head, UP_AT)
+    if up == (0.0, 0.0, 0.0):
+        return None
+    length = float(np.sqrt(sum(float(c) * float(c) for c in up)))
+    if not (np.all(np.isfinite(up)) and abs(length - 1.0) < 0.01):
+        raise WalkError(f"the header's up {up} is neither zero nor a unit vector")
+    return (float(up[0]), float(up[1]), float(up[2]))
 
 
 def bits(raw: bytes, pos: int, width: int) -> int:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from modelwalk import WalkError, read_up
 from PIL import Image
 from test_build import SMALL_MEMORY, header_offset, run_cli
 
@@ -52,6 +53,7 @@ def test_build_writes_up_and_render_frames_by_it(meshes: tuple[Path, Path], tmp_
     assert out.returncode == 0, out.stderr
     with ModelFile(tmp_path / "z.vast") as z, ModelFile(tmp_path / "y.vast") as y:
         assert z.up == (0.0, 0.0, 1.0) and y.up is None
+    assert read_up(tmp_path / "z.vast") == (0.0, 0.0, 1.0) and read_up(tmp_path / "y.vast") is None
     # Not said: the bytes stay the zero padding every earlier writer left there.
     at = header_offset("up")
     assert (tmp_path / "y.vast").read_bytes()[at:HEADER_SIZE] == bytes(HEADER_SIZE - at)
@@ -92,3 +94,5 @@ def test_bad_ups_are_refused(meshes: tuple[Path, Path], tmp_path: Path) -> None:
         damaged.write_bytes(bytes(data))
         with pytest.raises(ModelError, match="implausible up vector"):
             ModelFile(damaged)
+        with pytest.raises(WalkError, match="neither zero nor a unit vector"):
+            read_up(damaged)
