@@ -64,6 +64,7 @@ def camera_for(spec: CameraSpec, renderer: Renderer, max_pixels: int, model_up: 
             eye=spec.eye,
             target=spec.target,
             up=spec.up or model_up or Y_UP,
+            view=spec.view,
             fov=spec.fov,
             width=spec.width,
             height=spec.height,

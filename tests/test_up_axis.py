@@ -96,3 +96,34 @@ def test_bad_ups_are_refused(meshes: tuple[Path, Path], tmp_path: Path) -> None:
             ModelFile(damaged)
         with pytest.raises(WalkError, match="neither zero nor a unit vector"):
             read_up(damaged)
+
+
+def printed_camera(stdout: str) -> tuple[np.ndarray, np.ndarray]:
+    """(unit vector from the target to the eye, up) of the camera `render` printed."""
+    line = next(x for x in stdout.splitlines() if x.startswith("camera "))
+    words = line.split()
+    vec = {w: np.array(words[i + 1].split(","), float) for i, w in enumerate(words) if w[:2] == "--"}
+    d = vec["--eye"] - vec["--target"]
+    return d / np.linalg.norm(d), vec["--up"]
+
+
+def test_render_takes_a_standard_view(meshes: tuple[Path, Path], tmp_path: Path) -> None:
+    """`render --view` frames the whole model from a side, upright about the model's up:
+    the z-up model's front is -y, its top +z with +y up the screen (the page's views)."""
+    build_model(str(meshes[1]), tmp_path / "z.vast", BuildOptions(memory=SMALL_MEMORY, up=(0.0, 0.0, 1.0)))
+    for view, side, up in [
+        ("front", [0, -1, 0], [0, 0, 1]),
+        ("right", [1, 0, 0], [0, 0, 1]),
+        ("top", [0, 0, 1], [0, 1, 0]),
+        ("bottom", [0, 0, -1], [0, -1, 0]),
+    ]:
+        args = ("--view", view, "-o", f"{view}.png", "--size", "96x64")
+        out = run_cli("render", "z.vast", *args, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+        direction, screen_up = printed_camera(out.stdout)
+        np.testing.assert_allclose(direction, side, atol=1e-6, err_msg=view)
+        np.testing.assert_allclose(screen_up, up, atol=1e-6, err_msg=view)
+        assert image(tmp_path / f"{view}.png").std() > 5, f"the {view} view is blank"
+    out = run_cli("render", "z.vast", "--view", "front", "--eye", "1,2,3", "-o", "x.png", cwd=tmp_path)
+    assert out.returncode == 2 and "standard view frames the whole model" in out.stderr
+    assert not (tmp_path / "x.png").exists()

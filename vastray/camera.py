@@ -29,21 +29,41 @@ def unit_up(up: Sequence[float]) -> Vec3:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def view_direction(up: Sequence[float] = Y_UP) -> Vec3:
-    """The default three-quarter view direction for a model whose up is `up`: the
-    y-up direction turned by the shortest rotation that takes +y to `up`, so a z-up
-    model is seen from its front (-y) and above, as a y-up one is from +z and above."""
+# The standard views of CAD viewers, for a y-up model: where the eye lies from the
+# model, and the screen's up (front: +z, right: +x; the top view has the front at the
+# bottom of the screen, the bottom view at the top). They turn with the model's up; the
+# page has the same table (client/web/js/camera.js STANDARD_VIEWS).
+STANDARD_VIEWS: dict[str, tuple[Vec3, Vec3]] = {
+    "iso": (DEFAULT_VIEW_DIRECTION, Y_UP),
+    "front": ((0.0, 0.0, 1.0), Y_UP),
+    "back": ((0.0, 0.0, -1.0), Y_UP),
+    "left": ((-1.0, 0.0, 0.0), Y_UP),
+    "right": ((1.0, 0.0, 0.0), Y_UP),
+    "top": (Y_UP, (0.0, 0.0, -1.0)),
+    "bottom": ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+}
+
+
+def turn_from_y(d: Sequence[float], up: Sequence[float]) -> Vec3:
+    """`d`, a direction of a y-up model, for a model whose up is `up`: turned by the
+    shortest rotation that takes +y to `up`."""
     u = np.asarray(unit_up(up))
-    d = np.asarray(DEFAULT_VIEW_DIRECTION, dtype=np.float64)
+    d_a = np.asarray(d, dtype=np.float64)
     y = np.array([0.0, 1.0, 0.0])
     c = float(y @ u)
     if c < -1.0 + 1e-12:  # upside down: half a turn about x
-        r = np.array([d[0], -d[1], -d[2]])
+        r = np.array([d_a[0], -d_a[1], -d_a[2]])
     else:
         # Rodrigues' formula for the rotation about y x u by the angle between them.
         k = np.cross(y, u)
-        r = d * c + np.cross(k, d) + k * (k @ d) / (1.0 + c)
+        r = d_a * c + np.cross(k, d_a) + k * (k @ d_a) / (1.0 + c)
     return (float(r[0]), float(r[1]), float(r[2]))
+
+
+def view_direction(up: Sequence[float] = Y_UP) -> Vec3:
+    """The default three-quarter view direction for a model whose up is `up`, so a z-up
+    model is seen from its front (-y) and above, as a y-up one is from +z and above."""
+    return turn_from_y(DEFAULT_VIEW_DIRECTION, up)
 
 
 @dataclass(frozen=True)
@@ -119,13 +139,19 @@ def frame_bounds(
     height: int = 540,
     direction: Sequence[float] | None = None,
     up: Vec3 = Y_UP,
+    view: str = "iso",
 ) -> Camera:
     """A camera that shows the whole bounding box, seen from `direction` (pointing from
-    the model towards the eye; by default the three-quarter view for this `up`): the eye
-    backs off along that direction until all eight corners of the box project inside
-    the frame, with a small margin."""
+    the model towards the eye; by default the standard `view` of a model whose up is
+    `up`, the three-quarter one unless told otherwise): the eye backs off along that
+    direction until all eight corners of the box project inside the frame, with a small
+    margin."""
+    if view not in STANDARD_VIEWS:
+        raise ValueError(f"no standard view {view!r} (one of {', '.join(STANDARD_VIEWS)})")
     if direction is None:
-        direction = view_direction(up)
+        direction = turn_from_y(STANDARD_VIEWS[view][0], up)
+        if view != "iso":  # (the three-quarter view keeps the up as given)
+            up = turn_from_y(STANDARD_VIEWS[view][1], up)
     if not 0.0 < fov < 180.0:
         raise ValueError("fov must be between 0 and 180 degrees (exclusive)")
     lo_a, hi_a = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
@@ -173,11 +199,17 @@ def resolve_camera(
     fov: float = 45.0,
     width: int = 960,
     height: int = 540,
+    view: str | None = None,
 ) -> Camera:
     """The camera of a partial description, as the CLI and the server read one: without
-    an eye it frames the model's box (lo, hi); a missing target is the box's centre seen
-    from the framed direction, a missing eye the framed eye."""
+    an eye it frames the model's box (lo, hi), from the standard `view` if one is named;
+    a missing target is the box's centre seen from the framed direction, a missing eye
+    the framed eye."""
     up3 = (float(up[0]), float(up[1]), float(up[2]))
+    if view is not None:
+        if eye is not None or target is not None:
+            raise ValueError("a standard view frames the whole model: give it without an eye or a target")
+        return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3, view=view)
     if eye is None and target is None:
         return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
     framed = frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from vastray import __version__
+from vastray.camera import STANDARD_VIEWS
 from vastray.layouts import LAYOUTS
 from vastray.renderer import SHADING_MODES
 
@@ -29,6 +30,7 @@ def _camera_from_args(
         eye=parse_vec3(args.eye) if args.eye else None,
         target=parse_vec3(args.target) if args.target else None,
         up=parse_vec3(args.up) if args.up else model_up or Y_UP,
+        view=args.view,
         fov=args.fov,
         width=width,
         height=height,
@@ -437,6 +439,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--up",
         help="up vector x,y,z (default: the model's, as 'vastray build --up' wrote it, else 0,1,0; "
         "the framed view turns with it)",
+    )
+    r.add_argument(
+        "--view",
+        choices=list(STANDARD_VIEWS),
+        help="a standard view of the whole model, upright about its up (without --eye and --target)",
     )
     r.add_argument("--fov", type=float, default=45.0, help="vertical field of view in degrees")
     r.add_argument("--size", default="960x540", help="image size WIDTHxHEIGHT")

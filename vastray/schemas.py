@@ -69,6 +69,9 @@ class CameraSpec(Strict):
     eye: Vec3 | None = None
     target: Vec3 | None = None
     up: Vec3 | None = None
+    view: Literal["iso", "front", "back", "left", "right", "top", "bottom"] | None = Field(
+        None, description="a standard view of the whole model, upright about its up (without eye and target)"
+    )
     fov: float = Field(45.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
     width: int = Field(960, ge=1, le=MAX_IMAGE_SIDE)
     height: int = Field(540, ge=1, le=MAX_IMAGE_SIDE)
@@ -81,6 +84,8 @@ class CameraSpec(Strict):
                 raise ValueError("eye and target coincide: the view direction has zero length")
         if self.up is not None and not any(self.up):
             raise ValueError("up vector has zero length")
+        if self.view is not None and (self.eye is not None or self.target is not None):
+            raise ValueError("a standard view frames the whole model: give it without eye and target")
         return self
 
     @property

@@ -106,6 +106,13 @@ def test_a_z_up_model_opens_upright_once_it_says_so(
 
     # A request's own up still wins over the model's.
     assert differing(overview(api, z_id, up=[0.0, 1.0, 0.0]), original) > 0.2
+    # The standard views turn with it too: the z-up copy's front and top are the original's.
+    for view in ("front", "top"):
+        side = overview(api, y_id, view=view)
+        assert differing(side, original) > 0.2, f"the {view} view is the three-quarter one"
+        assert differing(overview(api, z_id, view=view), side) < 0.01, view
+    r = api.post(f"/api/models/{z_id}/render", json={"camera": {"view": "front", "eye": [1, 2, 3]}})
+    assert r.status_code == 422 and "standard view" in r.json()["error"]["message"], r.text
 
 
 def test_bad_patches_are_refused_and_change_nothing(
