@@ -43,6 +43,11 @@ def _blocking(method: Callable[..., Coroutine[Any, Any, T]]) -> Callable[..., T]
     return run
 
 
+def _attribute(name: str) -> Any:
+    """A read-only property that reads the asynchronous view's attribute of that name."""
+    return property(lambda self: getattr(self._async, name))
+
+
 class View:
     """A live view, blocking (see AsyncView for what each method does)."""
 
@@ -56,45 +61,17 @@ class View:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @property
-    def camera(self) -> Any:
-        return self._async.camera
-
-    @property
-    def model_info(self) -> dict[str, Any]:
-        return self._async.model_info
-
-    @property
-    def events(self) -> list[dict[str, Any]]:
-        return self._async.events
-
-    @property
-    def role(self) -> str | None:
-        return self._async.role
-
-    @property
-    def following(self) -> bool:
-        return self._async.following
-
-    @property
-    def participants(self) -> list[dict[str, Any]]:
-        return self._async.participants
-
-    @property
-    def annotations(self) -> list[dict[str, Any]]:
-        return self._async.annotations
-
-    @property
-    def participant_id(self) -> str | None:
-        return self._async.participant_id
-
-    @property
-    def saved_views(self) -> list[dict[str, Any]]:
-        return self._async.saved_views
-
-    @property
-    def pointers(self) -> dict[str, dict[str, Any]]:
-        return self._async.pointers
+    # What the live view knows, read as it is now (AsyncView documents each).
+    camera = _attribute("camera")
+    model_info = _attribute("model_info")
+    events = _attribute("events")
+    role = _attribute("role")
+    following = _attribute("following")
+    participant_id = _attribute("participant_id")
+    participants = _attribute("participants")
+    annotations = _attribute("annotations")
+    saved_views = _attribute("saved_views")
+    pointers = _attribute("pointers")
 
     set_camera = _blocking(AsyncView.set_camera)
     set_viewport = _blocking(AsyncView.set_viewport)

@@ -14,6 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from vastray import native
+from vastray.camera import STANDARD_VIEWS, unit_up
 from vastray.renderer import RENDER_PARAM_FIELDS, render_params
 
 _DEFAULTS = native.RenderParams()
@@ -30,12 +31,9 @@ Vec3 = Annotated[tuple[float, float, float], AfterValidator(_finite)]
 
 
 def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
-    big = max(abs(x) for x in v)  # scaled first: the squares of huge components overflow
-    if big == 0.0:
+    if not any(v):  # (finite already: Vec3)
         raise ValueError("up vector has zero length")
-    s = tuple(x / big for x in v)
-    n = math.sqrt(sum(x * x for x in s))
-    return (s[0] / n, s[1] / n, s[2] / n)
+    return unit_up(v)
 
 
 UnitVec3 = Annotated[Vec3, AfterValidator(_unit)]
@@ -43,6 +41,8 @@ UP_DESCRIPTION = "which way is up in the model (default +y; CAD exports and scan
 
 ShadingName = Literal["normal", "headlight", "sun", "ao", "indirect"]
 assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of modes
+StandardViewName = Literal["iso", "front", "back", "left", "right", "top", "bottom"]
+assert list(StandardViewName.__args__) == list(STANDARD_VIEWS)  # one list of views
 
 
 def describe_errors(errors: list[Any]) -> str:
@@ -69,7 +69,7 @@ class CameraSpec(Strict):
     eye: Vec3 | None = None
     target: Vec3 | None = None
     up: Vec3 | None = None
-    view: Literal["iso", "front", "back", "left", "right", "top", "bottom"] | None = Field(
+    view: StandardViewName | None = Field(
         None, description="a standard view of the whole model, upright about its up (without eye and target)"
     )
     fov: float = Field(45.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
