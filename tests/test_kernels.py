@@ -96,7 +96,9 @@ with OutOfCoreModel(path, make_cache(64 << 20)) as model:
     overview = frame_bounds(*model.bounds, width=96, height=64)
     e, t = np.asarray(overview.eye), np.asarray(overview.target)
     close = Camera(eye=tuple(t + (e - t) * 0.3), target=overview.target, width=96, height=64)
-    out.update(frame_digests(scene, model, {"overview": overview, "close": close}, (1, 4, 16), 6))
+    parallel = frame_bounds(*model.bounds, width=96, height=64, projection="orthographic")
+    cameras = {"overview": overview, "close": close, "orthographic": parallel}
+    out.update(frame_digests(scene, model, cameras, (1, 4, 16), 6))
     origins, directions = overview.primary_rays()
     hits = scene.intersect(origins, directions)
     ok = hits["prim"] >= 0
@@ -131,7 +133,12 @@ def test_every_path_renders_identical_frames(plant_model: Path) -> None:
 def test_renderer_tests_pass_on_every_path(isa: str) -> None:
     """The renderer's own tests, again on each path that is not the default one."""
     env = dict(os.environ, VASTRAY_ISA=isa)
-    tests = ["tests/test_render.py", "tests/test_extremes.py", "tests/test_watertight.py"]
+    tests = [
+        "tests/test_render.py",
+        "tests/test_extremes.py",
+        "tests/test_watertight.py",
+        "tests/test_orthographic.py",
+    ]
     result = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *tests],
         cwd=REPO, capture_output=True, text=True, env=env, timeout=1200,

@@ -1,4 +1,5 @@
-"""Pinhole camera description shared by the CLI, the renderer and (later) the server."""
+"""Camera description (perspective or orthographic) shared by the CLI, the renderers and
+the server."""
 
 from __future__ import annotations
 
@@ -16,6 +17,11 @@ Vec3 = tuple[float, float, float]
 # default of CAD viewers.
 DEFAULT_VIEW_DIRECTION: Vec3 = (1.0, 0.7, 1.3)
 Y_UP: Vec3 = (0.0, 1.0, 0.0)
+
+
+# Perspective: rays from the eye. Orthographic: parallel rays along the view, over the
+# extent the perspective view has at the target (see Camera).
+PROJECTIONS = ("perspective", "orthographic")
 
 
 def unit_up(up: Sequence[float]) -> Vec3:
@@ -68,31 +74,72 @@ def view_direction(up: Sequence[float] = Y_UP) -> Vec3:
 
 @dataclass(frozen=True)
 class Camera:
+    """A view. `fov` is vertical, in degrees. An orthographic camera looks along the
+    view from every pixel, over the extent the perspective view has at the target
+    (2 |target - eye| tan(fov/2) high), so moving the eye closer zooms in; its rays start
+    behind the model (`ray_plane`), so the eye cuts nothing off."""
+
     eye: Vec3
     target: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
     fov: float = 45.0  # vertical, degrees
     width: int = 960
     height: int = 540
+    projection: str = "perspective"
+
+    @property
+    def orthographic(self) -> bool:
+        return self.projection == "orthographic"
 
     def to_native(self) -> native.Camera:
         """The camera the native renderers take (validated there)."""
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"projection must be one of {', '.join(PROJECTIONS)}, not {self.projection!r}")
         eye, target, up = list(self.eye), list(self.target), list(self.up)
-        return native.Camera(eye, target, up, self.fov, self.width, self.height)
+        return native.Camera(eye, target, up, self.fov, self.width, self.height, self.orthographic)
 
     def validate(self) -> None:
         """ValueError with the reason for absurd values (NaN, eye == target, up parallel
-        to the view, fov outside (0, 180), an image side outside 1..MAX_IMAGE_SIDE)."""
+        to the view, fov outside (0, 180), an image side outside 1..MAX_IMAGE_SIDE, an
+        unknown projection)."""
         self.to_native().validate()
 
-    def image_rays(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def ray_plane(self, bounds: tuple[Sequence[float], Sequence[float]] | None = None) -> np.ndarray:
+        """Where an orthographic camera's rays start: the centre of a plane across the
+        view, through the eye, or as the renderers place it for a model with box `bounds`
+        (lo, hi): a power of two behind the eye when some corner of the box lies behind
+        the eye's plane (native CameraRays::start_behind)."""
+        e = np.asarray(self.eye, dtype=np.float64)
+        if bounds is None:
+            return e
+        w = self.basis()[0]
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
+        behind = float(np.max((e - corners) @ w))
+        if behind > 0 and math.isfinite(behind):
+            return e - w * 2.0 ** math.ceil(math.log2(behind))
+        return e
+
+    def image_rays(
+        self, points: np.ndarray, bounds: tuple[Sequence[float], Sequence[float]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """World rays (origins, unit directions) through image points (x, y), in pixels
         from the top-left corner of the image: pixel (i, j)'s centre is (i + 0.5, j + 0.5).
-        The same rays the renderers trace through those points."""
+        The same rays the renderers trace through those points (for an orthographic
+        camera, give the model's box as `bounds` for the renderers' origins)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         w, right, upv = self.basis()
         sx = 2.0 * pts[:, 0] / self.width - 1.0
         sy = 1.0 - 2.0 * pts[:, 1] / self.height
+        if self.orthographic:
+            dist = float(np.linalg.norm(np.asarray(self.target, dtype=np.float64) - np.asarray(self.eye)))
+            plane = self.ray_plane(bounds)
+            origins = (
+                plane[None, :] + sx[:, None] * (right * dist)[None, :] + sy[:, None] * (upv * dist)[None, :]
+            )
+            return origins, np.broadcast_to(w, origins.shape).copy()
         dirs = w[None, :] + sx[:, None] * right[None, :] + sy[:, None] * upv[None, :]
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         return np.broadcast_to(np.asarray(self.eye, dtype=np.float64), dirs.shape).copy(), dirs
@@ -108,14 +155,20 @@ class Camera:
         tan_half = math.tan(self.fov * 0.5 * math.pi / 180.0)
         return w, u * (tan_half * self.width / self.height), v * tan_half
 
-    def primary_rays(self) -> tuple[np.ndarray, np.ndarray]:
+    def primary_rays(
+        self, bounds: tuple[Sequence[float], Sequence[float]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Primary rays in pixel order (row by row, top row first), in float64 exactly as
         the native renderer computes them: pixel (x, y) looks along
         normalize(w + (2(x+.5)/W - 1) tan(fov/2) aspect u + (1 - 2(y+.5)/H) tan(fov/2) v)
         with w = normalize(target - eye), u = normalize(w x up), v = u x w.
 
         Returns (origins, directions), each (width * height, 3). For tools and tests that
-        need the renderer's rays without rendering (batch queries, picking, comparisons)."""
+        need the renderer's rays without rendering (batch queries, picking, comparisons).
+        An orthographic camera's rays go through image_rays (give `bounds` as there)."""
+        if self.orthographic:
+            xs, ys = np.meshgrid(np.arange(self.width) + 0.5, np.arange(self.height) + 0.5)
+            return self.image_rays(np.stack([xs.ravel(), ys.ravel()], axis=1), bounds)
         e = np.asarray(self.eye, dtype=np.float64)
         w, right, upv = self.basis()
         sx = 2.0 * (np.arange(self.width, dtype=np.float64) + 0.5) / self.width - 1.0
@@ -140,14 +193,17 @@ def frame_bounds(
     direction: Sequence[float] | None = None,
     up: Vec3 = Y_UP,
     view: str = "iso",
+    projection: str = "perspective",
 ) -> Camera:
     """A camera that shows the whole bounding box, seen from `direction` (pointing from
     the model towards the eye; by default the standard `view` of a model whose up is
     `up`, the three-quarter one unless told otherwise): the eye backs off along that
     direction until all eight corners of the box project inside the frame, with a small
-    margin."""
+    margin (for an orthographic camera, until the image spans them at every depth)."""
     if view not in STANDARD_VIEWS:
         raise ValueError(f"no standard view {view!r} (one of {', '.join(STANDARD_VIEWS)})")
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {', '.join(PROJECTIONS)}, not {projection!r}")
     if direction is None:
         direction = turn_from_y(STANDARD_VIEWS[view][0], up)
         if view != "iso":  # (the three-quarter view keeps the up as given)
@@ -175,7 +231,10 @@ def frame_bounds(
     p = corners - centre
     # A corner at camera-space (x, y, z) is visible from distance D when
     # |x| <= tan_h * (D + z) and |y| <= tan_v * (D + z).
-    needed = np.maximum(np.abs(p @ u) / tan_h, np.abs(p @ v) / tan_v) - p @ w
+    needed = np.maximum(np.abs(p @ u) / tan_h, np.abs(p @ v) / tan_v)
+    if projection != "orthographic":
+        needed -= p @ w
+    # (Orthographic: the image spans D tan at every depth, so only |x| and |y| count.)
     extent = float(np.linalg.norm(hi_a - lo_a))
     distance = max(1.08 * float(needed.max()), 1e-9 * max(1.0, float(np.abs(centre).max())), 0.5 * extent)
     eye = centre + d * distance
@@ -186,6 +245,7 @@ def frame_bounds(
         fov=fov,
         width=width,
         height=height,
+        projection=projection,
     )
 
 
@@ -200,6 +260,7 @@ def resolve_camera(
     width: int = 960,
     height: int = 540,
     view: str | None = None,
+    projection: str = "perspective",
 ) -> Camera:
     """The camera of a partial description, as the CLI and the server read one: without
     an eye it frames the model's box (lo, hi), from the standard `view` if one is named;
@@ -209,13 +270,15 @@ def resolve_camera(
     if view is not None:
         if eye is not None or target is not None:
             raise ValueError("a standard view frames the whole model: give it without an eye or a target")
-        return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3, view=view)
+        return frame_bounds(
+            lo, hi, fov=fov, width=width, height=height, up=up3, view=view, projection=projection
+        )
+    framed = frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3, projection=projection)
     if eye is None and target is None:
-        return frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
-    framed = frame_bounds(lo, hi, fov=fov, width=width, height=height, up=up3)
+        return framed
     e = framed.eye if eye is None else (float(eye[0]), float(eye[1]), float(eye[2]))
     t = framed.target if target is None else (float(target[0]), float(target[1]), float(target[2]))
-    return Camera(eye=e, target=t, up=up3, fov=fov, width=width, height=height)
+    return Camera(eye=e, target=t, up=up3, fov=fov, width=width, height=height, projection=projection)
 
 
 def parse_vec3(text: str) -> Vec3:

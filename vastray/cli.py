@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from vastray import __version__
-from vastray.camera import STANDARD_VIEWS
+from vastray.camera import PROJECTIONS, STANDARD_VIEWS
 from vastray.layouts import LAYOUTS
 from vastray.renderer import SHADING_MODES
 
@@ -34,6 +34,7 @@ def _camera_from_args(
         fov=args.fov,
         width=width,
         height=height,
+        projection=args.projection,
     )
 
 
@@ -147,7 +148,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         renderer.close()
     print(
         f"camera     --eye {_fmt(camera.eye)} --target {_fmt(camera.target)} --up {_fmt(camera.up)} "
-        f"--fov {camera.fov:g}"
+        f"--fov {camera.fov:g}" + (" --projection orthographic" if camera.orthographic else "")
     )
     print(f"wrote      {args.output}")
     # Damaged blocks leave an image that is not full detail: say so in the exit status.
@@ -446,6 +447,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a standard view of the whole model, upright about its up (without --eye and --target)",
     )
     r.add_argument("--fov", type=float, default=45.0, help="vertical field of view in degrees")
+    r.add_argument(
+        "--projection",
+        choices=list(PROJECTIONS),
+        default="perspective",
+        help="orthographic: parallel rays over the extent the perspective view has at the target "
+        "(nothing is cut off by the eye)",
+    )
     r.add_argument("--size", default="960x540", help="image size WIDTHxHEIGHT")
     r.add_argument("--shading", default="headlight", choices=SHADING_MODES)
     r.add_argument("--ao-samples", type=int, default=8, help="ambient-occlusion rays per pixel")

@@ -88,7 +88,9 @@ def discovery_pass(
     absolute and stays)."""
     width = max(1, -(-camera.width // DISCOVERY_SCALE))
     height = max(1, -(-camera.height // DISCOVERY_SCALE))
-    coarse = native.Camera(camera.eye, camera.target, camera.up, camera.fov, width, height)
+    coarse = native.Camera(
+        camera.eye, camera.target, camera.up, camera.fov, width, height, camera.orthographic
+    )
     poe = params.pixels_of_error * height / camera.height
     return coarse, render_params(params, pixels_of_error=poe)
 

@@ -69,9 +69,9 @@ void bind_render_types(py::module_& m) {
     m.attr("SHADING_MODES") = py::tuple(modes);
     m.attr("ANY_HIT_SHADINGS") = py::tuple(any_hit);
 
-    py::class_<Camera>(m, "Camera", "Pinhole camera in world coordinates (double precision)")
+    py::class_<Camera>(m, "Camera", "Pinhole (or orthographic) camera in world coordinates (double precision)")
         .def(py::init([](const std::vector<double>& eye, const std::vector<double>& target,
-                         const std::vector<double>& up, double fov, int width, int height) {
+                         const std::vector<double>& up, double fov, int width, int height, bool orthographic) {
                  Camera c;
                  c.eye = bindings::to_vec3(eye, "eye");
                  c.target = bindings::to_vec3(target, "target");
@@ -79,16 +79,18 @@ void bind_render_types(py::module_& m) {
                  c.fov_deg = fov;
                  c.width = width;
                  c.height = height;
+                 c.orthographic = orthographic;
                  return c;
              }),
              py::arg("eye"), py::arg("target"), py::arg("up") = std::vector<double>{0, 1, 0}, py::arg("fov") = 45.0,
-             py::arg("width") = 640, py::arg("height") = 480)
+             py::arg("width") = 640, py::arg("height") = 480, py::arg("orthographic") = false)
         .def_property_readonly("eye", [](const Camera& c) { return to_list(c.eye); })
         .def_property_readonly("target", [](const Camera& c) { return to_list(c.target); })
         .def_property_readonly("up", [](const Camera& c) { return to_list(c.up); })
         .def_readonly("fov", &Camera::fov_deg)
         .def_readonly("width", &Camera::width)
         .def_readonly("height", &Camera::height)
+        .def_readonly("orthographic", &Camera::orthographic)
         .def("validate", &Camera::validate, "ValueError with the reason for absurd values");
 
     py::class_<RenderParams>(m, "RenderParams",

@@ -123,11 +123,25 @@ public:
         // Projected diameter 2R / (t * pixel_angle) <= PoE  <=>  R <= t * PoE * pixel_angle / 2.
         primary_cone_ = static_cast<float>(0.5 * params.pixels_of_error * camera_.pixel_angle);
         ao_cone_ = static_cast<float>(solid_angle_cone(params, camera_.pixel_angle));  // 0 at PoE 0
+        if (camera_.orthographic) {
+            camera_.start_behind(centre_ + Vec3d(root_.lo), centre_ + Vec3d(root_.hi));
+            // A pixel is pixel_size wide at any depth: R <= PoE * pixel_size / 2. The cone
+            // test (cone_t0 + t) * cone gives that when its apex lies so far back that the
+            // model's depth changes the product by under 2^-20.
+            const double reach = length(Vec3d(diag)) + length(camera_.eye - camera_.plane);
+            primary_cone_t0_ = static_cast<float>(std::exp2(20.0) * std::max(reach, 1e-30));
+            primary_cone_ = static_cast<float>(0.5 * params.pixels_of_error * camera_.pixel_size /
+                                               static_cast<double>(primary_cone_t0_));
+        }
     }
 
-    Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
+    Ray primary_ray(int x, int y) const { return primary_from(camera_.origin(x, y), camera_.direction(x, y)); }
     Box3f bounds() const { return root_; }
     void primary_rays4(int x0, int y, Ray* out) const {
+        if (camera_.orthographic) {
+            for (int k = 0; k < 4; ++k) out[k] = primary_ray(x0 + k, y);
+            return;
+        }
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);
         for (int k = 0; k < 4; ++k) out[k] = primary_along(dirs[k]);
@@ -141,6 +155,7 @@ public:
     template <int Side>
     bool trace_packet(Lane& lane, const Ray* rays, Hit* hits) const {
         constexpr int N = Side * Side;
+        if (camera_.orthographic) return trace_parallel_packet<N>(lane, rays, hits);
         if (!lod_packet_is_coherent<N>(rays)) return false;
         lod_traverse_packet<N>(lane, root_, rays, hits);
         return true;
@@ -150,11 +165,37 @@ public:
     // memory overlap; else one after the other.
     template <int Side>
     void trace_packets(Lane& lane, const Ray* const* rays, Hit* const* hits, bool* traced, int count) const {
+        if (camera_.orthographic) {
+            for (int j = 0; j < count; ++j) traced[j] = trace_parallel_packet<Side * Side>(lane, rays[j], hits[j]);
+            return;
+        }
         if (interleave_) {
             lod_trace_packets<Side * Side>(lane, root_, rays, hits, traced, count);
             return;
         }
         for (int j = 0; j < count; ++j) traced[j] = trace_packet<Side>(lane, rays[j], hits[j]);
+    }
+
+    // An orthographic camera's packet: one direction from origins apart, walked in the
+    // order of the direction's signs (as shadow packets are), each ray with the single
+    // ray's answer. A direction along a plane of the axes (a front or top view) has a zero
+    // component, which that walk does not take: its rays go singly.
+    template <int N>
+    bool trace_parallel_packet(Lane& lane, const Ray* rays, Hit* hits) const {
+        const Vec3f& d = rays[0].ray.dir;
+        if (d.x == 0.0f || d.y == 0.0f || d.z == 0.0f) return false;
+        std::uint32_t skip[N];
+        for (int k = 0; k < N; ++k) {
+            const Vec3f& dk = rays[k].ray.dir;
+            if (dk.x != d.x || dk.y != d.y || dk.z != d.z || rays[k].cone != rays[0].cone ||
+                rays[k].cone_t0 != rays[0].cone_t0) {
+                return false;
+            }
+            skip[k] = kNoHit;
+        }
+        lod_packet_walk<N, false, LodPacketOrder::SharedSigns>(lane, root_, rays, hits, skip,
+                                                               static_cast<std::uint32_t>((1ull << N) - 1));
+        return true;
     }
 
     std::int32_t prim_id(const Hit& hit) const {
@@ -320,6 +361,14 @@ private:
         r.cone = primary_cone_;
         return r;
     }
+    // An orthographic camera's ray from its own point, in the local frame as the eye is.
+    Ray primary_from(const Vec3d& org, const Vec3d& dir) const {
+        if (!camera_.orthographic) return primary_along(dir);
+        LodRay r = primary_along(dir);
+        r.ray.org = Vec3f(org - centre_);
+        r.cone_t0 = primary_cone_t0_;
+        return r;
+    }
 
     const ModelIndex& index_;
     shading::CameraRays camera_;
@@ -327,7 +376,7 @@ private:
     Vec3f eye_;  // the eye in the local float frame (the centre subtracted in double, as the in-core scene does)
     Box3f root_;
     bool interleave_;
-    float ao_distance_ = 1, primary_cone_ = 0, ao_cone_ = 0;
+    float ao_distance_ = 1, primary_cone_ = 0, primary_cone_t0_ = 0, ao_cone_ = 0;
 };
 
 }  // namespace

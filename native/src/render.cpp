@@ -192,11 +192,16 @@ public:
         const Vec3d diag = scene.world_hi() - scene.world_lo();
         ao_distance_ = params.ao_distance > 0 ? static_cast<float>(params.ao_distance)
                                               : 0.2f * static_cast<float>(length(diag));
+        camera_.start_behind(scene.world_lo(), scene.world_hi());
     }
 
-    Ray primary_ray(int x, int y) const { return primary_along(camera_.direction(x, y)); }
+    Ray primary_ray(int x, int y) const { return primary_from(camera_.origin(x, y), camera_.direction(x, y)); }
     Box3f bounds() const { return scene_.bounds(); }
     void primary_rays4(int x0, int y, Ray* out) const {
+        if (camera_.orthographic) {
+            for (int k = 0; k < 4; ++k) out[k] = primary_ray(x0 + k, y);
+            return;
+        }
         Vec3d dirs[4];
         camera_.directions4(x0, y, dirs);
         for (int k = 0; k < 4; ++k) out[k] = primary_along(dirs[k]);
@@ -353,9 +358,10 @@ private:
     static constexpr int kMaxGroup = 16;
 
     // The primary ray from the eye along world direction `dir`, in the scene's frame.
-    Ray primary_along(const Vec3d& dir) const {
+    Ray primary_along(const Vec3d& dir) const { return primary_from(camera_.eye, dir); }
+    Ray primary_from(const Vec3d& org, const Vec3d& dir) const {
         WorldRay wr;
-        wr.org = camera_.eye;
+        wr.org = org;
         wr.dir = dir;
         return scene_.to_local(wr);
     }

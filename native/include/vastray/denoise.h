@@ -26,6 +26,7 @@ struct Guides {
     const float* depth = nullptr;   // per pixel, inf where nothing was hit (left alone)
     const float* normal = nullptr;  // 3 per pixel: the unit normal the shading used
     float pixel_angle = 0;          // width of a pixel at unit distance
+    float pixel_size = 0;           // orthographic views: a pixel's width, the same at every depth
 };
 
 namespace detail {
@@ -45,7 +46,11 @@ inline float edge_weight(const Guides& g, std::size_t p, std::size_t q, int offs
     const float zp = g.depth[p];
     // Depth tolerance: what a surface seen at 60 degrees from its normal spans over the
     // offset, plus 1 % for curvature.
-    const float tol = zp * (2.0f * g.pixel_angle * static_cast<float>(offset) + 0.01f);
+    // (Orthographic: a pixel's width is the same at every depth, and the 1 % is of the
+    // view's height, which the depth of a perspective view stands for.)
+    const float tol = g.pixel_size > 0
+                          ? g.pixel_size * (2.0f * static_cast<float>(offset) + 0.01f * static_cast<float>(g.height))
+                          : zp * (2.0f * g.pixel_angle * static_cast<float>(offset) + 0.01f);
     const float dz = (zp - zq) / tol;
     return c / (1.0f + dz * dz);
 }

@@ -154,7 +154,8 @@ public:
     FrameShader(const Backend& backend, const RenderParams& params, const Camera& camera, int packets, Frame& frame,
                 IndirectTerms* indirect, const LocalSections& sections)
         : backend_(backend), params_(params), packets_(packets), frame_(frame), indirect_(indirect),
-          sections_(sections), sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)) {
+          sections_(sections), sun_(Vec3f(normalize(params.sun_direction))), up_(Vec3f(camera.up)),
+          orthographic_(camera.orthographic) {
         up_ = normalize(up_);
         // The model's box seen from the eye, for may_enter_model: the same for every tile.
         const Box3f box = backend_.bounds();
@@ -376,6 +377,7 @@ private:
             dirs[i] = Vec3d(direction(corner_rays[i]));
             centre += dirs[i];
         }
+        if (orthographic_) return may_enter_model_parallel(corner_rays, dirs[0]);
         // Behind the eye: the rays go forward from it (t >= 0), so when every corner ray
         // leaves at under 90 degrees from their mean, so does every ray of the tile, and a box
         // wholly behind the plane through the eye across that mean is out of reach.
@@ -392,6 +394,30 @@ private:
             if (dot(side, centre) < 0) side = -side;  // pointing into the pyramid
             bool beyond = true;
             for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner_[k]) < -corner_slack_[k];
+            if (beyond) return false;
+        }
+        return true;
+    }
+
+    // may_enter_model for an orthographic camera: the tile's rays are parallel and start
+    // in the rectangle of its corner rays' origins, so they lie in the prism those rays
+    // span, and start behind the whole box (CameraRays::start_behind).
+    bool may_enter_model_parallel(const Ray (&corner_rays)[4], const Vec3d& dir) const {
+        const Vec3d first(origin(backend_.primary_ray(0, 0)));  // where to_corner_ starts
+        Vec3d orgs[4], middle(0, 0, 0);
+        for (int i = 0; i < 4; ++i) {
+            orgs[i] = Vec3d(origin(corner_rays[i]));
+            middle += orgs[i] * 0.25;
+        }
+        for (int i = 0; i < 4; ++i) {
+            Vec3d side = cross(dir, orgs[(i + 1) % 4] - orgs[i]);
+            const double len = length(side);
+            if (!(len > 0)) continue;  // a tile one pixel wide or high: no side here
+            side = side / len;
+            if (dot(side, middle - orgs[i]) < 0) side = -side;  // pointing into the prism
+            const Vec3d shift = orgs[i] - first;
+            bool beyond = true;
+            for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner_[k] - shift) < -corner_slack_[k];
             if (beyond) return false;
         }
         return true;
@@ -675,6 +701,7 @@ private:
     const LocalSections& sections_;
     Vec3f sun_, up_;
     bool cull_tiles_ = false;   // the model's box is finite: may_enter_model can test tiles against it
+    bool orthographic_ = false;  // parallel primary rays (may_enter_model_parallel)
     Vec3d to_corner_[8];        // the box's corners from the eye
     double corner_slack_[8];    // how far beyond a side each must lie for the test to count it
 };
@@ -689,6 +716,7 @@ inline void compose_indirect(IndirectTerms& terms, const shading::CameraRays& ca
     guides.depth = frame.depth.data();
     guides.normal = terms.normal.data();
     guides.pixel_angle = static_cast<float>(camera.pixel_angle);
+    if (camera.orthographic) guides.pixel_size = static_cast<float>(camera.pixel_size);
     denoise::filter(guides, terms.light, params.threads);
     const std::size_t pixels = frame.depth.size();
     for (std::size_t p = 0; p < pixels; ++p) {

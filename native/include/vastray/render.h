@@ -19,6 +19,12 @@ struct Camera {
     Vec3d eye, target, up{0, 1, 0};
     double fov_deg = 45;  // vertical field of view
     int width = 640, height = 480;
+    // Orthographic: every pixel looks along the view, and the image spans what the
+    // perspective one spans at the target (2 |target - eye| tan(fov/2) high), so
+    // switching keeps the target's scale and moving the eye closer still zooms in. The
+    // rays start behind the model (CameraRays::start_behind): nothing is cut off by the
+    // eye, as CAD viewers' parallel views cut nothing.
+    bool orthographic = false;
 
     // Throws std::invalid_argument with a readable reason for absurd values
     // (NaN, eye == target, up parallel to the view, fov outside (0, 180), empty image).
