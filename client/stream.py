@@ -270,8 +270,11 @@ class AsyncView:
         target: Sequence[float],
         up: Sequence[float] | None = None,
         fov: float | None = None,
+        projection: str | None = None,
     ) -> int:
-        """Moves the camera; returns the seq that frames of this camera carry."""
+        """Moves the camera; returns the seq that frames of this camera carry. Without
+        `up`, `fov` or `projection` ("perspective" or "orthographic") it keeps the
+        current one."""
         assert self.camera is not None
         if self.following:
             raise VastrayError(0, "following", "this view follows the presenter: follow(False) first")
@@ -282,6 +285,7 @@ class AsyncView:
             target=tuple(target),  # type: ignore[arg-type]
             up=tuple(up) if up is not None else self.camera.up,  # type: ignore[arg-type]
             fov=fov if fov is not None else self.camera.fov,
+            projection=projection if projection is not None else self.camera.projection,  # type: ignore[arg-type]
         )
         await self._send({"type": "camera", **self.camera.model_dump()})
         return self._seq

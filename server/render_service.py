@@ -68,6 +68,7 @@ def camera_for(spec: CameraSpec, renderer: Renderer, max_pixels: int, model_up: 
             fov=spec.fov,
             width=spec.width,
             height=spec.height,
+            projection=spec.projection,
         )
         camera.validate()
     except ValueError as exc:
@@ -146,7 +147,7 @@ class RenderService:
             if request.points:
                 assert request.camera is not None
                 camera = camera_for(request.camera, model, self.max_pixels, self.store.row(model_id).up)
-                o, d = camera.image_rays(np.asarray(request.points, dtype=np.float64))
+                o, d = camera.image_rays(np.asarray(request.points, dtype=np.float64), model.bounds)
                 origins.append(o)
                 directions.append(d)
             if request.rays:

@@ -51,7 +51,7 @@ from vastray.protocol import (
 from vastray.schemas import PartInfo, describe_errors
 from vastray.server.errors import ApiError
 from vastray.server.reviews import REVIEW_MESSAGES, Participant, ReviewSession
-from vastray.server.views import RenderedFrame, View, camera_problem, default_camera
+from vastray.server.views import RenderedFrame, View, camera_of, camera_problem, default_camera
 
 log = logging.getLogger("vastray.stream")
 router = APIRouter(tags=["stream"])
@@ -651,15 +651,14 @@ class Connection:
         view = self.view
         if view is None:
             return
-        from vastray.camera import Camera
-
         c = msg.camera or view.camera
         width, height = msg.width or view.viewport.width, msg.height or view.viewport.height
-        camera = Camera(c.eye, c.target, c.up, c.fov, width, height)
+        camera = camera_of(c, width, height)
         renders = self.state.renders
 
         def run() -> Any:
-            origins, directions = camera.image_rays(np.asarray(msg.points, dtype=np.float64))
+            points = np.asarray(msg.points, dtype=np.float64)
+            origins, directions = camera.image_rays(points, view.model.bounds)
             return renders.pick_rays(view.model, origins, directions, 5.0, view.sections, parts=view.parts)
 
         try:

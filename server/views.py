@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import copy
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -109,14 +109,17 @@ def jittered(camera: Camera, dx: float, dy: float) -> Camera:
     dist = float(np.linalg.norm(np.asarray(camera.target) - eye))
     shift = (right * (2.0 * dx / camera.width) - up * (2.0 * dy / camera.height)) * dist
     target = np.asarray(camera.target) + shift
-    return Camera(
-        camera.eye,
-        (float(target[0]), float(target[1]), float(target[2])),
-        camera.up,
-        camera.fov,
-        camera.width,
-        camera.height,
+    eye = eye + shift if camera.orthographic else eye  # parallel rays move, not turn
+    return replace(
+        camera,
+        eye=(float(eye[0]), float(eye[1]), float(eye[2])),
+        target=(float(target[0]), float(target[1]), float(target[2])),
     )
+
+
+def camera_of(state: CameraState, width: int, height: int) -> Camera:
+    """The renderers' camera of a client's camera state, at an image size."""
+    return Camera(state.eye, state.target, state.up, state.fov, width, height, state.projection)
 
 
 class View:
@@ -264,7 +267,7 @@ class View:
             accumulate = True
         width, height = max(1, round(full_w * scale)), max(1, round(full_h * scale))
         c = self.camera
-        camera = jittered(Camera(c.eye, c.target, c.up, c.fov, width, height), *jitter)
+        camera = jittered(camera_of(c, width, height), *jitter)
         params = q.to_native(threads=self.render_threads)
         params.pixels_of_error = poe
         params.sections = native_sections(self.sections)
@@ -391,7 +394,7 @@ class View:
         instead of a triangle, or a miss) and the PSNR of the image — with each frame's
         render time. Single passes on both sides, so anti-aliasing plays no part."""
         c, vp = self.camera, self.viewport
-        camera = Camera(c.eye, c.target, c.up, c.fov, vp.width, vp.height)
+        camera = camera_of(c, vp.width, vp.height)
         chosen = self.quality.to_native(threads=self.render_threads)
         chosen.sections = native_sections(self.sections)
         chosen.highlight = self.highlight_runs()
@@ -429,7 +432,7 @@ def camera_problem(camera: CameraState) -> str | None:
     """Why no frame can be rendered from this camera (eye on the target, up along the
     view, ...), or None. Pydantic checks each field; this checks them together."""
     try:
-        Camera(camera.eye, camera.target, camera.up, camera.fov, 16, 16).validate()
+        camera_of(camera, 16, 16).validate()
     except ValueError as exc:
         return f"camera: {exc}"
     return None

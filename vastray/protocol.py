@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, Field, TypeAdapter
 
-from vastray.schemas import MAX_IMAGE_SIDE, Quality, SectionPlane, ShadingName, Strict, Vec3
+from vastray.schemas import MAX_IMAGE_SIDE, ProjectionName, Quality, SectionPlane, ShadingName, Strict, Vec3
 
 PROTOCOL_VERSION = 1
 FRAME_MAGIC = b"VRF1"
@@ -128,6 +128,7 @@ class CameraState(Strict):
     target: Vec3
     up: Vec3 = (0.0, 1.0, 0.0)
     fov: float = Field(45.0, gt=0.0, lt=180.0)
+    projection: ProjectionName = "perspective"
 
 
 class Viewport(Strict):

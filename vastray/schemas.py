@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from vastray import native
-from vastray.camera import STANDARD_VIEWS, unit_up
+from vastray.camera import PROJECTIONS, STANDARD_VIEWS, unit_up
 from vastray.renderer import RENDER_PARAM_FIELDS, render_params
 
 _DEFAULTS = native.RenderParams()
@@ -43,6 +43,8 @@ ShadingName = Literal["normal", "headlight", "sun", "ao", "indirect"]
 assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of modes
 StandardViewName = Literal["iso", "front", "back", "left", "right", "top", "bottom"]
 assert list(StandardViewName.__args__) == list(STANDARD_VIEWS)  # one list of views
+ProjectionName = Literal["perspective", "orthographic"]
+assert list(ProjectionName.__args__) == list(PROJECTIONS)
 
 
 def describe_errors(errors: list[Any]) -> str:
@@ -62,9 +64,11 @@ class Strict(BaseModel):
 
 
 class CameraSpec(Strict):
-    """A pinhole camera in world coordinates (double precision). Without an eye the
-    camera frames the whole model from a three-quarter view; without a target it looks
-    at the model's centre; without an up it takes the model's (`ModelInfo.up`)."""
+    """A camera in world coordinates (double precision). Without an eye the camera
+    frames the whole model from a three-quarter view; without a target it looks at the
+    model's centre; without an up it takes the model's (`ModelInfo.up`). An orthographic
+    one looks along the view from every pixel, over the extent the perspective view has
+    at the target."""
 
     eye: Vec3 | None = None
     target: Vec3 | None = None
@@ -75,6 +79,10 @@ class CameraSpec(Strict):
     fov: float = Field(45.0, gt=0.0, lt=180.0, description="vertical field of view, degrees")
     width: int = Field(960, ge=1, le=MAX_IMAGE_SIDE)
     height: int = Field(540, ge=1, le=MAX_IMAGE_SIDE)
+    projection: ProjectionName = Field(
+        "perspective",
+        description="orthographic: parallel rays over the extent the perspective view has at the target",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> CameraSpec:

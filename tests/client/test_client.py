@@ -212,6 +212,54 @@ def test_scripts_present_and_follow_a_review(url: str) -> None:
             lead.set_camera(eye, target)
 
 
+def test_orthographic_views(url: str) -> None:
+    """An orthographic camera over REST and over the stream: its picks go along the
+    renderer's parallel rays, which start behind the model (the client's Camera computes
+    the same rays); a follower in a review gets the presenter's projection; a bad one is
+    refused with the field named."""
+    from vastray.camera import Camera
+
+    with Client(url) as vr:
+        model = vr.model(vr.wait(vr.build("scene:plant:20000:5")).model_id)
+        size = {"width": 160, "height": 120}
+        persp = vr.render(model, camera=size)
+        ortho = vr.render(model, camera={**size, "projection": "orthographic"})
+        assert ortho.complete and np.abs(ortho.image.astype(int) - persp.image.astype(int)).mean() > 3
+        eye, target = orbit_eye(model.bounds, 0.7)
+        # The eye inside the model's box: an orthographic view still sees all of it.
+        inside = tuple(np.asarray(target) + 0.2 * (np.asarray(eye) - np.asarray(target)))
+        camera = {**size, "eye": inside, "target": target, "projection": "orthographic"}
+        points = [(40.5, 30.5), (80.5, 60.5), (120.5, 90.5)]
+        picked = vr.pick(model, points=points, camera=camera)
+        cam = Camera(inside, target, width=160, height=120, projection="orthographic")
+        origins, directions = cam.image_rays(np.asarray(points), model.bounds)
+        rays = [(tuple(o), tuple(d)) for o, d in zip(origins.tolist(), directions.tolist(), strict=True)]
+        along = vr.pick(model, rays=rays)
+        assert [h.triangle for h in picked] == [h.triangle for h in along]
+        assert sum(h.hit for h in picked) >= 2
+        with pytest.raises(VastrayError) as err:
+            vr.render(model, camera={**size, "projection": "isometric"})
+        assert err.value.status == 422 and "projection" in str(err.value)
+
+        started = vr.start_review(model, title="parallel")
+    with (
+        Client(started["presenter_url"]) as pat,
+        Client(started["join_url"]) as fay,
+        pat.join(name="pat", viewport=(160, 100)) as lead,
+        fay.join(name="fay", viewport=(160, 100)) as follower,
+    ):
+        seq = lead.set_camera(eye, target)
+        perspective = lead.final(seq)
+        seq = lead.set_camera(eye, target, projection="orthographic")
+        parallel = lead.final(seq)
+        assert lead.camera.projection == "orthographic"
+        assert np.abs(parallel.image.astype(int) - perspective.image.astype(int)).mean() > 3
+        got = follower.final(seq)
+        assert follower.camera.projection == "orthographic" and np.array_equal(got.image, parallel.image)
+        lead.set_camera(target, eye)  # keeps the projection it has
+        assert lead.camera.projection == "orthographic"
+
+
 def wait_until(condition: Any, timeout: float = 30.0) -> None:
     deadline = time.monotonic() + timeout
     while not condition():
