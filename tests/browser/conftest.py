@@ -196,7 +196,8 @@ class Viewer:
         return self.js(
             """() => {
                 const {camera, rect} = window.vastray.shown;
-                return {camera: {eye: camera.eye, target: camera.target, up: camera.up, fov: camera.fov},
+                return {camera: {eye: camera.eye, target: camera.target, up: camera.up, fov: camera.fov,
+                                 projection: camera.projection},
                         width: Math.round(rect.fullW), height: Math.round(rect.fullH)};
             }"""
         )
@@ -289,7 +290,9 @@ def pick(
     api: httpx.Client, model_id: str, shown: dict[str, Any], points: list[tuple[float, float]]
 ) -> list[Any]:
     """Full-detail picks through image points of the camera of a frame shown (REST)."""
-    camera = {k: shown["camera"][k] for k in ("eye", "target", "up", "fov")}
+    camera = {
+        k: shown["camera"][k] for k in ("eye", "target", "up", "fov", "projection") if k in shown["camera"]
+    }
     camera.update(width=shown["width"], height=shown["height"])
     r = api.post(f"/api/models/{model_id}/pick", json={"camera": camera, "points": [list(p) for p in points]})
     assert r.status_code == 200, r.text

@@ -2,7 +2,8 @@
 the up picker turns the view upright at once, saves the setting with the model (the
 page holds the API key), and after a reload the page opens it upright, showing what the
 y-up original shows. The standard views (buttons and keys 1-7) look at the named side,
-upright about the model's up."""
+upright about the model's up; the projection button (and O) switches to parallel rays
+and back, and marks stay on what they mark."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import trimesh
-from conftest import not_blank
+from conftest import grid, not_blank, pick
 
 from vastray import scenes
 from vastray.build import BuildOptions, build_model
@@ -119,4 +120,43 @@ def test_standard_views_face_the_named_side(open_viewer: Any, server: Any, model
         v.page.keyboard.press(key)
         n = v.wait_final(n, v.js("window.vastray.seq"))
         np.testing.assert_allclose(direction(v.shown()["camera"]), side, atol=1e-9, err_msg=key)
+    assert not v.errors_received()
+
+
+def test_the_projection_button_switches_to_parallel_rays(
+    open_viewer: Any, server: Any, api: Any, model: dict[str, Any]
+) -> None:
+    v = open_viewer(server.open_url)
+    n = v.wait_final()
+    button = v.page.locator("#projection")
+    assert button.get_attribute("aria-pressed") == "false" and button.inner_text() == "Persp"
+    before = v.thumbnail()
+    button.click()
+    n = v.wait_final(n, v.js("window.vastray.seq"))
+    v.shot("orthographic")
+    shown = v.shown()
+    assert shown["camera"]["projection"] == "orthographic" and button.get_attribute("aria-pressed") == "true"
+    parallel = v.thumbnail()
+    assert not_blank(parallel) and np.abs(parallel - before).mean() > 2
+    # A picked point is drawn where it was clicked: the page projects it along the same
+    # parallel rays the server picked along.
+    points = grid(shown, 7, 5, margin=0.3)
+    hit = [p for p, h in zip(points, pick(api, model["id"], shown, points), strict=True) if h["hit"]]
+    assert hit, "the model should fill the middle of the view"
+    x, y = hit[len(hit) // 2]
+    v.click_image(x, y)
+    v.wait_for("() => document.getElementById('pick').innerText.startsWith('point:')")
+    at = v.js(
+        """([w, h]) => window.vastray.shown.camera.project(window.vastray.picks.at(-1).position, w, h)""",
+        [shown["width"], shown["height"]],
+    )
+    assert abs(at["x"] - x) < 1.0 and abs(at["y"] - y) < 1.0, (at, x, y)
+    # A standard view keeps the projection; O switches back.
+    v.page.click("#standard-views button[data-view=front]")
+    n = v.wait_final(n, v.js("window.vastray.seq"))
+    assert v.shown()["camera"]["projection"] == "orthographic"
+    v.page.locator("#view").focus()
+    v.page.keyboard.press("o")
+    v.wait_final(n, v.js("window.vastray.seq"))
+    assert v.shown()["camera"]["projection"] == "perspective" and button.inner_text() == "Persp"
     assert not v.errors_received()

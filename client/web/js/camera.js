@@ -1,16 +1,24 @@
-// The camera the page drives, and the pinhole model the server renders with
-// (vastray/camera.py): pixel (x, y) of a W x H image looks along
+// The camera the page drives, and the model the server renders with
+// (vastray/camera.py): in perspective, pixel (x, y) of a W x H image looks along
 //   normalize(w + (2x/W - 1) tan(fov/2) (W/H) u + (1 - 2y/H) tan(fov/2) v),
-// w = normalize(target - eye), u = normalize(w x up), v = u x w.
+// w = normalize(target - eye), u = normalize(w x up), v = u x w. Orthographic: every
+// pixel looks along w, over the extent the perspective view has at the target (the same
+// offsets times |target - eye|), so moving the eye closer zooms in, and nothing is cut
+// off by the eye (the server starts the rays behind the model).
 
 import { add, cross, dot, length, normalize, rotate, scale, sub } from "./vec.js";
 
 export class Camera {
-  constructor({ eye, target, up = [0, 1, 0], fov = 45 }) {
+  constructor({ eye, target, up = [0, 1, 0], fov = 45, projection = "perspective" }) {
     this.eye = [...eye];
     this.target = [...target];
     this.up = [...up];
     this.fov = fov;
+    this.projection = projection;
+  }
+
+  get orthographic() {
+    return this.projection === "orthographic";
   }
 
   clone() {
@@ -18,7 +26,7 @@ export class Camera {
   }
 
   toMessage(seq) {
-    return { seq, eye: this.eye, target: this.target, up: this.up, fov: this.fov };
+    return { seq, eye: this.eye, target: this.target, up: this.up, fov: this.fov, projection: this.projection };
   }
 
   get distance() {
@@ -33,14 +41,16 @@ export class Camera {
     return { w, u, v, right: scale(u, (t * width) / height), top: scale(v, t) };
   }
 
-  // World point -> image pixel (x, y) and depth along the view axis (null behind the eye).
+  // World point -> image pixel (x, y) and depth along the view axis (null behind the eye
+  // in perspective; an orthographic view sees behind the eye too).
   project(point, width, height) {
     const { w, right, top } = this.basis(width, height);
     const d = sub(point, this.eye);
     const z = dot(d, w);
-    if (z <= 1e-12) return null;
-    const sx = dot(d, right) / (z * dot(right, right));
-    const sy = dot(d, top) / (z * dot(top, top));
+    const scaleBy = this.orthographic ? this.distance : z;
+    if (!this.orthographic && z <= 1e-12) return null;
+    const sx = dot(d, right) / (scaleBy * dot(right, right));
+    const sy = dot(d, top) / (scaleBy * dot(top, top));
     return { x: ((sx + 1) * width) / 2, y: ((1 - sy) * height) / 2, depth: z };
   }
 
@@ -117,12 +127,15 @@ export const STANDARD_VIEWS = {
 
 // A camera that shows the whole box from the standard view `name` (the three-quarter
 // one by default, as the server frames) of a model whose up is `up`.
-export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0], name = "iso") {
+export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0], name = "iso",
+  projection = "perspective") {
   const view = STANDARD_VIEWS[name];
   const centre = scale(add(lo, hi), 0.5);
   const dir = normalize(turnFromY(view.dir, up));
   const radius = length(sub(hi, lo)) / 2;
   const t = Math.tan((fov * Math.PI) / 360);
   const fit = radius / Math.min(t, t * aspect);
-  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up: turnFromY(view.up, up), fov });
+  // (Orthographic: the image spans the sphere at the target's distance, as it does here.)
+  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up: turnFromY(view.up, up), fov,
+    projection });
 }

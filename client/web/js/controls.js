@@ -10,13 +10,15 @@ const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
 const VIEW_KEYS = ["iso", "front", "back", "left", "right", "top", "bottom"]; // keys 1-7
 
 export class Controls {
-  constructor(element, { camera, onChange, onClick, onFrameAll, flySpeed }) {
+  constructor(element, { camera, onChange, onClick, onFrameAll, onToggleProjection, flySpeed }) {
     // onFrameAll(view): the model framed from a standard view (F: "iso")
+    // onToggleProjection(): perspective <-> orthographic (O)
     this.element = element;
     this.camera = camera; // () => the Camera to change
     this.onChange = onChange;
     this.onClick = onClick;
     this.onFrameAll = onFrameAll;
+    this.onToggleProjection = onToggleProjection;
     this.flySpeed = flySpeed; // () => world units per second
     this.pointers = new Map();
     this.keys = new Set();
@@ -110,6 +112,10 @@ export class Controls {
     }
     if (down && k >= "1" && k <= "7") {
       if (!e.repeat) this.onFrameAll(VIEW_KEYS[Number(k) - 1]);
+      return;
+    }
+    if (down && k === "o") {
+      if (!e.repeat) this.onToggleProjection();
       return;
     }
     if (!"wasdqe".includes(k)) return;

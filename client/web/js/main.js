@@ -67,6 +67,7 @@ class App {
       onChange: () => this.cameraChanged(),
       onClick: (p) => this.#click(p),
       onFrameAll: (name) => this.frameAll(name),
+      onToggleProjection: () => this.toggleProjection(),
       flySpeed: () => (this.model ? 0.25 * length(sub(this.model.bounds[1], this.model.bounds[0])) : 1),
     });
     new ResizeObserver(() => this.#resize()).observe($("stage"));
@@ -179,6 +180,7 @@ class App {
     this.limits = w.limits;
     this.role = w.review?.role ?? "solo";
     this.camera = new Camera(w.camera);
+    this.showProjection(this.camera);
     this.seq = Math.max(this.seq, w.camera.seq);
     this.#selectModel(w.model);
     this.panels.welcome(w, { reconnected });
@@ -264,6 +266,7 @@ class App {
       if (this.sent.size > 600) this.sent.delete(this.sent.keys().next().value);
       this.stream?.send({ type: "camera", ...this.camera.toMessage(this.seq) });
     });
+    this.showProjection(this.camera);
   }
 
   setCamera(message) {
@@ -278,8 +281,30 @@ class App {
     this.#driveCamera();
     const [lo, hi] = this.model.bounds;
     this.camera = frameBounds(lo, hi, this.camera?.fov ?? 45, this.viewport.width / this.viewport.height,
-      this.model.up ?? [0, 1, 0], name);
+      this.model.up ?? [0, 1, 0], name, this.camera?.projection);
     this.cameraChanged();
+  }
+
+  // Perspective or orthographic (parallel) projection, keeping what the view shows at the
+  // target: the target's scale stays, the rest of the model stops shrinking with depth.
+  setProjection(projection) {
+    if (!this.model) return;
+    const camera = this.#driveCamera().clone();
+    camera.projection = projection;
+    this.camera = camera;
+    this.cameraChanged();
+  }
+
+  toggleProjection() {
+    this.setProjection(this.camera?.orthographic ? "perspective" : "orthographic");
+  }
+
+  // The projection button says which projection the view (or the picture shown) has.
+  showProjection(camera) {
+    const b = $("projection");
+    const ortho = Boolean(camera?.orthographic);
+    b.setAttribute("aria-pressed", String(ortho));
+    b.textContent = ortho ? "Ortho" : "Persp";
   }
 
   // Which way is up in the model: the view is framed upright about it at once, and with
@@ -333,6 +358,7 @@ class App {
       this.shown = { header, camera, rect: this.#fit(header) };
       this.#paint();
       if (follower) this.camera = camera.clone();
+      this.showProjection(this.camera);
       // The next camera this page sends must be newer than any shown (a presenter's, a
       // saved view's), or the server would take it for an old one.
       this.seq = Math.max(this.seq, header.cameraSeq);

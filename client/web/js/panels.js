@@ -46,9 +46,10 @@ export class Panels {
     this.#wireQuality();
     this.#wireTools();
     $("model-up").addEventListener("change", (e) => this.app.setUp(e.target.value.split(",").map(Number)));
-    for (const b of document.querySelectorAll("#standard-views button")) {
+    for (const b of document.querySelectorAll("#standard-views button[data-view]")) {
       b.addEventListener("click", () => this.app.frameAll(b.dataset.view));
     }
+    $("projection").addEventListener("click", () => this.app.toggleProjection());
   }
 
   // -- quality ---------------------------------------------------------------------------
@@ -357,7 +358,8 @@ export class Panels {
     const dir = cam ? cam.eye.map((v, i) => v - cam.target[i]) : [1, 0.7, 1.3];
     const len = Math.hypot(...dir);
     const eye = centre.map((v, i) => v + (dir[i] / len) * size * 1.6);
-    this.app.setCamera({ eye, target: centre, up: cam?.up ?? [0, 1, 0], fov: cam?.fov ?? 45 });
+    this.app.setCamera({ eye, target: centre, up: cam?.up ?? [0, 1, 0], fov: cam?.fov ?? 45,
+      projection: cam?.projection ?? "perspective" });
     this.#renderParts();
   }
 
