@@ -51,7 +51,13 @@ def ortho(camera: Camera) -> Camera:
     return dataclasses.replace(camera, projection="orthographic")
 
 
-def test_frames_see_what_a_brute_force_sees_along_parallel_rays(boxes: tuple) -> None:
+@pytest.mark.parametrize("walk", ["wide", "kd"])
+def test_frames_see_what_a_brute_force_sees_along_parallel_rays(
+    boxes: tuple, walk: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """In core, through the wide BVH and the kd-tree, whose packets take rays from
+    different origins when their directions' signs agree."""
+    monkeypatch.setenv("VASTRAY_PRIMARY", walk)
     scene, vertices, faces = boxes
     camera = frame_bounds(
         *scene.bounds, width=160, height=120, direction=(0.8, 0.9, 1.1), projection="orthographic"
