@@ -219,6 +219,9 @@ class AsyncView:
                     future_shot.set_result(shot)
             elif kind == "role":  # a handover: either way, onto the shared view
                 self.role, self._follows = event["role"], True
+                if event.get("camera"):  # where the shared view is: the next camera follows on
+                    self.camera = CameraState(**event["camera"])
+                    self._seq = max(self._seq, self.camera.seq)
                 self._note(event)
             elif kind == "participants":
                 self.participants = event["participants"]

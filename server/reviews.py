@@ -269,8 +269,11 @@ class ReviewSession:
                 if target.conn.viewport != self.shared.viewport:
                     self.shared.set_viewport(target.conn.viewport)
             log.info("review %s: %s handed the presenter role to %s", self.id, participant.name, target.name)
-            participant.conn.event({"type": "role", "role": "follower", "presenter": target.id})
-            target.conn.event({"type": "role", "role": "presenter", "presenter": target.id})
+            # With the shared view's camera: its seq is the one the new presenter's next
+            # camera must exceed, before any frame of the shared view has reached it.
+            shared = {"camera": self.shared.camera.model_dump()} if self.shared is not None else {}
+            participant.conn.event({"type": "role", "role": "follower", "presenter": target.id, **shared})
+            target.conn.event({"type": "role", "role": "presenter", "presenter": target.id, **shared})
             self.broadcast_participants()
 
 

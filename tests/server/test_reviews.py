@@ -188,8 +188,12 @@ def test_pointer_annotations_views_and_handover(
             await bo.send(type="handover", to=ana.welcome["review"]["participant"])
             assert "only the presenter" in (await bo.event("error"))["message"]
             await ana.send(type="handover", to=bo.welcome["review"]["participant"])
-            assert (await bo.event("role"))["role"] == "presenter"
-            assert (await ana.event("role"))["role"] == "follower"
+            role = await bo.event("role")
+            assert role["role"] == "presenter"
+            # Where the shared view is (the jump above), with its seq: the new
+            # presenter's next camera must be newer, before any of its frames arrive.
+            assert role["camera"]["seq"] > 4 and role["camera"]["eye"] == orbit(model, 5)["eye"]
+            assert (await ana.event("role"))["camera"] == role["camera"]
             await bo.send(type="camera", seq=10, **orbit(model, 7))
             assert (await ana.final(10)).camera_seq == 10
 

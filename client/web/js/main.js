@@ -269,6 +269,15 @@ class App {
     this.showProjection(this.camera);
   }
 
+  // A handover says where the shared view is: this page's next camera must be newer
+  // than it, even before a frame of the shared view has arrived.
+  takeSharedCamera(message) {
+    if (!message) return;
+    this.camera = new Camera(message);
+    this.seq = Math.max(this.seq, message.seq);
+    this.showProjection(this.camera);
+  }
+
   setCamera(message) {
     this.camera = new Camera(message);
     this.cameraChanged();

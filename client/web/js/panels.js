@@ -582,6 +582,7 @@ export class Panels {
           this.review.role = m.role;
           this.review.presenter = m.presenter;
           this.app.role = m.role;
+          this.app.takeSharedCamera(m.camera);
           this.notice(m.role === "presenter" ? "You are the presenter now." : "You follow the presenter.");
           if (m.role !== "presenter") this.setFollow(true);
           this.#showRole(m.role);
