@@ -21,10 +21,11 @@ UPLOAD_CHUNK = 1 << 20
 
 
 class VastrayError(Exception):
-    """An error the server reported: its HTTP status, code and message."""
+    """An error the server reported: its HTTP status, code and message. Status 0: not
+    an HTTP answer (an error over the stream, a failed job, a refusal by the client)."""
 
     def __init__(self, status: int, code: str, message: str) -> None:
-        super().__init__(f"{message} ({status} {code})")
+        super().__init__(f"{message} ({status} {code})" if status else f"{message} ({code})")
         self.status = status
         self.code = code
         self.message = message

@@ -175,6 +175,7 @@ def test_scripts_present_and_follow_a_review(url: str) -> None:
         with pytest.raises(VastrayError) as err:  # (looking back) not while following
             follower.set_camera(target, eye)
         assert err.value.code == "following" and follower.camera.eye == pytest.approx(eye)
+        assert str(err.value).endswith("follow(False) first (following)")
         # On its own, it moves where it likes; the presenter's view stays put.
         follower.follow(False)
         own = follower.set_camera(target, eye)
