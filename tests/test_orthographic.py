@@ -118,9 +118,9 @@ def plant(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, native.Scene]
 @pytest.mark.parametrize("shading", ["headlight", "sun"])
 def test_full_detail_out_of_core_equals_in_core(plant: tuple[Path, native.Scene], shading: str) -> None:
     """At PoE 0 an orthographic frame of the built model is the decoded scene's, pixel for
-    pixel, oblique (packets walk in the signs' order) and along an axis (a zero direction
-    component: single rays); tiles outside the model's outline are background without
-    a walk, as the batch query finds."""
+    pixel, oblique and along an axis (zero direction components), its packets walked in
+    the order of the direction's signs; tiles outside the model's outline are background
+    without a walk, as the batch query finds."""
     path, scene = plant
     with OutOfCoreModel(path, make_cache(1 << 30)) as model:
         for view in ("iso", "front", "top"):
@@ -161,6 +161,57 @@ def test_level_of_detail_follows_the_pixel_width_at_every_depth(plant: tuple[Pat
         )
         voxel_share = [f.stats.voxel_hits / max(1, int((f.prim != -1).sum())) for f in (near_p, far_p)]
         assert voxel_share[1] > 1.2 * voxel_share[0]
+
+
+# 27 unit cubes, centres 2 apart (faces at +-0.5, +-1.5, +-2.5), seen along the axes from
+# eyes in their face planes: the middle row and column of rays (33 x 33 pixels) start
+# exactly in planes the kd-tree splits at, with exactly zero direction components.
+CUBE_VIEWS = {
+    "front": ((0.5, 0.5, 10.0), (0.5, 0.5, 0.0), (0.0, 1.0, 0.0)),
+    "along-x": ((-10.0, 1.5, -0.5), (0.0, 1.5, -0.5), (0.0, 0.0, 1.0)),
+    "top": ((2.5, 10.0, -1.5), (2.5, 0.0, -1.5), (0.0, 0.0, -1.0)),
+}
+
+
+@pytest.mark.parametrize("quantized", [True, False])
+@pytest.mark.parametrize("name", CUBE_VIEWS.keys())
+def test_axis_views_of_cubes_with_exact_coordinates(tmp_path: Path, name: str, quantized: bool) -> None:
+    """Packets of parallel rays with zero direction components (out of core) answer as
+    single rays do and as the decoded scene does, at full detail and at PoE 2, rays in
+    split planes included (the planes at the faces themselves where splits are not
+    quantized); the hits are the brute force's."""
+    cubes = [
+        trimesh.creation.box(extents=(1.0, 1.0, 1.0), transform=trimesh.transformations.translation_matrix(c))
+        for c in np.array(np.meshgrid(*[(-2.0, 0.0, 2.0)] * 3)).reshape(3, -1).T
+    ]
+    mesh = trimesh.util.concatenate(cubes)
+    mesh.export(tmp_path / "cubes.ply")
+    path = tmp_path / "cubes.vast"
+    build_model(str(tmp_path / "cubes.ply"), path, BuildOptions(quantized_splits=quantized))
+    with ModelFile(path) as f:
+        scene = f.to_scene()
+    assert scene.build_stats["nodes"] > 50  # split planes at the faces
+    eye, target, up = CUBE_VIEWS[name]
+    camera = Camera(eye, target, up, 40.0, 33, 33, "orthographic")
+    origins, directions = camera.primary_rays(scene.bounds)
+    assert (directions == 0).sum() == 2 * 33 * 33  # two zero components in every ray
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.uint32)
+    ref = native.reference_intersect(vertices, faces, origins, directions)
+    with OutOfCoreModel(path, make_cache(64 << 20)) as model:
+        for poe in (0.0, 2.0):
+            single = model.render_complete(camera, pixels_of_error=poe, packets=1)
+            for packets in (4, 16):
+                frame = model.render_complete(camera, pixels_of_error=poe, packets=packets)
+                np.testing.assert_array_equal(frame.prim, single.prim)
+                np.testing.assert_array_equal(frame.depth, single.depth)
+        full = model.render_complete(camera, pixels_of_error=0.0, packets=16)
+    decoded = render_camera(scene, camera, packets=16)
+    np.testing.assert_array_equal(full.prim, decoded.prim)
+    np.testing.assert_array_equal(full.depth, decoded.depth)
+    hit = ref["prim"] >= 0
+    assert 0.1 < hit.mean() < 0.9
+    assert (full.prim.ravel()[hit] >= 0).all()
+    np.testing.assert_allclose(full.depth.ravel()[hit], ref["t"][hit], rtol=1e-6)
 
 
 def test_the_cli_renders_orthographic_views(plant: tuple[Path, native.Scene], tmp_path: Path) -> None:

@@ -178,12 +178,12 @@ public:
 
     // An orthographic camera's packet: one direction from origins apart, walked in the
     // order of the direction's signs (as shadow packets are), each ray with the single
-    // ray's answer. A direction along a plane of the axes (a front or top view) has a zero
-    // component, which that walk does not take: its rays go singly.
+    // ray's answer. A zero component (a front or top view) is taken too: every lane then
+    // keeps to its origin's side of that axis's planes, and an origin on a plane sends the
+    // lane into both children, lane by lane as a single ray goes (PacketSplit's flips).
     template <int N>
     bool trace_parallel_packet(Lane& lane, const Ray* rays, Hit* hits) const {
         const Vec3f& d = rays[0].ray.dir;
-        if (d.x == 0.0f || d.y == 0.0f || d.z == 0.0f) return false;
         std::uint32_t skip[N];
         for (int k = 0; k < N; ++k) {
             const Vec3f& dk = rays[k].ray.dir;

@@ -585,8 +585,8 @@ inline void trace_packets(LodLane& lane, const Box3f& root_cell, const LodRay* c
 // The packet walk. Rays (and skips, hits) are in lane order; `mask` selects the rays to
 // trace. Closest hit (AnyHit = false): hits[i] gets ray i's hit. Any hit: returns the
 // rays that hit something (a triangle other than skip[i], or a voxel); hits are scratch.
-// SharedOrigin needs a shared origin; SharedSigns non-zero direction components whose
-// signs agree across the packet; both a shared cone slope.
+// SharedOrigin needs a shared origin; SharedSigns direction components whose signs
+// (sign bits, for a zero) agree across the packet; both a shared cone slope.
 template <int N, bool AnyHit, LodPacketOrder Order>
 inline std::uint32_t lod_packet_walk(LodLane& lane, const Box3f& root_cell, const LodRay* rays, LodHit* hits,
                                      const std::uint32_t* skip, std::uint32_t mask) {
