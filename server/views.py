@@ -100,8 +100,8 @@ def halton(index: int, base: int) -> float:
 
 def jittered(camera: Camera, dx: float, dy: float) -> Camera:
     """The camera with its image moved by (dx, dy) pixels: the target shifts in the
-    image plane. (The image plane also tilts by about a pixel's angle, an error of the
-    order of a pixel squared: invisible.)"""
+    image plane (an orthographic camera's eye with it). (A perspective image plane also
+    tilts by about a pixel's angle, an error of the order of a pixel squared: invisible.)"""
     if dx == 0.0 and dy == 0.0:
         return camera
     eye = np.asarray(camera.eye)

@@ -24,6 +24,17 @@ Y_UP: Vec3 = (0.0, 1.0, 0.0)
 PROJECTIONS = ("perspective", "orthographic")
 
 
+def check_projection(projection: str) -> None:
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {', '.join(PROJECTIONS)}, not {projection!r}")
+
+
+def box_corners(lo: Sequence[float], hi: Sequence[float]) -> np.ndarray:
+    """The eight corners of the box [lo, hi], (8, 3) float64."""
+    xs, ys, zs = zip(lo, hi, strict=True)
+    return np.array([[x, y, z] for x in xs for y in ys for z in zs], dtype=np.float64)
+
+
 def unit_up(up: Sequence[float]) -> Vec3:
     """`up` as a unit vector; a clear error for a zero or non-finite one."""
     a = np.asarray(up, dtype=np.float64)
@@ -93,8 +104,7 @@ class Camera:
 
     def to_native(self) -> native.Camera:
         """The camera the native renderers take (validated there)."""
-        if self.projection not in PROJECTIONS:
-            raise ValueError(f"projection must be one of {', '.join(PROJECTIONS)}, not {self.projection!r}")
+        check_projection(self.projection)
         eye, target, up = list(self.eye), list(self.target), list(self.up)
         return native.Camera(eye, target, up, self.fov, self.width, self.height, self.orthographic)
 
@@ -113,11 +123,7 @@ class Camera:
         if bounds is None:
             return e
         w = self.basis()[0]
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
-        behind = float(np.max((e - corners) @ w))
+        behind = float(np.max((e - box_corners(*bounds)) @ w))
         if behind > 0 and math.isfinite(behind):
             return e - w * 2.0 ** math.ceil(math.log2(behind))
         return e
@@ -202,8 +208,7 @@ def frame_bounds(
     margin (for an orthographic camera, until the image spans them at every depth)."""
     if view not in STANDARD_VIEWS:
         raise ValueError(f"no standard view {view!r} (one of {', '.join(STANDARD_VIEWS)})")
-    if projection not in PROJECTIONS:
-        raise ValueError(f"projection must be one of {', '.join(PROJECTIONS)}, not {projection!r}")
+    check_projection(projection)
     if direction is None:
         direction = turn_from_y(STANDARD_VIEWS[view][0], up)
         if view != "iso":  # (the three-quarter view keeps the up as given)
@@ -225,16 +230,13 @@ def frame_bounds(
     v = np.cross(u, w)
     tan_v = math.tan(math.radians(fov) / 2.0)
     tan_h = tan_v * width / height
-    corners = np.array(
-        [[x, y, z] for x in (lo_a[0], hi_a[0]) for y in (lo_a[1], hi_a[1]) for z in (lo_a[2], hi_a[2])]
-    )
-    p = corners - centre
+    p = box_corners(lo_a, hi_a) - centre
     # A corner at camera-space (x, y, z) is visible from distance D when
-    # |x| <= tan_h * (D + z) and |y| <= tan_v * (D + z).
+    # |x| <= tan_h * (D + z) and |y| <= tan_v * (D + z); orthographic, the image spans
+    # D tan at every depth, so only |x| and |y| count.
     needed = np.maximum(np.abs(p @ u) / tan_h, np.abs(p @ v) / tan_v)
     if projection != "orthographic":
         needed -= p @ w
-    # (Orthographic: the image spans D tan at every depth, so only |x| and |y| count.)
     extent = float(np.linalg.norm(hi_a - lo_a))
     distance = max(1.08 * float(needed.max()), 1e-9 * max(1.0, float(np.abs(centre).max())), 0.5 * extent)
     eye = centre + d * distance
