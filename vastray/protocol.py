@@ -388,4 +388,10 @@ def parse_client_message(data: str | bytes) -> Any:
     except ValidationError as exc:
         from vastray.schemas import describe_errors
 
-        raise ValueError(f"{kind}: {describe_errors(exc.errors())}") from None
+        # The union's tag leads each error's location, and the message names the type
+        # already: "camera: projection: ...", not "camera: camera.projection: ...".
+        errors = []
+        for e in exc.errors():
+            loc = tuple(e.get("loc", ()))
+            errors.append({**e, "loc": loc[1:]} if loc[:1] == (kind,) else e)
+        raise ValueError(f"{kind}: {describe_errors(errors)}") from None

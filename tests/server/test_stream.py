@@ -242,7 +242,11 @@ def test_bad_messages_get_errors_and_the_others_are_served(
         ({"type": "camera", "seq": 1, "eye": [1, 2, 3], "target": [0, 0, 0], "fov": 180}, "fov"),
         ({"type": "viewport", "width": 100000, "height": 100000}, "width"),
         ({"type": "viewport", "width": 10000, "height": 10000}, "pixel budget"),
-        ({"type": "quality", "shading": "phong"}, "shading"),
+        (
+            {"type": "camera", "seq": 1, "eye": [1, 2, 3], "target": [0, 0, 0], "projection": "fisheye"},
+            "camera: projection: Input should be 'perspective' or 'orthographic'",
+        ),
+        ({"type": "quality", "shading": "phong"}, "quality: shading: "),
         ({"type": "ack"}, "frame"),
     ]
 
