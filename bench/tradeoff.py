@@ -1,6 +1,6 @@
 """Speed against accuracy of out-of-core LOD rendering (paper 000 §6, Fig. 7).
 
-Five studies, each printed as a table and written to bench/results/tradeoff-*.{md,csv}
+Six studies, each printed as a table and written to bench/results/tradeoff-*.{md,csv}
 with plots (tradeoff-*.png); every table names the kernels' ISA path (native.isa()):
 
   poe      For fixed views of one model: pixels of error (PoE) in {0, .5, 1, 2, 3, 8, 32}
@@ -22,6 +22,9 @@ with plots (tradeoff-*.png); every table names the kernels' ISA path (native.isa
   ooc      Out of core for real: a model file several times the cache budget along a
            scripted camera path; resident memory per frame against the budget, frame
            times, and whether frames keep coming while data loads.
+  projection  Orthographic against perspective views of the same framing (iso, front,
+           top) at PoE 2: frame time with single rays and 4x4 packets, per pixel that hits
+           the model (the orthographic framing is tighter), and the working set.
 
 Disk reads are real: before every run that measures loading, the model file's pages are
 dropped from the OS page cache with posix_fadvise(POSIX_FADV_DONTNEED) (bench/build.py's
@@ -55,7 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, machine_info, markdown_table, pyplot, save_figure
 
 from vastray import native
-from vastray.camera import Camera, frame_bounds
+from vastray.camera import PROJECTIONS, Camera, frame_bounds
 from vastray.modelfile import ModelFile
 from vastray.outofcore import CacheTooSmallError, OutOfCoreModel, make_cache
 from vastray.pagecache import drop_page_cache  # fsync, then POSIX_FADV_DONTNEED
@@ -398,6 +401,55 @@ def study_ooc(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[str,
 # ----------------------------------------------------------------------------- output
 
 
+def study_projection(args: argparse.Namespace) -> list[dict[str, Any]]:
+    rows = []
+    for size in args.projection_sizes:
+        path = built_model(size)
+        with OutOfCoreModel(path, make_cache(args.cache, 2)) as model:
+            for view in ("iso", "front", "top"):
+                for projection in PROJECTIONS:
+                    camera = frame_bounds(*model.bounds, width=args.image[0], height=args.image[1], view=view,
+                                          projection=projection)  # fmt: skip
+                    done = model.render_complete(camera, pixels_of_error=2.0)
+                    hit = int((done.prim != -1).sum())
+                    row: dict[str, Any] = {
+                        "triangles": model.triangle_count,
+                        "view": view,
+                        "projection": projection,
+                        "hit_pixels_pct": 100 * hit / done.prim.size,
+                        "working_set_mib": done.stats.working_set_bytes / 2**20,
+                        "voxel_hits_pct": 100 * done.stats.voxel_hits / max(1, hit),
+                    }
+                    for packets in (1, 16):
+                        ms, _ = frame_ms(model, camera, args.repeats, pixels_of_error=2.0, packets=packets)
+                        row[f"p{packets}_ms"] = ms
+                        row[f"p{packets}_ns_per_hit_pixel"] = ms * 1e6 / max(1, hit)
+                    rows.append(row)
+                    done_ms = row["p16_ms"]
+                    print(f"  {size:.0e} {view} {projection}: {done_ms:.0f} ms", file=sys.stderr, flush=True)
+    return rows
+
+
+def plot_projection(rows: list[dict[str, Any]], out: Path) -> None:
+    plt = pyplot()
+    if plt is None:
+        return
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    first = [r for r in rows if r["projection"] == PROJECTIONS[0]]
+    labels = [f"1e{round(math.log10(r['triangles']))} {r['view']}" for r in first]
+    x = np.arange(len(labels))
+    for k, projection in enumerate(PROJECTIONS):
+        sel = [r for r in rows if r["projection"] == projection]
+        axes[0].bar(x + 0.4 * k, [r["p16_ms"] for r in sel], 0.4, label=projection)
+        axes[1].bar(x + 0.4 * k, [r["p16_ns_per_hit_pixel"] for r in sel], 0.4, label=projection)
+    for ax, ylabel in zip(axes, ("frame time, 4x4 packets (ms)", "ns per pixel that hits"), strict=True):
+        ax.set_xticks(x + 0.2, labels, rotation=30)
+        ax.set_ylabel(ylabel)
+        ax.legend()
+    save_figure(fig, "Orthographic against perspective views (PoE 2)", out / "tradeoff-projection.png")
+
+
 def write(name: str, rows: list[dict[str, Any]], out: Path, note: str = "") -> str:
     out.mkdir(parents=True, exist_ok=True)
     headers = list(rows[0].keys())
@@ -475,7 +527,7 @@ def plot_ooc(rows: list[dict[str, Any]], summary: dict[str, Any], out: Path) -> 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--studies", default="poe,size,pixels,loading,ooc")
+    p.add_argument("--studies", default="poe,size,pixels,loading,ooc,projection")
     p.add_argument("--isa", default=None, help="force the kernels' ISA path (VASTRAY_ISA)")
     p.add_argument("--incore-max", type=float, default=1e7, help="largest model also rendered in core")
     p.add_argument("--pixels-size", type=float, default=1e8, help="model of the pixels study")
@@ -484,6 +536,7 @@ def main() -> int:
     p.add_argument("--study-size", type=float, default=1e6, help="model size of the PoE study")
     p.add_argument("--sizes", default="1e5,1e6,1e7,1e8", help="model sizes of the size study")
     p.add_argument("--loading-size", type=float, default=1e7)
+    p.add_argument("--projection-sizes", default="1e7,1e8", help="model sizes of the projection study")
     p.add_argument("--budgets", default="256M,512M,1G")
     p.add_argument("--ooc-size", type=float, default=1e8)
     p.add_argument("--ooc-cache", default="512M")
@@ -496,6 +549,7 @@ def main() -> int:
     if args.isa:
         os.environ["VASTRAY_ISA"] = args.isa  # read when the first ray is traced
     args.sizes = [int(float(s)) for s in args.sizes.split(",")]
+    args.projection_sizes = [int(float(s)) for s in args.projection_sizes.split(",")]
     args.study_size, args.loading_size, args.ooc_size = (
         int(args.study_size),
         int(args.loading_size),
@@ -566,6 +620,19 @@ def main() -> int:
         print(note)
         print(write("tradeoff-ooc", rows, args.out, note))
         plot_ooc(rows, summary, args.out)
+    if "projection" in studies:
+        rows = study_projection(args)
+        print(
+            write(
+                "tradeoff-projection",
+                rows,
+                args.out,
+                f"{header}; plant, {args.image[0]}x{args.image[1]} headlight at PoE 2, each view framed "
+                "whole (frame_bounds), complete; p1: single rays, p16: 4x4 packets (median of "
+                f"{args.repeats} frames); *_ns_per_hit_pixel: frame time over the pixels that show the model",
+            )
+        )
+        plot_projection(rows, args.out)
     return 0
 
 
