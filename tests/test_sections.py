@@ -145,8 +145,9 @@ def test_picks_see_what_frames_see() -> None:
     assert cut.prim[2] == -1 and plain.prim[2] >= 0
 
 
+@pytest.mark.parametrize("projection", ["perspective", "orthographic"])
 def test_full_detail_out_of_core_equals_in_core_with_sections(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, projection: str
 ) -> None:
     # The out-of-core walk is the kd-tree's, so its in-core twin is the reference: the wide
     # BVH's primary rays may take the other of two triangles hit at the same float t (on
@@ -161,9 +162,8 @@ def test_full_detail_out_of_core_equals_in_core_with_sections(
     lo, hi = (np.array(b) for b in incore.bounds)
     centre = (lo + hi) / 2
     planes = [(-1.0, 0.0, 0.0, float(centre[0])), (0.0, 0.0, 1.0, -float(centre[2] - 0.2 * (hi - lo)[2]))]
-    camera = Camera(
-        eye=tuple(centre + (hi - lo) * [0.9, 0.6, 1.1]), target=tuple(centre), width=96, height=72
-    )
+    eye = tuple(centre + (hi - lo) * [0.9, 0.6, 1.1])
+    camera = Camera(eye=eye, target=tuple(centre), width=96, height=72, projection=projection)
     with OutOfCoreModel(path, make_cache(64 << 20)) as model:
         for shading in ("headlight", "sun", "ao"):
             params = render_params(shading=shading, pixels_of_error=0.0, ao_samples=4, sections=planes)
@@ -180,9 +180,13 @@ def test_full_detail_out_of_core_equals_in_core_with_sections(
         np.testing.assert_allclose(a.position, b.position, rtol=0, atol=1e-4 * np.linalg.norm(hi - lo))
 
 
-@pytest.mark.parametrize("interleave_from", ["", "0"], ids=["one-at-a-time", "in-flight"])
+@pytest.mark.parametrize(
+    ("interleave_from", "projection"),
+    [("", "perspective"), ("0", "perspective"), ("", "orthographic")],
+    ids=["one-at-a-time", "in-flight", "orthographic"],
+)
 def test_packets_give_the_single_rays_frames_with_sections(
-    tmp_path: Path, interleave_from: str, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, interleave_from: str, projection: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Sectioned rays go in packets too: each lane keeps its own segment on the kept side,
     and a ray with nothing left enters no cell. 2x2 and 4x4 packets, one at a time or in
@@ -198,9 +202,8 @@ def test_packets_give_the_single_rays_frames_with_sections(
     centre = (lo + hi) / 2
     cut = [(-1.0, 0.0, 0.0, float(centre[0])), (0.0, 0.0, 1.0, -float(centre[2] - 0.2 * (hi - lo)[2]))]
     everything = [(1.0, 0.0, 0.0, -float(hi[0]) - 1.0)]  # keeps x beyond the model
-    camera = Camera(
-        eye=tuple(centre + (hi - lo) * [0.9, 0.6, 1.1]), target=tuple(centre), width=96, height=72
-    )
+    eye = tuple(centre + (hi - lo) * [0.9, 0.6, 1.1])
+    camera = Camera(eye=eye, target=tuple(centre), width=96, height=72, projection=projection)
     with OutOfCoreModel(path, make_cache(64 << 20)) as model:
         renderers = [
             ("in core", lambda **f: incore.render(camera, render_params(**f))),
