@@ -425,8 +425,7 @@ def study_projection(args: argparse.Namespace) -> list[dict[str, Any]]:
                         row[f"p{packets}_ms"] = ms
                         row[f"p{packets}_ns_per_hit_pixel"] = ms * 1e6 / max(1, hit)
                     rows.append(row)
-                    done_ms = row["p16_ms"]
-                    print(f"  {size:.0e} {view} {projection}: {done_ms:.0f} ms", file=sys.stderr, flush=True)
+                    print(f"  {size:.0e} {view} {projection}: {row['p16_ms']:.0f} ms", file=sys.stderr)
     return rows
 
 

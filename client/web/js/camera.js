@@ -115,12 +115,13 @@ export function viewDirection(up = [0, 1, 0]) {
 // The standard views of CAD viewers: which way the eye lies from the model, and the
 // screen's up, for a y-up model (front: +z, right: +x; the top view has the front at
 // the bottom of the screen, the bottom view at the top). They turn with the model's up.
+// In the order of the keys 1-7 and of vastray/camera.py's table.
 export const STANDARD_VIEWS = {
   iso: { dir: [1, 0.7, 1.3], up: [0, 1, 0] },
   front: { dir: [0, 0, 1], up: [0, 1, 0] },
   back: { dir: [0, 0, -1], up: [0, 1, 0] },
-  right: { dir: [1, 0, 0], up: [0, 1, 0] },
   left: { dir: [-1, 0, 0], up: [0, 1, 0] },
+  right: { dir: [1, 0, 0], up: [0, 1, 0] },
   top: { dir: [0, 1, 0], up: [0, 0, -1] },
   bottom: { dir: [0, -1, 0], up: [0, 0, 1] },
 };

@@ -1,13 +1,15 @@
 // Mouse, touch and keyboard to camera moves, the way CAD viewers do it:
 //   left drag: orbit   right drag / shift+left / two fingers: pan   wheel / pinch: zoom
 //   W A S D: fly, Q E: down and up (shift: faster)   F: frame the model
-//   1-7: the standard views (iso, front, back, left, right, top, bottom)
+//   1-7: the standard views (iso, front, back, left, right, top, bottom)   O: projection
 // A click (press and release without moving) is a pick, not a move.
+
+import { STANDARD_VIEWS } from "./camera.js";
 
 const ORBIT_PER_PIXEL = 0.006; // radians
 const CLICK_SLOP = 4; // pixels a press may move and still be a click
 const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
-const VIEW_KEYS = ["iso", "front", "back", "left", "right", "top", "bottom"]; // keys 1-7
+const VIEW_KEYS = Object.keys(STANDARD_VIEWS); // keys 1-7
 
 export class Controls {
   constructor(element, { camera, onChange, onClick, onFrameAll, onToggleProjection, flySpeed }) {

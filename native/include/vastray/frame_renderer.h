@@ -162,6 +162,7 @@ public:
         cull_tiles_ = !box.empty() && all_finite(box.lo) && all_finite(box.hi);
         if (cull_tiles_) {
             const Vec3d eye(origin(backend_.primary_ray(0, 0)));
+            first_origin_ = eye;
             const double margin = 1e-4 * length(Vec3d(box.hi) - Vec3d(box.lo));
             for (int k = 0; k < 8; ++k) {
                 const Vec3d c((k & 1) ? box.hi.x : box.lo.x, (k & 2) ? box.hi.y : box.lo.y,
@@ -403,7 +404,6 @@ private:
     // in the rectangle of its corner rays' origins, so they lie in the prism those rays
     // span, and start behind the whole box (CameraRays::start_behind).
     bool may_enter_model_parallel(const Ray (&corner_rays)[4], const Vec3d& dir) const {
-        const Vec3d first(origin(backend_.primary_ray(0, 0)));  // where to_corner_ starts
         Vec3d orgs[4], middle(0, 0, 0);
         for (int i = 0; i < 4; ++i) {
             orgs[i] = Vec3d(origin(corner_rays[i]));
@@ -415,7 +415,7 @@ private:
             if (!(len > 0)) continue;  // a tile one pixel wide or high: no side here
             side = side / len;
             if (dot(side, middle - orgs[i]) < 0) side = -side;  // pointing into the prism
-            const Vec3d shift = orgs[i] - first;
+            const Vec3d shift = orgs[i] - first_origin_;
             bool beyond = true;
             for (int k = 0; k < 8 && beyond; ++k) beyond = dot(side, to_corner_[k] - shift) < -corner_slack_[k];
             if (beyond) return false;
@@ -702,7 +702,8 @@ private:
     Vec3f sun_, up_;
     bool cull_tiles_ = false;   // the model's box is finite: may_enter_model can test tiles against it
     bool orthographic_ = false;  // parallel primary rays (may_enter_model_parallel)
-    Vec3d to_corner_[8];        // the box's corners from the eye
+    Vec3d first_origin_;        // pixel (0, 0)'s ray origin: the eye, in perspective
+    Vec3d to_corner_[8];        // the box's corners from first_origin_
     double corner_slack_[8];    // how far beyond a side each must lie for the test to count it
 };
 
