@@ -18,13 +18,18 @@ CELLS = 6  # each box face is CELLS x CELLS quads
 
 
 def box_obj(lo: tuple[float, float, float], side: float, first_vertex: int) -> tuple[list[str], int]:
-    """A closed box of 6 * CELLS^2 * 2 triangles as OBJ lines."""
+    """A closed box of 6 * CELLS^2 * 2 triangles as OBJ lines, wound counter-clockwise
+    seen from outside (a solid, so a section plane through it shows a cap)."""
     lines, faces = [], []
     n = first_vertex
     grid = np.linspace(0.0, side, CELLS + 1)
     for axis in range(3):
         for high in (0.0, side):
             u, v = [a for a in range(3) if a != axis]
+            # The triangles below turn from +v towards +u: their normal is (e_v x e_u),
+            # which is -1 or +1 times e_axis; outward is + on the high face.
+            if np.cross(np.eye(3)[v], np.eye(3)[u])[axis] * (1 if high else -1) < 0:
+                u, v = v, u
             base = n
             for i in grid:
                 for j in grid:
