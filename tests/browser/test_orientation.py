@@ -3,7 +3,7 @@ the up picker turns the view upright at once, saves the setting with the model (
 page holds the API key), and after a reload the page opens it upright, showing what the
 y-up original shows. The standard views (buttons and keys 1-7) look at the named side,
 upright about the model's up; the projection button (and O) switches to parallel rays
-and back, and marks stay on what they mark."""
+and back, marks stay on what they mark, and W zooms a parallel view."""
 
 from __future__ import annotations
 
@@ -154,8 +154,22 @@ def test_the_projection_button_switches_to_parallel_rays(
     # A standard view keeps the projection; O switches back.
     v.page.click("#standard-views button[data-view=front]")
     n = v.wait_final(n, v.js("window.vastray.seq"))
-    assert v.shown()["camera"]["projection"] == "orthographic"
+    front = v.shown()["camera"]
+    assert front["projection"] == "orthographic"
+    # W zooms an orthographic view (flying along parallel rays would show nothing new):
+    # the eye comes nearer the target, which stays, and the picture changes.
+    before = v.thumbnail()
     v.page.locator("#view").focus()
+    v.page.keyboard.down("w")
+    v.page.wait_for_timeout(500)
+    v.page.keyboard.up("w")
+    n = v.wait_final(n, v.js("window.vastray.seq"))
+    zoomed = v.shown()["camera"]
+    np.testing.assert_allclose(zoomed["target"], front["target"], rtol=1e-12)
+    np.testing.assert_allclose(direction(zoomed), direction(front), atol=1e-9)
+    distance = lambda c: np.linalg.norm(np.subtract(c["target"], c["eye"]))  # noqa: E731
+    assert distance(zoomed) < 0.95 * distance(front)
+    assert np.abs(v.thumbnail() - before).mean() > 2
     v.page.keyboard.press("o")
     v.wait_final(n, v.js("window.vastray.seq"))
     assert v.shown()["camera"]["projection"] == "perspective" and button.inner_text() == "Persp"

@@ -1,6 +1,7 @@
 // Mouse, touch and keyboard to camera moves, the way CAD viewers do it:
 //   left drag: orbit   right drag / shift+left / two fingers: pan   wheel / pinch: zoom
-//   W A S D: fly, Q E: down and up (shift: faster)   F: frame the model
+//   W A S D: fly, Q E: down and up (shift: faster; W S zoom an orthographic view)
+//   F: frame the model
 //   1-7: the standard views (iso, front, back, left, right, top, bottom)   O: projection
 // A click (press and release without moving) is a pick, not a move.
 
@@ -9,6 +10,7 @@ import { STANDARD_VIEWS } from "./camera.js";
 const ORBIT_PER_PIXEL = 0.006; // radians
 const CLICK_SLOP = 4; // pixels a press may move and still be a click
 const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
+const ORTHO_ZOOM_RATE = Math.LN2; // W in an orthographic view: half the extent per second
 const VIEW_KEYS = Object.keys(STANDARD_VIEWS); // keys 1-7
 
 export class Controls {
@@ -144,7 +146,14 @@ export class Controls {
     const forward = (k.has("w") ? 1 : 0) - (k.has("s") ? 1 : 0);
     const sideways = (k.has("d") ? 1 : 0) - (k.has("a") ? 1 : 0);
     const upwards = (k.has("e") ? 1 : 0) - (k.has("q") ? 1 : 0);
-    this.camera().fly(forward, sideways, upwards, this.flySpeed() * dt * (this.shift ? 4 : 1));
+    const faster = this.shift ? 4 : 1;
+    const camera = this.camera();
+    if (camera.orthographic && forward) {
+      // Flying along parallel rays would show nothing new: W and S zoom instead, as in
+      // CAD viewers, at a rate that is the same at every scale.
+      camera.zoom(Math.exp(-forward * ORTHO_ZOOM_RATE * dt * faster));
+    }
+    camera.fly(camera.orthographic ? 0 : forward, sideways, upwards, this.flySpeed() * dt * faster);
     this.onChange();
     requestAnimationFrame(() => this.#fly());
   }
