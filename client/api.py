@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit, urlunsplit
@@ -15,7 +15,29 @@ import httpx
 
 from vastray.client.frames import Frame, decode_image
 from vastray.protocol import CameraState
-from vastray.schemas import TERMINAL_JOB_STATES, JobInfo, ModelInfo, PartInfo, PickHit, TokenInfo, UploadInfo
+from vastray.schemas import (
+    TERMINAL_JOB_STATES,
+    JobInfo,
+    ModelInfo,
+    PartInfo,
+    PickHit,
+    SectionPlane,
+    TokenInfo,
+    UploadInfo,
+)
+
+# A section plane as the client takes it: (nx, ny, nz, offset), or a SectionPlane
+# (`vastray.schemas.section_box` gives six); geometry where n . p + offset < 0 is cut.
+Plane = tuple[float, float, float, float] | SectionPlane
+
+
+def section_planes(planes: Sequence[Plane]) -> list[dict[str, Any]]:
+    """Planes as the API's `sections` field and the stream's message take them."""
+    out: list[dict[str, Any]] = []
+    for p in planes:
+        out.append(p.model_dump() if isinstance(p, SectionPlane) else {"normal": [*p[:3]], "offset": p[3]})
+    return out
+
 
 UPLOAD_CHUNK = 1 << 20
 
@@ -323,14 +345,17 @@ class AsyncClient:
         *,
         camera: dict[str, Any] | None = None,
         quality: dict[str, Any] | None = None,
+        sections: Sequence[Plane] | None = None,
         format: str = "png",
         jpeg_quality: int = 90,
         timeout: float = 60.0,
     ) -> Frame:
-        """One image, full detail unless `quality` says otherwise."""
+        """One image, full detail unless `quality` says otherwise, cut by `sections`."""
         body: dict[str, Any] = {"format": format, "jpeg_quality": jpeg_quality, "timeout": timeout}
         if camera is not None:
             body["camera"] = camera
+        if sections is not None:
+            body["sections"] = section_planes(sections)
         if quality is not None:
             body["quality"] = quality
         r = await self._http.post(f"/api/models/{_model_id(model)}/render", json=body, timeout=timeout + 30)
@@ -347,14 +372,18 @@ class AsyncClient:
         points: list[tuple[float, float]] | None = None,
         camera: dict[str, Any] | None = None,
         rays: list[tuple[tuple[float, float, float], tuple[float, float, float]]] | None = None,
+        sections: Sequence[Plane] | None = None,
         timeout: float = 10.0,
     ) -> list[PickHit]:
-        """Full-detail hits of image points of `camera`, or of world rays."""
+        """Full-detail hits of image points of `camera`, or of world rays, in the model
+        as `sections` cut it."""
         body: dict[str, Any] = {"timeout": timeout}
         if points is not None:
             body.update(points=points, camera=camera or {})
         if rays is not None:
             body["rays"] = rays
+        if sections is not None:
+            body["sections"] = section_planes(sections)
         out = await self._json("POST", f"/api/models/{_model_id(model)}/pick", json=body)
         return [PickHit(**h) for h in out["hits"]]
 

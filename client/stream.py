@@ -24,10 +24,10 @@ from typing import Any
 import websockets
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from vastray.client.api import VastrayError
+from vastray.client.api import Plane, VastrayError, section_planes
 from vastray.client.frames import Frame, decode_frame
 from vastray.protocol import FLAG_SCREENSHOT, PROTOCOL_VERSION, CameraState, StreamQuality, Viewport
-from vastray.schemas import PickHit
+from vastray.schemas import PickHit, section_box
 
 log = logging.getLogger("vastray.client")
 
@@ -339,11 +339,19 @@ class AsyncView:
         """shading, pixels_of_error, ao_samples, jpeg_quality, refine, target_fps, ..."""
         await self._send({"type": "quality", **changes})
 
-    async def set_sections(self, planes: list[tuple[float, float, float, float]]) -> None:
-        """Section planes (nx, ny, nz, offset): geometry where n . p + offset < 0 is cut."""
-        await self._send(
-            {"type": "sections", "planes": [{"normal": list(p[:3]), "offset": p[3]} for p in planes]}
-        )
+    async def set_sections(self, planes: Sequence[Plane]) -> None:
+        """Section planes, (nx, ny, nz, offset) or SectionPlane: geometry where
+        n . p + offset < 0 is cut; they replace the view's planes."""
+        await self._send({"type": "sections", "planes": section_planes(planes)})
+
+    async def set_section_box(
+        self, bounds: tuple[tuple[float, float, float], tuple[float, float, float]], margin: float = 0.0
+    ) -> None:
+        """Keeps only what lies within `bounds` (lo, hi), grown by `margin` on every side:
+        a part's bounds (`PartInfo.bounds`) cut the view down to that part and what is
+        around it. Six section planes (`vastray.schemas.section_box`); they replace the
+        view's planes, and `set_sections([])` takes them away."""
+        await self.set_sections(section_box(*bounds, margin=margin))
 
     async def set_highlight(self, parts: list[int]) -> None:
         """Parts to highlight (ids of the model's part table; `Client.parts` lists them)."""

@@ -77,6 +77,7 @@ class View:
     set_viewport = _blocking(AsyncView.set_viewport)
     set_quality = _blocking(AsyncView.set_quality)
     set_sections = _blocking(AsyncView.set_sections)
+    set_section_box = _blocking(AsyncView.set_section_box)
     set_highlight = _blocking(AsyncView.set_highlight)
     next_frame = _blocking(AsyncView.next_frame)
     final = _blocking(AsyncView.final)

@@ -9,6 +9,7 @@ so a setting is spelled one way in the Python API, the CLI, REST and the protoco
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
@@ -142,6 +143,22 @@ class SectionPlane(Strict):
 
     def native(self) -> tuple[float, float, float, float]:
         return (*self.normal, self.offset)
+
+
+def section_box(lo: Sequence[float], hi: Sequence[float], margin: float = 0.0) -> list[SectionPlane]:
+    """A section box, as CAD viewers have it: six planes that keep what lies within the
+    box [lo - margin, hi + margin] (say a part's bounds, `PartInfo.bounds`) and cut away
+    everything else. Each plane faces into the box, so its own offset moves that face."""
+    if len(lo) != 3 or len(hi) != 3 or not all(a <= b for a, b in zip(lo, hi, strict=True)):
+        raise ValueError(f"a section box needs lo <= hi on every axis, not {lo} and {hi}")
+    planes = []
+    for axis in range(3):
+        inward = [0.0, 0.0, 0.0]
+        inward[axis] = 1.0  # keeps p[axis] >= lo[axis] - margin
+        planes.append(SectionPlane(normal=tuple(inward), offset=-(lo[axis] - margin)))
+        inward[axis] = -1.0  # keeps p[axis] <= hi[axis] + margin
+        planes.append(SectionPlane(normal=tuple(inward), offset=hi[axis] + margin))
+    return planes
 
 
 def native_sections(planes: list[SectionPlane]) -> list[tuple[float, float, float, float]]:

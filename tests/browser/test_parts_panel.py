@@ -1,7 +1,8 @@
 """The parts panel in a real Chromium: a model built from an OBJ with three named
 objects lists them; a search highlights what it finds (the server's frames turn those
 parts blue, the others grey); a click on a part frames it; a pick names
-the part under the cursor. Its own server: the session's server shows the other browser
+the part under the cursor; a section box keeps a highlighted part and what lies around
+it. Its own server: the session's server shows the other browser
 tests' model by default, and must not get a newer one."""
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ import numpy as np
 import pytest
 from assembly import BOXES, build_assembly
 from serverproc import ServerProcess
+
+from vastray.schemas import section_box
 
 
 @pytest.fixture(scope="module")
@@ -28,15 +31,22 @@ def assembly_model(parts_server: ServerProcess, tmp_path_factory: pytest.TempPat
         return build_assembly(api, tmp_path_factory.mktemp("obj"))
 
 
-def test_parts_are_listed_searched_highlighted_framed_and_picked(
-    open_viewer: Any, parts_server: ServerProcess, assembly_model: dict[str, Any], tmp_path: Path
-) -> None:
-    v = open_viewer(f"{parts_server.open_url}&model={assembly_model['id']}")
+def open_parts_panel(open_viewer: Any, server: ServerProcess, model: dict[str, Any]) -> tuple[Any, int]:
+    """The page on the assembly, looking along -z at the three boxes in a row, with the
+    parts panel open; and the frames drawn so far."""
+    v = open_viewer(f"{server.open_url}&model={model['id']}")
     n = v.wait_final()
     v.js("() => window.vastray.setCamera({eye: [2.5, 0.5, 9], target: [2.5, 0.5, 0.5], up: [0, 1, 0]})")
     n = v.wait_final(n, v.js("window.vastray.seq"))
+    v.page.locator("#parts-panel summary").click()
+    return v, n
+
+
+def test_parts_are_listed_searched_highlighted_framed_and_picked(
+    open_viewer: Any, parts_server: ServerProcess, assembly_model: dict[str, Any], tmp_path: Path
+) -> None:
+    v, n = open_parts_panel(open_viewer, parts_server, assembly_model)
     page = v.page
-    page.locator("#parts-panel summary").click()
     texts = page.locator("#parts li").all_inner_texts()
     assert len(texts) == len(BOXES) and all(any(t.startswith(b[0]) for t in texts) for b in BOXES), texts
     shown = v.shown()
@@ -83,3 +93,52 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     v.click_image(w / 2, h / 2)
     v.wait_for("() => document.getElementById('pick').innerText.includes('part:')")
     assert "part: Valve" in page.locator("#pick").inner_text()
+
+
+def test_a_section_box_keeps_the_highlighted_part(
+    open_viewer: Any, parts_server: ServerProcess, assembly_model: dict[str, Any]
+) -> None:
+    """'box' in the section panel keeps only what lies in a box around the highlighted
+    parts (grown by a fiftieth of its diagonal): six planes, as vastray.schemas.section_box
+    makes them; the parts beside it leave the picture and the picks, the highlighted one
+    stays as it was; a seventh plane is refused with a notice."""
+    v, n = open_parts_panel(open_viewer, parts_server, assembly_model)
+    page = v.page
+    page.locator("#parts-search").fill("impeller")
+    v.wait_for("() => document.querySelectorAll('#parts li').length === 1")
+    v.wait_final(n)
+    n = v.frames()
+    shown = v.shown()
+    w = int(shown["width"])
+    row = [(x + 0.5, shown["height"] / 2) for x in range(0, w, -(-w // 60))]  # a pick takes 64 points at most
+    hits = v.stream_pick(row)
+    impeller = [p for p, h in zip(row, hits, strict=True) if h["hit"] and 1.99 <= h["position"][0] <= 3.01]
+    beside = [p for p, h in zip(row, hits, strict=True) if h["hit"] and not 1.5 <= h["position"][0] <= 3.5]
+    assert len(impeller) >= 3 and len(beside) >= 3, (len(impeller), len(beside))
+    before_impeller, before_beside = v.pixels_at(impeller), v.pixels_at(beside)
+
+    page.locator("#sections-panel summary").click()
+    page.locator("#section-box").click()
+    v.wait_for("() => window.vastray.panels.sections.length === 6")
+    sent = [m for m in v.sent if m["type"] == "sections"][-1]["planes"]
+    impeller_part = next(p for p in v.js("window.vastray.panels.parts") if p["name"] == "pump impeller")
+    lo, hi = impeller_part["bounds"]
+    expected = section_box(lo, hi, margin=float(np.linalg.norm(np.subtract(hi, lo))) / 50)
+    assert len(sent) == 6
+    for got, want in zip(sent, expected, strict=True):
+        np.testing.assert_allclose(got["normal"], want.normal)
+        assert got["offset"] == pytest.approx(want.offset) and got["enabled"]
+    v.wait_final(n)
+    v.shot("section-box")
+    assert not any(h["hit"] for h in v.stream_pick(beside)), "the parts beside the box should be cut away"
+    assert [h["hit"] for h in v.stream_pick(impeller)] == [True] * len(impeller)
+    changed = lambda a, b: np.abs(a - b).sum(axis=-1) > 40  # noqa: E731
+    assert changed(v.pixels_at(impeller), before_impeller).mean() < 0.2
+    assert changed(v.pixels_at(beside), before_beside).mean() > 0.8
+    # Six planes are all a view takes: "+ X" says so and sends nothing.
+    sends = len(v.sent)
+    page.get_by_role("button", name="add a section plane across X").click()
+    v.wait_for("() => document.body.innerText.includes('section planes at most')")
+    assert v.js("window.vastray.panels.sections.length") == 6
+    assert not [m for m in v.sent[sends:] if m["type"] == "sections"]
+    assert not v.errors_received()

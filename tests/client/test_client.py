@@ -18,7 +18,7 @@ from serverproc import ServerProcess
 
 from vastray import scenes
 from vastray.client import AsyncClient, BuildFailedError, Client, VastrayError
-from vastray.schemas import JobInfo
+from vastray.schemas import JobInfo, section_box
 
 
 @pytest.fixture(scope="module")
@@ -259,6 +259,55 @@ def test_orthographic_views(url: str) -> None:
         assert follower.camera.projection == "orthographic" and np.array_equal(got.image, parallel.image)
         lead.set_camera(target, eye)  # keeps the projection it has
         assert lead.camera.projection == "orthographic"
+
+
+def test_a_section_box_keeps_what_lies_in_it(url: str) -> None:
+    """A section box (`vastray.schemas.section_box`: six planes) in REST picks and
+    renders and in a live view (`set_section_box`): every full-detail hit lies in the
+    box, where the whole model hides it from outside; the live view's picks equal the
+    REST ones with the same planes, and taking the planes away gives the whole model."""
+    with Client(url) as vr:
+        model = vr.model(vr.wait(vr.build("scene:plant:20000:5")).model_id)
+        lo, hi = (np.asarray(b) for b in model.bounds)
+        size = float(np.linalg.norm(hi - lo))
+        bounds = (tuple(lo + 0.2 * (hi - lo)), tuple(lo + 0.8 * (hi - lo)))  # the middle of the plant
+        box_lo, box_hi = (np.asarray(b) for b in bounds)
+        margin = 0.01 * size
+        box = section_box(*bounds, margin=margin)
+        assert len(box) == 6
+        centre = (box_lo + box_hi) / 2
+        away = np.array([0.8, 0.5, 0.6]) / np.linalg.norm([0.8, 0.5, 0.6])
+        eye, target = tuple((centre + 2.0 * size * away).tolist()), tuple(centre.tolist())
+        camera = {"width": 160, "height": 120, "eye": eye, "target": target, "fov": 16}
+        points = [(x + 0.5, y + 0.5) for y in range(2, 120, 4) for x in range(2, 160, 4)]
+        whole = vr.pick(model, points=points, camera=camera)
+        cut = vr.pick(model, points=points, camera=camera, sections=box)
+        slack = margin + 1e-4 * size
+
+        def in_box(h: Any) -> bool:
+            p = np.asarray(h.position)
+            return bool(np.all(p >= box_lo - slack) and np.all(p <= box_hi + slack))
+
+        assert sum(h.hit for h in cut) >= 20 and all(in_box(h) for h in cut if h.hit)
+        assert sum(h.hit and not in_box(h) for h in whole) >= 20, "the whole model should hide the inside"
+        rendered = vr.render(model, camera=camera, sections=box)
+        plain = vr.render(model, camera=camera)
+        assert np.abs(rendered.image.astype(int) - plain.image.astype(int)).mean() > 3
+
+        # The stream picks 64 points at a time: those that hit in the box, and those that
+        # hit outside it without the box.
+        chosen = [i for i, h in enumerate(cut) if h.hit][:32]
+        chosen += [i for i, h in enumerate(whole) if h.hit and not in_box(h) and i not in chosen][:32]
+        sample = [points[i] for i in chosen]
+        with vr.view(model, viewport=(160, 120)) as view:
+            view.set_section_box(bounds, margin=margin)
+            view.final(view.set_camera(eye, target, fov=16))
+            assert [h.triangle for h in view.pick(sample)] == [cut[i].triangle for i in chosen]
+            view.set_sections([])
+            view.final(view.set_camera(eye, target, fov=16))
+            assert [h.triangle for h in view.pick(sample)] == [whole[i].triangle for i in chosen]
+    with pytest.raises(ValueError, match="lo <= hi"):
+        section_box((0, 0, 1), (1, 1, 0))
 
 
 def wait_until(condition: Any, timeout: float = 30.0) -> None:

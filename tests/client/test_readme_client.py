@@ -1,6 +1,6 @@
 """The README's example of the Python client runs as written against a real server:
 upload, build with a progress bar, render, a streamed camera path, the final frame, a
-pick, parts and a highlight, a lossless screenshot."""
+pick, parts and a highlight, a lossless screenshot, a section box."""
 
 from __future__ import annotations
 
@@ -37,4 +37,6 @@ def test_the_client_example_runs_as_written(
     assert len(path) == 30 and all(0 < w <= 1280 and abs(w * 720 - h * 1280) <= 1280 for w, h in sizes), sizes
     still = np.asarray(Image.open(tmp_path / "still.png").convert("RGB"))
     assert still.shape == (720, 1280, 3) and still.std() > 0  # the model, not a blank frame
-    assert (tmp_path / "valves.png").is_file()
+    valves = np.asarray(Image.open(tmp_path / "valves.png").convert("RGB")).astype(int)
+    boxed = np.asarray(Image.open(tmp_path / "boxed.png").convert("RGB")).astype(int)
+    assert boxed.shape == valves.shape and np.abs(boxed - valves).mean() > 1  # the box cut something away

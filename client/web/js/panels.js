@@ -30,6 +30,8 @@ function bytes(n) {
   return `${n.toFixed(i ? 1 : 0)} ${units[i]}`;
 }
 
+const MAX_SECTIONS = 6; // as the protocol's "sections" message takes (docs/PROTOCOL.md)
+
 export class Panels {
   constructor(app) {
     this.app = app;
@@ -41,6 +43,7 @@ export class Panels {
     this.views = [];
     this.sections = [];
     this.parts = [];
+    this.partBounds = new Map(); // part id -> [lo, hi], of the parts the page has been sent
     this.highlight = new Set();
     this.pointerMode = false;
     this.#wireQuality();
@@ -117,6 +120,7 @@ export class Panels {
     $("accuracy").textContent = "–";
     delete $("accuracy").dataset.measured;
     this.parts = w.model.parts ?? [];
+    this.partBounds = new Map(this.parts.map((p) => [p.id, p.bounds]));
     // The welcome lists the first parts of a big table; searches then go to the server.
     this.partsTotal = Math.max(w.model.part_count ?? 0, this.parts.length);
     // What the view highlights now; the parts panel sends what the page wants if it differs
@@ -275,6 +279,7 @@ export class Panels {
       button.addEventListener("click", () => this.addSection(Number(button.dataset.axis)));
     }
     $("section-view").addEventListener("click", () => this.addSection(null));
+    $("section-box").addEventListener("click", () => this.addSectionBox());
     $("review-start").addEventListener("click", () => this.#startReview());
     $("review-copy").addEventListener("click", () => this.#copyLink());
     const rename = () => {
@@ -328,6 +333,7 @@ export class Panels {
       return;  // (the connection state shows why)
     }
     if (seq !== this.partSearch) return;
+    for (const p of found.parts) this.partBounds.set(p.id, p.bounds);
     this.#showParts(found.parts, found.total, found.parts.map((p) => p.id));
   }
 
@@ -378,6 +384,10 @@ export class Panels {
   addSection(axis) {
     const m = this.app.model;
     if (!m || !this.app.camera) return;
+    if (this.sections.length >= MAX_SECTIONS) {
+      this.app.notice(`A view takes ${MAX_SECTIONS} section planes at most: remove one first.`);
+      return;
+    }
     const [lo, hi] = m.bounds;
     let normal, offset;
     if (axis === null) {
@@ -392,6 +402,31 @@ export class Panels {
       offset = (lo[axis] + hi[axis]) / 2;
     }
     this.sections.push({ normal, offset, enabled: true });
+    this.#renderSections();
+    this.#sendSections();
+  }
+
+  // A section box, as CAD viewers have it: six planes that keep what lies within the
+  // bounds of the parts the view highlights (the whole model when it highlights none),
+  // grown by a fiftieth of their diagonal on every side so the parts' own faces stay
+  // whole. It replaces the planes there were (a view takes six at most); each face's
+  // slider then moves that face. vastray.schemas.section_box is the same box.
+  addSectionBox() {
+    const m = this.app.model;
+    if (!m) return;
+    const ids = (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
+    const boxes = ids.map((id) => this.partBounds.get(id)).filter(Boolean);
+    const lo = [0, 1, 2].map((k) => Math.min(...(boxes.length ? boxes : [m.bounds]).map((b) => b[0][k])));
+    const hi = [0, 1, 2].map((k) => Math.max(...(boxes.length ? boxes : [m.bounds]).map((b) => b[1][k])));
+    const margin = Math.hypot(...lo.map((v, k) => hi[k] - v)) / 50;
+    this.sections = [];
+    for (let k = 0; k < 3; k++) {
+      const inward = [0, 0, 0];
+      inward[k] = 1; // keeps p[k] >= lo[k] - margin
+      this.sections.push({ normal: [...inward], offset: -(lo[k] - margin), enabled: true });
+      inward[k] = -1; // keeps p[k] <= hi[k] + margin
+      this.sections.push({ normal: inward, offset: hi[k] + margin, enabled: true });
+    }
     this.#renderSections();
     this.#sendSections();
   }
