@@ -129,6 +129,17 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     expected = float(np.linalg.norm(np.subtract(again[0]["position"], again[1]["position"])))
     assert shown_distance == pytest.approx(expected, rel=1e-6)
     assert float(text.splitlines()[0].removeprefix("A → B: ")) == pytest.approx(expected, rel=1e-3)
+    # Its components along the axes, and the angle between the two surfaces' planes.
+    delta = np.subtract(again[1]["position"], again[0]["position"])
+    shown_delta = [float(x) for x in v.page.locator("#pick").get_attribute("data-delta").split(",")]
+    np.testing.assert_allclose(shown_delta, delta, rtol=1e-6, atol=1e-9 * expected)
+    components = text.splitlines()[1].split(", ")
+    assert [c[:3] for c in components] == ["Δx ", "Δy ", "Δz "], components
+    np.testing.assert_allclose([float(c[3:]) for c in components], delta, rtol=1e-3, atol=1e-3 * expected)
+    normals = [np.asarray(h["normal"]) / np.linalg.norm(h["normal"]) for h in again]
+    angle = np.degrees(np.arccos(min(1.0, abs(float(normals[0] @ normals[1])))))
+    assert float(v.page.locator("#pick").get_attribute("data-angle")) == pytest.approx(angle, abs=1e-6)
+    assert text.splitlines()[2] == f"angle between the surfaces: {angle:.1f}°"
     # Overlays: two markers and the measured line, pinned to the points as the camera moves.
     overlay = v.page.locator("#overlay")
     assert overlay.locator("circle.marker").count() == 2 and overlay.locator("line").count() == 1

@@ -8,7 +8,7 @@ import { Controls } from "./controls.js";
 import { Overlay } from "./overlay.js";
 import { Panels } from "./panels.js";
 import { Stream } from "./stream.js";
-import { distance, length, sub } from "./vec.js";
+import { length, sub } from "./vec.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -502,7 +502,7 @@ class App {
     }
     if (this.picks.length >= 2) this.picks = [];
     this.picks.push(hit);
-    const measured = this.picks.length === 2 ? distance(this.picks[0].position, this.picks[1].position) : null;
+    const measured = this.picks.length === 2 ? this.picks : null;
     this.panels.pickResult(hit, elapsed, result.milliseconds, measured);
     this.redrawOverlay();
   }

@@ -2,7 +2,7 @@
 // parts, section planes, and the review (participants, follow, pointer, annotations,
 // saved views).
 
-import { formatLength } from "./vec.js";
+import { dot, formatLength, length, normalize, sub } from "./vec.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -234,11 +234,14 @@ export class Panels {
 
   // -- pick & measure ----------------------------------------------------------------------
 
+  // `measured`: the two picks A and B once there are two. As CAD viewers measure: the
+  // distance, its components along the axes, and the angle between the two surfaces
+  // (between their planes, 0-90°, since a triangle's normal may face either way).
   pickResult(hit, elapsedMs = 0, serverMs = 0, measured = null) {
     const out = $("pick");
     if (!hit) {
       out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
-      delete out.dataset.distance;
+      for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
       return;
     }
     const p = hit.position.map((x) => formatLength(x)).join(", ");
@@ -246,10 +249,18 @@ export class Panels {
     let text = `point: ${p}\ndistance from the eye: ${formatLength(hit.distance)}\ntriangle: ${hit.triangle}${part}` +
       `\nanswered in ${elapsedMs.toFixed(0)} ms (server ${serverMs.toFixed(0)} ms)`;
     if (measured != null) {
-      text = `A → B: ${formatLength(measured)}\n` + text;
-      out.dataset.distance = String(measured);
+      const [a, b] = measured;
+      const d = sub(b.position, a.position);
+      const cos = Math.min(1, Math.abs(dot(normalize(a.normal), normalize(b.normal))));
+      const angle = (Math.acos(cos) * 180) / Math.PI;
+      text = `A → B: ${formatLength(length(d))}\n` +
+        `Δx ${formatLength(d[0])}, Δy ${formatLength(d[1])}, Δz ${formatLength(d[2])}\n` +
+        `angle between the surfaces: ${angle.toFixed(1)}°\n` + text;
+      out.dataset.distance = String(length(d));
+      out.dataset.delta = d.join(",");
+      out.dataset.angle = String(angle);
     } else {
-      delete out.dataset.distance;
+      for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
     }
     out.textContent = text;
     this.lastPick = hit;
