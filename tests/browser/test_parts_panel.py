@@ -135,6 +135,19 @@ def test_a_section_box_keeps_the_highlighted_part(
     changed = lambda a, b: np.abs(a - b).sum(axis=-1) > 40  # noqa: E731
     assert changed(v.pixels_at(impeller), before_impeller).mean() < 0.2
     assert changed(v.pixels_at(beside), before_beside).mean() > 0.8
+    # The overlay draws the box's twelve edges around the impeller, clear of the parts
+    # beside it, and no box once a plane is off.
+    box = v.page.locator("#overlay path.section-box")
+    assert box.count() == 1 and box.get_attribute("d").count("M") == 12
+    r = box.bounding_box()
+    assert r is not None
+    inside = lambda x, y: r["x"] <= x <= r["x"] + r["width"] and r["y"] <= y <= r["y"] + r["height"]  # noqa: E731
+    assert all(inside(*v.page_point(x, y)) for x, y in impeller)
+    assert not any(inside(*v.page_point(x, y)) for x, y in beside)
+    page.get_by_role("checkbox", name="X plane on").first.uncheck()
+    v.wait_for("() => !document.querySelector('#overlay path.section-box')")
+    page.get_by_role("checkbox", name="X plane on").first.check()
+    v.wait_for("() => document.querySelector('#overlay path.section-box') !== null")
     # Six planes are all a view takes: "+ X" says so and sends nothing.
     sends = len(v.sent)
     page.get_by_role("button", name="add a section plane across X").click()

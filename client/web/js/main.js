@@ -8,7 +8,7 @@ import { Controls } from "./controls.js";
 import { Overlay } from "./overlay.js";
 import { Panels } from "./panels.js";
 import { Stream } from "./stream.js";
-import { length, sub } from "./vec.js";
+import { dot, length, lerp, normalize, sub } from "./vec.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -435,7 +435,22 @@ class App {
       if (!q) return null;
       return { x: (rect.x + (q.x * rect.width) / rect.fullW) * css, y: (rect.y + (q.y * rect.height) / rect.fullH) * css };
     };
-    this.overlay.draw(project, { picks: this.picks, pointers: this.panels.pointers, notes: this.panels.annotations });
+    // A segment in view: in perspective, the part in front of the eye (by a thousandth of
+    // the target's distance), so a box the eye is in still shows its edges ahead.
+    const w = normalize(sub(camera.target, camera.eye));
+    const near = 1e-3 * camera.distance;
+    const segment = (a, b) => {
+      if (!camera.orthographic) {
+        const za = dot(sub(a, camera.eye), w) - near, zb = dot(sub(b, camera.eye), w) - near;
+        if (za < 0 && zb < 0) return null;
+        if (za < 0) a = lerp(a, b, za / (za - zb));
+        else if (zb < 0) b = lerp(a, b, za / (za - zb));
+      }
+      const p = project(a), q = project(b);
+      return p && q ? [p, q] : null;
+    };
+    this.overlay.draw(project, { picks: this.picks, pointers: this.panels.pointers, notes: this.panels.annotations,
+      box: this.panels.sectionBox(), segment });
   }
 
   #resize() {

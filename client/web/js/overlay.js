@@ -23,8 +23,11 @@ export class Overlay {
     return e;
   }
 
-  draw(project, { picks = [], pointers = new Map(), notes = [] }) {
+  // `box`: [lo, hi] of a section box, drawn as its twelve edges; `segment(a, b)`: the
+  // screen points of the part of a 3D segment in view, or null.
+  draw(project, { picks = [], pointers = new Map(), notes = [], box = null, segment = null }) {
     this.clear();
+    if (box && segment) this.#box(box, segment);
     const points = picks.map((p) => project(p.position));
     if (points.length === 2 && points[0] && points[1]) {
       const [a, b] = points;
@@ -50,5 +53,18 @@ export class Overlay {
       this.#el("rect", { x: p.x - 5, y: p.y - 5, width: 10, height: 10, class: "note" });
       this.#el("text", { x: p.x + 8, y: p.y + 4, class: "note-label" }, note.text);
     }
+  }
+
+  #box([lo, hi], segment) {
+    const corner = (i) => [0, 1, 2].map((k) => ((i >> k) & 1 ? hi[k] : lo[k]));
+    let d = "";
+    for (let i = 0; i < 8; i++) {
+      for (const bit of [1, 2, 4]) {
+        if (i & bit) continue; // each edge once: from the corner with that coordinate low
+        const s = segment(corner(i), corner(i | bit));
+        if (s) d += `M${s[0].x} ${s[0].y}L${s[1].x} ${s[1].y}`;
+      }
+    }
+    if (d) this.#el("path", { d, class: "section-box" });
   }
 }

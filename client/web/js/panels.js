@@ -442,6 +442,21 @@ export class Panels {
     this.#sendSections();
   }
 
+  // [lo, hi] when the enabled planes keep a box (one facing each way along each axis,
+  // whichever way they were made), else null: the overlay draws its edges.
+  sectionBox() {
+    const on = this.sections.filter((p) => p.enabled);
+    if (on.length !== 6) return null;
+    const lo = [null, null, null], hi = [null, null, null];
+    for (const { normal, offset } of on) {
+      const k = normal.findIndex((v) => Math.abs(v) === 1);
+      if (k < 0) return null;
+      if (normal[k] > 0) lo[k] = -offset; // keeps p[k] >= -offset
+      else hi[k] = offset; // keeps p[k] <= offset
+    }
+    return lo.every((v, k) => v !== null && hi[k] !== null && v <= hi[k]) ? [lo, hi] : null;
+  }
+
   // Whether a plane's normal points away from the camera (it then cuts the near side).
   #facesAway(normal) {
     const cam = this.app.camera;
@@ -450,6 +465,7 @@ export class Panels {
 
   #sendSections() {
     this.app.stream?.send({ type: "sections", planes: this.sections });
+    this.app.redrawOverlay(); // a section box's edges move with its sliders at once
   }
 
   #renderSections() {
