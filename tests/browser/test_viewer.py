@@ -1,7 +1,7 @@
 """The viewer page in a real Chromium against a real server: it loads and shows the
 model, dragging moves the view (moving frames, then a final one), quality settings take
-effect, picks measure distances at full detail, screenshots download, and a section
-plane hides the geometry on its cut side."""
+effect, picks measure distances at full detail, a double click turns the view to a point,
+screenshots download, and a section plane hides the geometry on its cut side."""
 
 from __future__ import annotations
 
@@ -153,6 +153,63 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     # A click on nothing says so.
     v.click_image(2.5, 2.5)
     v.wait_for("() => document.getElementById('pick').innerText.startsWith('Nothing there')")
+
+
+def test_a_double_click_turns_the_view_to_a_point(
+    open_viewer: Any, server: Any, api: Any, model: dict[str, Any]
+) -> None:
+    """A double click turns the view to the full-detail point under it (the eye stays, so
+    the centre ray meets the same point), without a pick of its own or a measurement's;
+    an orthographic view slides over instead (it keeps its direction); a click still
+    picks; a double click on nothing says so."""
+    v = open_viewer(server.open_url)
+    n = v.wait_final()
+    size = float(np.linalg.norm(np.subtract(model["bounds"][1], model["bounds"][0])))
+    for projection in ("perspective", "orthographic"):
+        if projection == "orthographic":
+            v.page.click("#projection")
+            n = v.wait_final(n, v.js("window.vastray.seq"))
+        shown = v.shown()
+        points = grid(shown, 9, 7, margin=0.25)
+        hits = pick(api, model["id"], shown, points)
+        # A hit away from the centre, so that the view has to turn.
+        x, y = max(
+            (p for p, h in zip(points, hits, strict=True) if h["hit"]),
+            key=lambda p: np.hypot(p[0] - shown["width"] / 2, p[1] - shown["height"] / 2),
+        )
+        before = shown["camera"]
+        sends = len(v.sent)
+        v.page.mouse.dblclick(*v.page_point(x, y))
+        v.wait_for("() => !window.vastray.picking.size")
+        asked = [m for m in v.sent[sends:] if m["type"] == "pick"]
+        assert len(asked) == 1, "a double click asks for one pick, not a click's too"
+        m = asked[0]
+        asked_view = {**shown, "camera": m["camera"], "width": m["width"], "height": m["height"]}
+        point = pick(api, model["id"], asked_view, m["points"])[0]["position"]
+        v.wait_for(
+            "([p, tol]) => Math.hypot(...window.vastray.camera.target.map((v, i) => v - p[i])) < tol",
+            [point, 1e-9 * size],
+        )
+        n = v.wait_final(n, v.js("window.vastray.seq"))
+        after = v.shown()["camera"]
+        np.testing.assert_allclose(after["target"], point, atol=1e-9 * size)
+        if projection == "perspective":
+            np.testing.assert_allclose(after["eye"], before["eye"], rtol=1e-12)
+        else:
+            offset = lambda c: np.subtract(c["eye"], c["target"])  # noqa: E731
+            np.testing.assert_allclose(offset(after), offset(before), atol=1e-9 * size)
+        w, h = v.shown()["width"], v.shown()["height"]
+        centre = v.stream_pick([(w / 2, h / 2)])[0]
+        assert centre["hit"], projection
+        assert np.linalg.norm(np.subtract(centre["position"], point)) < 1e-3 * size, projection
+        assert v.js("window.vastray.picks.length") == 0
+        assert v.page.locator("#pick").inner_text().startswith("Click")
+    # A click still picks (once the double click's wait is over).
+    v.click_image(v.shown()["width"] / 2, v.shown()["height"] / 2)
+    v.wait_for("() => document.getElementById('pick').innerText.startsWith('point:')")
+    v.page.mouse.dblclick(*v.page_point(2.5, 2.5))
+    v.wait_for("() => document.body.innerText.includes('Nothing there to turn to')")
+    assert not v.errors_received()
 
 
 def test_a_screenshot_downloads_the_finished_view(

@@ -3,24 +3,32 @@
 //   W A S D: fly, Q E: down and up (shift: faster; W S zoom an orthographic view)
 //   F: frame the model
 //   1-7: the standard views (iso, front, back, left, right, top, bottom)   O: projection
-// A click (press and release without moving) is a pick, not a move.
+// A click (press and release without moving) is a pick, not a move; a double click
+// turns the view to the point under it, which orbits and zooms then go about.
 
 import { STANDARD_VIEWS } from "./camera.js";
 
 const ORBIT_PER_PIXEL = 0.006; // radians
 const CLICK_SLOP = 4; // pixels a press may move and still be a click
 const WHEEL_STEP = 1.0015; // zoom factor per wheel pixel
+const DOUBLE_CLICK_MS = 300;
+const DOUBLE_CLICK_SLOP = 6; // pixels between the two clicks of a double click
 const ORTHO_ZOOM_RATE = Math.LN2; // W in an orthographic view: half the extent per second
 const VIEW_KEYS = Object.keys(STANDARD_VIEWS); // keys 1-7
 
 export class Controls {
-  constructor(element, { camera, onChange, onClick, onFrameAll, onToggleProjection, flySpeed }) {
+  constructor(element, { camera, onChange, onClick, onDoubleClick, onFrameAll, onToggleProjection, flySpeed }) {
+    // onClick(point), onDoubleClick(point): at CSS pixels of the element. With
+    // onDoubleClick, a click waits DOUBLE_CLICK_MS for a second one, so that a double
+    // click is not two clicks as well.
     // onFrameAll(view): the model framed from a standard view (F: "iso")
     // onToggleProjection(): perspective <-> orthographic (O)
     this.element = element;
     this.camera = camera; // () => the Camera to change
     this.onChange = onChange;
     this.onClick = onClick;
+    this.onDoubleClick = onDoubleClick;
+    this.pendingClick = null;
     this.onFrameAll = onFrameAll;
     this.onToggleProjection = onToggleProjection;
     this.flySpeed = flySpeed; // () => world units per second
@@ -92,8 +100,29 @@ export class Controls {
     // A click of the main button (or a tap) picks; a right click is the start of a pan.
     if (press && !press.moved && press.button === 0 && e.type === "pointerup") {
       const { left, top } = this.size();
-      this.onClick({ x: e.clientX - left, y: e.clientY - top, button: press.button, shift: e.shiftKey });
+      this.#clicked({ x: e.clientX - left, y: e.clientY - top, button: press.button, shift: e.shiftKey });
     }
+  }
+
+  #clicked(at) {
+    if (!this.onDoubleClick) {
+      this.onClick(at);
+      return;
+    }
+    const first = this.pendingClick;
+    this.pendingClick = null;
+    if (first) clearTimeout(first.timer);
+    if (first && performance.now() - first.time < DOUBLE_CLICK_MS &&
+        Math.hypot(at.x - first.at.x, at.y - first.at.y) <= DOUBLE_CLICK_SLOP) {
+      this.onDoubleClick(at);
+      return;
+    }
+    if (first) this.onClick(first.at); // a click elsewhere: the one before was a click
+    const timer = setTimeout(() => {
+      this.pendingClick = null;
+      this.onClick(at);
+    }, DOUBLE_CLICK_MS);
+    this.pendingClick = { at, time: performance.now(), timer };
   }
 
   #wheel(e) {

@@ -8,7 +8,7 @@ import { Controls } from "./controls.js";
 import { Overlay } from "./overlay.js";
 import { Panels } from "./panels.js";
 import { Stream } from "./stream.js";
-import { dot, length, lerp, normalize, sub } from "./vec.js";
+import { add, dot, length, lerp, normalize, sub } from "./vec.js";
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -66,6 +66,7 @@ class App {
       camera: () => this.#driveCamera(),
       onChange: () => this.cameraChanged(),
       onClick: (p) => this.#click(p),
+      onDoubleClick: (p) => this.#click(p, "focus"),
       onFrameAll: (name) => this.frameAll(name),
       onToggleProjection: () => this.toggleProjection(),
       flySpeed: () => (this.model ? 0.25 * length(sub(this.model.bounds[1], this.model.bounds[0])) : 1),
@@ -308,6 +309,31 @@ class App {
     this.setProjection(this.camera?.orthographic ? "perspective" : "orthographic");
   }
 
+  // Turns the view to a point (a double click), so that orbits and zooms go about it, as
+  // CAD viewers focus: in perspective the eye stays and the view turns, in 0.3 s; an
+  // orthographic view keeps its direction and slides over, since its rays start behind
+  // the model and the point may lie behind the eye. Any other move of the camera stops
+  // the turn where it is.
+  focus(point) {
+    if (!this.model) return;
+    const camera = this.#driveCamera();
+    const from = [...camera.target];
+    const offset = sub(camera.eye, camera.target);
+    const start = performance.now();
+    let expected = [camera.eye, camera.target]; // (moves give the camera new arrays)
+    const step = () => {
+      if (this.camera !== camera || camera.eye !== expected[0] || camera.target !== expected[1]) return;
+      const t = Math.min(1, (performance.now() - start) / 300);
+      const eased = t * t * (3 - 2 * t);
+      camera.target = lerp(from, point, eased);
+      if (camera.orthographic) camera.eye = add(camera.target, offset);
+      expected = [camera.eye, camera.target];
+      this.cameraChanged();
+      if (t < 1) requestAnimationFrame(step);
+    };
+    step();
+  }
+
   // The projection button says which projection the view (or the picture shown) has.
   showProjection(camera) {
     const b = $("projection");
@@ -480,7 +506,9 @@ class App {
 
   // -- picking and measuring -------------------------------------------------------------
 
-  #click({ x, y }) {
+  // A pick at a point of the canvas (CSS pixels), answered as `mode` says: "measure" or
+  // "pointer" (a click, as the review panel's pointer box says), "focus" (a double click).
+  #click({ x, y }, mode = this.panels.pointerMode ? "pointer" : "measure") {
     if (!this.shown || !this.stream) return;
     const { camera, rect, header } = this.shown;
     // CSS pixels -> canvas pixels -> pixels of the frame's full-size image.
@@ -491,7 +519,7 @@ class App {
     this.pickCounter = (this.pickCounter ?? 0) + 1;
     const id = `p${this.pickCounter}`;
     // Each answer is handled as its click asked, whatever was clicked since.
-    this.picking.set(id, { mode: this.panels.pointerMode ? "pointer" : "measure", at: performance.now() });
+    this.picking.set(id, { mode, at: performance.now() });
     const sent = this.stream.send({ type: "pick", id, points: [[px, py]],
       camera: camera.toMessage(header.cameraSeq), width: Math.round(rect.fullW), height: Math.round(rect.fullH) });
     if (!sent) {
@@ -506,6 +534,11 @@ class App {
     this.picking.delete(result.id);
     const hit = result.hits[0];
     const elapsed = performance.now() - asked.at;
+    if (asked.mode === "focus") {
+      if (hit?.hit) this.focus(hit.position);
+      else this.notice("Nothing there to turn to: double-click the model.");
+      return;
+    }
     if (asked.mode === "pointer") {
       // Pointing at nothing takes one's pointer away.
       this.stream.send({ type: "pointer", position: hit?.hit ? hit.position : null });
