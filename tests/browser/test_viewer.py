@@ -1,5 +1,6 @@
 """The viewer page in a real Chromium against a real server: it loads and shows the
-model, dragging moves the view (moving frames, then a final one), quality settings take
+model, dragging moves the view (moving frames, then a final one), the wheel zooms towards
+the cursor, quality settings take
 effect, picks measure distances at full detail, a double click turns the view to a point,
 screenshots download, and a section plane hides the geometry on its cut side."""
 
@@ -153,6 +154,40 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     # A click on nothing says so.
     v.click_image(2.5, 2.5)
     v.wait_for("() => document.getElementById('pick').innerText.startsWith('Nothing there')")
+
+
+def test_the_wheel_zooms_towards_the_cursor(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:
+    """The wheel zooms about the point at the target's depth under the cursor: that point
+    stays under the cursor, the view keeps its direction, and the eye comes nearer by the
+    wheel's factor (1.0015 per pixel of scroll), in both projections."""
+    v = open_viewer(server.open_url)
+    n = v.wait_final()
+    for projection in ("perspective", "orthographic"):
+        if projection == "orthographic":
+            v.page.click("#projection")
+            n = v.wait_final(n, v.js("window.vastray.seq"))
+        box = v.page.locator("#view").bounding_box()
+        assert box is not None
+        # (on whole page pixels: the wheel event's clientX and clientY are whole numbers)
+        x = round(box["x"] + 0.25 * box["width"]) - box["x"]
+        y = round(box["y"] + 0.3 * box["height"]) - box["y"]
+        before = v.js(
+            """([x, y, w, h]) => { const c = window.vastray.camera;
+                return {point: c.pointAt(x, y, w, h), eye: c.eye, target: c.target}; }""",
+            [x, y, box["width"], box["height"]],
+        )
+        v.page.mouse.move(box["x"] + x, box["y"] + y)
+        v.page.mouse.wheel(0, -300)
+        n = v.wait_final(n, v.js("window.vastray.seq"))
+        after = v.js(
+            """([p, w, h]) => { const c = window.vastray.camera;
+                return {at: c.project(p, w, h), eye: c.eye, target: c.target}; }""",
+            [before["point"], box["width"], box["height"]],
+        )
+        assert abs(after["at"]["x"] - x) < 0.01 and abs(after["at"]["y"] - y) < 0.01, after["at"]
+        view = lambda c: np.subtract(c["target"], c["eye"])  # noqa: E731
+        np.testing.assert_allclose(view(after), view(before) * 1.0015**-300, rtol=1e-9)
+    assert not v.errors_received()
 
 
 def test_a_double_click_turns_the_view_to_a_point(

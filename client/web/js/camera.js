@@ -41,6 +41,14 @@ export class Camera {
     return { w, u, v, right: scale(u, (t * width) / height), top: scale(v, t) };
   }
 
+  // The point at the target's depth (on the plane through it, facing the view) that
+  // image point (x, y) of a width x height image shows, in either projection.
+  pointAt(x, y, width, height) {
+    const { right, top } = this.basis(width, height);
+    const d = this.distance;
+    return add(this.target, add(scale(right, (2 * x / width - 1) * d), scale(top, (1 - 2 * y / height) * d)));
+  }
+
   // World point -> image pixel (x, y) and depth along the view axis (null behind the eye
   // in perspective; an orthographic view sees behind the eye too).
   project(point, width, height) {

@@ -1,5 +1,6 @@
 // Mouse, touch and keyboard to camera moves, the way CAD viewers do it:
-//   left drag: orbit   right drag / shift+left / two fingers: pan   wheel / pinch: zoom
+//   left drag: orbit   right drag / shift+left / two fingers: pan
+//   wheel: zoom towards the cursor   pinch: zoom
 //   W A S D: fly, Q E: down and up (shift: faster; W S zoom an orthographic view)
 //   F: frame the model
 //   1-7: the standard views (iso, front, back, left, right, top, bottom)   O: projection
@@ -125,10 +126,16 @@ export class Controls {
     this.pendingClick = { at, time: performance.now(), timer };
   }
 
+  // Zooms towards the cursor, as CAD viewers do: about the point at the target's depth
+  // under it, which stays under the cursor (the target moves towards it too, so orbits
+  // then go about what one zoomed in on).
   #wheel(e) {
     e.preventDefault();
     const delta = e.deltaMode === 1 ? e.deltaY * 16 : e.deltaY;
-    this.camera().zoom(Math.pow(WHEEL_STEP, delta));
+    const camera = this.camera();
+    const { width, height, left, top } = this.size();
+    const towards = width > 0 && height > 0 ? camera.pointAt(e.clientX - left, e.clientY - top, width, height) : null;
+    camera.zoom(Math.pow(WHEEL_STEP, delta), towards);
     this.onChange();
   }
 
