@@ -149,8 +149,10 @@ def section_box(lo: Sequence[float], hi: Sequence[float], margin: float = 0.0) -
     """A section box, as CAD viewers have it: six planes that keep what lies within the
     box [lo - margin, hi + margin] (say a part's bounds, `PartInfo.bounds`) and cut away
     everything else. Each plane faces into the box, so its own offset moves that face."""
-    if len(lo) != 3 or len(hi) != 3 or not all(a <= b for a, b in zip(lo, hi, strict=True)):
-        raise ValueError(f"a section box needs lo <= hi on every axis, not {lo} and {hi}")
+    if len(lo) != 3 or len(hi) != 3 or not all(math.isfinite(x) for x in (*lo, *hi, margin)):
+        raise ValueError(f"a section box needs corners of 3 finite numbers and a finite margin: {lo}, {hi}")
+    if not all(a - margin <= b + margin for a, b in zip(lo, hi, strict=True)):
+        raise ValueError(f"a section box needs lo <= hi on every axis, margin included: {lo}, {hi}, {margin}")
     planes = []
     for axis in range(3):
         inward = [0.0, 0.0, 0.0]

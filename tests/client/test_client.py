@@ -308,6 +308,10 @@ def test_a_section_box_keeps_what_lies_in_it(url: str) -> None:
             assert [h.triangle for h in view.pick(sample)] == [whole[i].triangle for i in chosen]
     with pytest.raises(ValueError, match="lo <= hi"):
         section_box((0, 0, 1), (1, 1, 0))
+    with pytest.raises(ValueError, match="lo <= hi"):
+        section_box((0, 0, 0), (1, 1, 1), margin=-0.6)  # a margin that leaves nothing
+    with pytest.raises(ValueError, match="finite"):
+        section_box((0, 0, 0), (1, 1, float("nan")))
 
 
 def wait_until(condition: Any, timeout: float = 30.0) -> None:
