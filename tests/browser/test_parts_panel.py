@@ -101,7 +101,7 @@ def test_a_section_box_keeps_the_highlighted_part(
     """'box' in the section panel keeps only what lies in a box around the highlighted
     parts (grown by a fiftieth of its diagonal): six planes, as vastray.schemas.section_box
     makes them; the parts beside it leave the picture and the picks, the highlighted one
-    stays as it was; a seventh plane is refused with a notice."""
+    stays as it was; a seventh plane is refused with a notice; "clear" takes them away."""
     v, n = open_parts_panel(open_viewer, parts_server, assembly_model)
     page = v.page
     page.locator("#parts-search").fill("impeller")
@@ -154,4 +154,9 @@ def test_a_section_box_keeps_the_highlighted_part(
     v.wait_for("() => document.body.innerText.includes('section planes at most')")
     assert v.js("window.vastray.panels.sections.length") == 6
     assert not [m for m in v.sent[sends:] if m["type"] == "sections"]
+    # "clear" takes them all away: the parts beside come back.
+    page.click("#section-clear")
+    v.wait_for("() => !document.querySelector('#overlay path.section-box')")
+    assert [m for m in v.sent if m["type"] == "sections"][-1]["planes"] == []
+    assert all(h["hit"] for h in v.stream_pick(beside))
     assert not v.errors_received()

@@ -291,6 +291,11 @@ export class Panels {
     }
     $("section-view").addEventListener("click", () => this.addSection(null));
     $("section-box").addEventListener("click", () => this.addSectionBox());
+    $("section-clear").addEventListener("click", () => {
+      this.sections = [];
+      this.#renderSections();
+      this.#sendSections();
+    });
     $("review-start").addEventListener("click", () => this.#startReview());
     $("review-copy").addEventListener("click", () => this.#copyLink());
     const rename = () => {
