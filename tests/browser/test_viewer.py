@@ -248,7 +248,7 @@ def test_a_double_click_turns_the_view_to_a_point(
 
 
 def test_a_screenshot_downloads_the_finished_view(
-    open_viewer: Any, server: Any, model: dict[str, Any], artifacts: Any, request: Any
+    open_viewer: Any, server: Any, api: Any, model: dict[str, Any], artifacts: Any, request: Any
 ) -> None:
     v = open_viewer(server.open_url)
     v.wait_final()
@@ -260,7 +260,33 @@ def test_a_screenshot_downloads_the_finished_view(
     assert download.value.suggested_filename.startswith("vastray-plant-")
     image = Image.open(path)
     assert image.format == "PNG" and image.size == (size["width"], size["height"])
-    assert not_blank(np.asarray(image.convert("RGB"), dtype=int))
+    plain = np.asarray(image.convert("RGB"), dtype=int)
+    assert not_blank(plain)
+    # With a measurement on the view, the screenshot has its marks burnt in: the markers'
+    # colour where the page draws them, and the view as it was away from the marks.
+    points = grid(size, 9, 7)
+    hits = [p for p, h in zip(points, pick(api, model["id"], size, points), strict=True) if h["hit"]]
+    for k, (x, y) in enumerate((hits[0], hits[-1])):
+        v.click_image(x, y)
+        v.wait_for("(k) => window.vastray.picks.length === k", k + 1)
+    assert v.page.locator("#overlay circle.marker").count() == 2
+    with v.page.expect_download(timeout=60_000) as download:
+        v.page.locator("#screenshot-button").click()
+    path = artifacts / f"{request.node.name}-download-marked.png"
+    download.value.save_as(path)
+    marked = np.asarray(Image.open(path).convert("RGB"), dtype=int)
+    assert marked.shape == plain.shape
+    fill = v.js("() => getComputedStyle(document.querySelector('#overlay circle.marker')).fill")
+    accent = [int(c) for c in fill.removeprefix("rgb(").removesuffix(")").split(",")]
+    for p in v.js("window.vastray.picks.map((p) => p.position)"):
+        project = "([p, w, h]) => window.vastray.shown.camera.project(p, w, h)"
+        at = v.js(project, [p, size["width"], size["height"]])
+        x, y = int(at["x"]), int(at["y"])
+        assert np.abs(marked[y, x] - accent).max() < 40, (marked[y, x], accent)
+        assert np.abs(plain[y, x] - accent).max() >= 40
+    changed = np.abs(marked - plain).sum(axis=-1) > 30
+    assert 0 < changed.mean() < 0.05, changed.mean()
+    assert "with the marks" in v.page.locator("body").inner_text()
 
 
 def test_a_section_plane_hides_geometry(

@@ -569,7 +569,18 @@ class App {
       : "Not connected: take the screenshot once the status says connected.");
   }
 
-  #saveScreenshot(blob) {
+  // The finished view, lossless as the server rendered it, with the marks drawn over it
+  // (measurements, notes, pointers, a section box's edges) burnt in, as review tools'
+  // snapshots have them.
+  async #saveScreenshot(blob) {
+    let marked = false;
+    try {
+      const withMarks = await this.#burnInMarks(blob);
+      marked = withMarks !== blob;
+      blob = withMarks;
+    } catch (e) {
+      console.error("screenshot marks", e); // the view without them, rather than nothing
+    }
     const a = document.createElement("a");
     a.href = URL.createObjectURL(blob);
     a.download = `vastray-${this.model?.name ?? "view"}-${new Date().toISOString().replace(/[:.]/g, "-")}.png`;
@@ -577,7 +588,35 @@ class App {
     a.click();
     a.remove();
     setTimeout(() => URL.revokeObjectURL(a.href), 10000);
-    this.notice("Screenshot saved.");
+    this.notice(marked ? "Screenshot saved, with the marks drawn over the view." : "Screenshot saved.");
+  }
+
+  async #burnInMarks(blob) {
+    const marks = this.overlay.image();
+    if (!marks || !this.shown) return blob;
+    const view = await createImageBitmap(blob);
+    const canvas = document.createElement("canvas");
+    canvas.width = view.width;
+    canvas.height = view.height;
+    const ctx = canvas.getContext("2d");
+    ctx.drawImage(view, 0, 0);
+    view.close();
+    const url = URL.createObjectURL(marks);
+    try {
+      const svg = new Image();
+      svg.src = url;
+      await svg.decode();
+      // Overlay CSS pixels -> canvas pixels -> the image's pixels (redrawOverlay's
+      // mapping, inverted).
+      const { rect } = this.shown;
+      const css = this.canvas.clientWidth / this.canvas.width;
+      const sx = canvas.width / (rect.width * css), sy = canvas.height / (rect.height * css);
+      ctx.setTransform(sx, 0, 0, sy, -rect.x * sx * css, -rect.y * sy * css);
+      ctx.drawImage(svg, 0, 0, svg.width, svg.height);
+    } finally {
+      URL.revokeObjectURL(url);
+    }
+    return await new Promise((resolve) => canvas.toBlob(resolve, "image/png"));
   }
 
   // -- uploads ---------------------------------------------------------------------------

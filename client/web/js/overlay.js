@@ -5,6 +5,9 @@
 import { distance, formatLength, lerp } from "./vec.js";
 
 const NS = "http://www.w3.org/2000/svg";
+// What the overlay's stylesheet sets on its marks (viewer.css, #overlay).
+const STYLED = ["fill", "stroke", "stroke-width", "stroke-dasharray", "opacity", "font-family", "font-size",
+  "font-weight", "paint-order"];
 
 export class Overlay {
   constructor(svg) {
@@ -13,6 +16,25 @@ export class Overlay {
 
   clear() {
     this.svg.replaceChildren();
+  }
+
+  // The marks as a standalone SVG image (a blob), in the overlay's CSS pixels, with the
+  // page's styles written into each element, since a stylesheet does not travel with
+  // it; null when there are none.
+  image() {
+    if (!this.svg.childElementCount) return null;
+    const copy = this.svg.cloneNode(true);
+    const shown = this.svg.querySelectorAll("*"), copied = copy.querySelectorAll("*");
+    shown.forEach((el, i) => {
+      const style = getComputedStyle(el);
+      copied[i].setAttribute("style", STYLED.map((p) => `${p}:${style.getPropertyValue(p)}`).join(";"));
+    });
+    const { width, height } = this.svg.getBoundingClientRect();
+    copy.setAttribute("xmlns", NS);
+    copy.setAttribute("width", String(width));
+    copy.setAttribute("height", String(height));
+    copy.removeAttribute("id");
+    return new Blob([new XMLSerializer().serializeToString(copy)], { type: "image/svg+xml" });
   }
 
   #el(name, attrs, text = null) {
