@@ -1,8 +1,8 @@
 """The parts panel in a real Chromium: a model built from an OBJ with three named
 objects lists them; a search highlights what it finds (the server's frames turn those
 parts blue, the others grey); a click on a part frames it; a pick names
-the part under the cursor; a section box keeps a highlighted part and what lies around
-it. Its own server: the session's server shows the other browser
+the part under the cursor; a section box keeps a highlighted or picked part and what
+lies around it. Its own server: the session's server shows the other browser
 tests' model by default, and must not get a newer one."""
 
 from __future__ import annotations
@@ -93,6 +93,21 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     v.click_image(w / 2, h / 2)
     v.wait_for("() => document.getElementById('pick').innerText.includes('part:')")
     assert "part: Valve" in page.locator("#pick").inner_text()
+
+    # "Box this part" highlights the picked part and boxes it, its bounds found on the
+    # server when the page has not been sent them.
+    v.js("() => window.vastray.panels.partBounds.clear()")
+    sends = len(v.sent)
+    page.locator("#pick-part-box").click()
+    v.wait_for("() => window.vastray.panels.sections.length === 6")
+    planes = [m for m in v.sent[sends:] if m["type"] == "sections"][-1]["planes"]
+    lo, hi = (4.0, 0.0, 0.0), (5.0, 1.0, 1.0)  # the valve (BOXES)
+    expected = section_box(lo, hi, margin=float(np.linalg.norm(np.subtract(hi, lo))) / 50)
+    assert [(p["normal"], pytest.approx(p["offset"])) for p in planes] == [
+        (list(e.normal), e.offset) for e in expected
+    ]
+    assert [m for m in v.sent[sends:] if m["type"] == "highlight"][-1]["parts"] == [valve["id"]]
+    assert not v.errors_received()
 
 
 def test_a_section_box_keeps_the_highlighted_part(

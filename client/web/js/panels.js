@@ -242,6 +242,7 @@ export class Panels {
     if (!hit) {
       out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
       for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
+      $("pick-part-box").hidden = true;
       return;
     }
     const p = hit.position.map((x) => formatLength(x)).join(", ");
@@ -264,6 +265,7 @@ export class Panels {
     }
     out.textContent = text;
     this.lastPick = hit;
+    $("pick-part-box").hidden = hit.part_id == null;
   }
 
   #wireTools() {
@@ -291,6 +293,7 @@ export class Panels {
     }
     $("section-view").addEventListener("click", () => this.addSection(null));
     $("section-box").addEventListener("click", () => this.addSectionBox());
+    $("pick-part-box").addEventListener("click", () => this.boxPart(this.lastPick));
     $("section-clear").addEventListener("click", () => {
       this.sections = [];
       this.#renderSections();
@@ -427,11 +430,13 @@ export class Panels {
   // grown by a fiftieth of their diagonal on every side so the parts' own faces stay
   // whole. It replaces the planes there were (a view takes six at most); each face's
   // slider then moves that face. vastray.schemas.section_box is the same box.
-  addSectionBox() {
+  addSectionBox(boxes = null) {
     const m = this.app.model;
     if (!m) return;
-    const ids = (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
-    const boxes = ids.map((id) => this.partBounds.get(id)).filter(Boolean);
+    if (!boxes) {
+      const ids = (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
+      boxes = ids.map((id) => this.partBounds.get(id)).filter(Boolean);
+    }
     const lo = [0, 1, 2].map((k) => Math.min(...(boxes.length ? boxes : [m.bounds]).map((b) => b[0][k])));
     const hi = [0, 1, 2].map((k) => Math.max(...(boxes.length ? boxes : [m.bounds]).map((b) => b[1][k])));
     const margin = Math.hypot(...lo.map((v, k) => hi[k] - v)) / 50;
@@ -445,6 +450,32 @@ export class Panels {
     }
     this.#renderSections();
     this.#sendSections();
+  }
+
+  // The picked part, highlighted and boxed: its bounds from the part table the page has,
+  // or from a search of the server's by its name.
+  async boxPart(hit) {
+    if (hit?.part_id == null) return;
+    if (!this.mayDrive()) {
+      this.app.notice("You follow the presenter: stop following to change the sections.");
+      return;
+    }
+    let bounds = this.partBounds.get(hit.part_id);
+    if (!bounds) {
+      try {
+        const found = await this.app.api.parts(this.app.modelId, hit.part, 500);
+        for (const p of found.parts) this.partBounds.set(p.id, p.bounds);
+      } catch (e) {
+        this.app.notice(`The part's bounds could not be read: ${e.message}`);
+        return;
+      }
+      bounds = this.partBounds.get(hit.part_id);
+      if (!bounds) return;
+    }
+    this.highlight = new Set([hit.part_id]);
+    $("parts-search").value = ""; // (a search would highlight what it finds instead)
+    this.#renderParts();
+    this.addSectionBox([bounds]);
   }
 
   // [lo, hi] when the enabled planes keep a box (one facing each way along each axis,
