@@ -2,8 +2,9 @@
 the up picker turns the view upright at once, saves the setting with the model (the
 page holds the API key), and after a reload the page opens it upright, showing what the
 y-up original shows. The standard views (buttons and keys 1-7) look at the named side,
-upright about the model's up; the projection button (and O) switches to parallel rays
-and back, marks stay on what they mark, and W zooms a parallel view."""
+upright about the model's up, framed as the server frames them; the projection button
+(and O) switches to parallel rays and back, marks stay on what they mark, and W zooms a
+parallel view."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from conftest import grid, not_blank, pick
 
 from vastray import scenes
 from vastray.build import BuildOptions, build_model
+from vastray.camera import PROJECTIONS, STANDARD_VIEWS, frame_bounds
 
 Y_TO_Z = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # +y to +z
 
@@ -121,6 +123,41 @@ def test_standard_views_face_the_named_side(open_viewer: Any, server: Any, model
         n = v.wait_final(n, v.js("window.vastray.seq"))
         np.testing.assert_allclose(direction(v.shown()["camera"]), side, atol=1e-9, err_msg=key)
     assert not v.errors_received()
+
+
+def test_the_page_frames_a_view_as_the_server_does(
+    open_viewer: Any, server: Any, model: dict[str, Any]
+) -> None:
+    """The page's framing (camera.js frameBounds: F, keys 1-7, the view a model opens
+    with) is the server's (vastray.camera.frame_bounds, as REST renders with a `view`
+    and the CLI frame): the same eye, target and up for every standard view, model up,
+    projection and image shape, on a box of other proportions than the model's."""
+    v = open_viewer(server.open_url)
+    v.wait_final()
+    lo, hi = (-3.0, 0.5, -1.0), (7.0, 2.0, 4.0)
+    cases = [
+        (name, up, projection, w, h)
+        for name in STANDARD_VIEWS
+        for up in ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
+        for projection in PROJECTIONS
+        for w, h in ((1280, 720), (600, 900))
+    ]
+    framed = v.js(
+        """async ([lo, hi, cases]) => {
+            const { frameBounds } = await import('/ui/js/camera.js');
+            return cases.map(([name, up, projection, w, h]) => {
+                const c = frameBounds(lo, hi, 45, w / h, up, name, projection);
+                return { eye: c.eye, target: c.target, up: c.up };
+            });
+        }""",
+        [lo, hi, cases],
+    )
+    for (name, up, projection, w, h), page in zip(cases, framed, strict=True):
+        server_side = frame_bounds(lo, hi, fov=45, width=w, height=h, up=up, view=name, projection=projection)
+        case = str((name, up, projection, w, h))
+        np.testing.assert_allclose(page["eye"], server_side.eye, rtol=1e-12, atol=1e-12, err_msg=case)
+        np.testing.assert_allclose(page["target"], server_side.target, rtol=1e-12, atol=1e-12, err_msg=case)
+        np.testing.assert_allclose(page["up"], server_side.up, atol=1e-12, err_msg=case)
 
 
 def test_the_projection_button_switches_to_parallel_rays(

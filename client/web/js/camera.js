@@ -135,16 +135,27 @@ export const STANDARD_VIEWS = {
 };
 
 // A camera that shows the whole box from the standard view `name` (the three-quarter
-// one by default, as the server frames) of a model whose up is `up`.
+// one by default) of a model whose up is `up`, as the server frames one
+// (vastray/camera.py frame_bounds, step for step): the eye backs off until all eight
+// corners project inside the image, with a margin of 8 % (orthographic: until the image
+// spans them at every depth), as CAD viewers fit a view to the extents.
 export function frameBounds(lo, hi, fov = 45, aspect = 16 / 9, up = [0, 1, 0], name = "iso",
   projection = "perspective") {
   const view = STANDARD_VIEWS[name];
   const centre = scale(add(lo, hi), 0.5);
   const dir = normalize(turnFromY(view.dir, up));
-  const radius = length(sub(hi, lo)) / 2;
-  const t = Math.tan((fov * Math.PI) / 360);
-  const fit = radius / Math.min(t, t * aspect);
-  // (Orthographic: the image spans the sphere at the target's distance, as it does here.)
-  return new Camera({ eye: add(centre, scale(dir, 1.05 * fit)), target: centre, up: turnFromY(view.up, up), fov,
-    projection });
+  const cameraUp = name === "iso" ? up : turnFromY(view.up, up); // (iso keeps the up as given)
+  const w = scale(dir, -1);
+  const u = normalize(cross(w, normalize(cameraUp)));
+  const v = cross(u, w);
+  const tanV = Math.tan((fov * Math.PI) / 360), tanH = tanV * aspect;
+  let needed = -Infinity;
+  for (let i = 0; i < 8; i++) {
+    const p = sub([0, 1, 2].map((k) => ((i >> k) & 1 ? hi[k] : lo[k])), centre);
+    let n = Math.max(Math.abs(dot(p, u)) / tanH, Math.abs(dot(p, v)) / tanV);
+    if (projection !== "orthographic") n -= dot(p, w);
+    needed = Math.max(needed, n);
+  }
+  const distance = Math.max(1.08 * needed, 1e-9 * Math.max(1, ...centre.map(Math.abs)), 0.5 * length(sub(hi, lo)));
+  return new Camera({ eye: add(centre, scale(dir, distance)), target: centre, up: cameraUp, fov, projection });
 }
