@@ -1,6 +1,6 @@
 """The viewer page in a real Chromium against a real server: it loads and shows the
 model, dragging moves the view (moving frames, then a final one), the wheel zooms towards
-the cursor, quality settings take
+the cursor, the keyboard orbits, pans and zooms, quality settings take
 effect, picks measure distances at full detail, a double click turns the view to a point,
 screenshots download, and a section plane hides the geometry on its cut side."""
 
@@ -154,6 +154,53 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     # A click on nothing says so.
     v.click_image(2.5, 2.5)
     v.wait_for("() => document.getElementById('pick').innerText.startsWith('Nothing there')")
+
+
+def test_the_keyboard_orbits_pans_and_zooms(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:
+    """Without a mouse: an arrow key orbits as a 15-pixel drag does (about the target, at
+    the same distance, 0.09 rad about the model's up), shift+arrow pans (eye and target
+    move alike, by a twentieth of the view's height at the target), + and - zoom by a
+    fifth; in a text box the arrows are the box's."""
+    v = open_viewer(server.open_url)
+    n = v.wait_final()
+
+    def camera() -> dict[str, np.ndarray]:
+        c = v.js("() => ({...window.vastray.camera})")
+        return {"eye": np.asarray(c["eye"]), "target": np.asarray(c["target"]), "fov": c["fov"]}
+
+    v.page.locator("#view").focus()
+    before = camera()
+    v.page.keyboard.press("ArrowRight")
+    after = camera()
+    offset0, offset1 = before["eye"] - before["target"], after["eye"] - after["target"]
+    np.testing.assert_allclose(after["target"], before["target"], rtol=1e-12)
+    assert np.linalg.norm(offset1) == pytest.approx(np.linalg.norm(offset0), rel=1e-12)
+    # (about +y, the plant's up)
+    turned = np.arctan2(offset1[0], offset1[2]) - np.arctan2(offset0[0], offset0[2])
+    assert abs(turned) == pytest.approx(15 * 0.006, abs=1e-9) and offset1[1] == pytest.approx(offset0[1])
+
+    before = after
+    v.page.keyboard.press("Shift+ArrowUp")
+    after = camera()
+    moved = after["eye"] - before["eye"]
+    np.testing.assert_allclose(after["target"] - before["target"], moved, atol=1e-9)
+    distance = float(np.linalg.norm(before["eye"] - before["target"]))
+    tan = np.tan(np.radians(before["fov"] / 2))
+    assert np.linalg.norm(moved) == pytest.approx(tan * distance / 10, rel=1e-9)
+
+    v.page.keyboard.press("+")
+    assert np.linalg.norm(camera()["eye"] - after["target"]) == pytest.approx(0.8 * distance, rel=1e-9)
+    v.page.keyboard.press("-")
+    assert np.linalg.norm(camera()["eye"] - after["target"]) == pytest.approx(distance, rel=1e-9)
+
+    before = camera()
+    v.page.locator("#parts-panel summary").click()
+    v.page.locator("#parts-search").focus()
+    v.page.keyboard.press("ArrowLeft")
+    v.page.keyboard.press("-")
+    np.testing.assert_allclose(camera()["eye"], before["eye"], rtol=0)
+    v.wait_final(n, v.js("window.vastray.seq"))
+    assert not v.errors_received()
 
 
 def test_the_wheel_zooms_towards_the_cursor(open_viewer: Any, server: Any, model: dict[str, Any]) -> None:

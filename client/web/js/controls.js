@@ -3,6 +3,7 @@
 //   wheel: zoom towards the cursor   pinch: zoom
 //   W A S D: fly, Q E: down and up (shift: faster; W S zoom an orthographic view)
 //   F: frame the model
+//   arrows: orbit (shift: pan)   + -: zoom
 //   1-7: the standard views (iso, front, back, left, right, top, bottom)   O: projection
 // A click (press and release without moving) is a pick, not a move; a double click
 // turns the view to the point under it, which orbits and zooms then go about.
@@ -16,6 +17,12 @@ const DOUBLE_CLICK_MS = 300;
 const DOUBLE_CLICK_SLOP = 6; // pixels between the two clicks of a double click
 const ORTHO_ZOOM_RATE = Math.LN2; // W in an orthographic view: half the extent per second
 const VIEW_KEYS = Object.keys(STANDARD_VIEWS); // keys 1-7
+// The arrow keys as drags: the direction, in pixels of an orbit (5.2 degrees) or a
+// twentieth of the view's height of a pan; + and - zoom by a fifth.
+const ARROW_DRAGS = { ArrowLeft: [-1, 0], ArrowRight: [1, 0], ArrowUp: [0, -1], ArrowDown: [0, 1] };
+const ARROW_ORBIT_PIXELS = 15;
+const ARROW_PAN = 1 / 20;
+const KEY_ZOOM = 0.8;
 
 export class Controls {
   constructor(element, { camera, onChange, onClick, onDoubleClick, onFrameAll, onToggleProjection, flySpeed }) {
@@ -143,9 +150,29 @@ export class Controls {
     const t = e.target;
     if (t instanceof HTMLInputElement || t instanceof HTMLTextAreaElement || t instanceof HTMLSelectElement ||
         t?.isContentEditable) return; // typing, not flying
+    if (down && e.key in ARROW_DRAGS && (t === this.element || t === document.body)) {
+      // The arrow keys do what a short drag does (shift: pan), so the view can be turned
+      // without a mouse; on the view or the page itself, not in a panel they scroll.
+      e.preventDefault();
+      const [dx, dy] = ARROW_DRAGS[e.key];
+      const camera = this.camera();
+      if (e.shiftKey) {
+        const { width, height } = this.size();
+        camera.pan(dx * ARROW_PAN * height, dy * ARROW_PAN * height, width, height);
+      } else {
+        camera.orbit(-dx * ARROW_ORBIT_PIXELS * ORBIT_PER_PIXEL, -dy * ARROW_ORBIT_PIXELS * ORBIT_PER_PIXEL);
+      }
+      this.onChange();
+      return;
+    }
     const k = e.key.toLowerCase();
     if (k.length !== 1) return;
     if (down && (e.ctrlKey || e.metaKey || e.altKey)) return; // the browser's shortcuts (Ctrl+F, Ctrl+S, ...)
+    if (down && (k === "+" || k === "=" || k === "-")) {
+      this.camera().zoom(k === "-" ? 1 / KEY_ZOOM : KEY_ZOOM);
+      this.onChange();
+      return;
+    }
     if (down && k === "f") {
       if (!e.repeat) this.onFrameAll("iso");
       return;
