@@ -222,6 +222,35 @@ class AsyncClient:
             raise ValueError("a review's starting quality goes with a starting camera")
         return await self._json("POST", "/api/reviews", json=body)
 
+    # -- views saved with a model ------------------------------------------------------------
+
+    async def model_views(self, model: str | ModelInfo) -> list[dict[str, Any]]:
+        """Views saved with a model (the page's Views panel), oldest first: `id`, `name`,
+        `camera`, `sections`, `highlight`; `AsyncView.show` goes to one."""
+        return list((await self._json("GET", f"/api/models/{_model_id(model)}/views"))["views"])
+
+    async def save_model_view(
+        self,
+        model: str | ModelInfo,
+        name: str,
+        *,
+        camera: CameraState | dict[str, Any],
+        sections: Sequence[Plane] = (),
+        highlight: Sequence[int] = (),
+    ) -> dict[str, Any]:
+        """Saves a view with a model, for everyone who views it (needs the API key):
+        `camera` (a live view's `camera` will do), section planes, highlighted parts."""
+        body = {
+            "name": name,
+            "camera": camera.model_dump() if isinstance(camera, CameraState) else dict(camera),
+            "sections": section_planes(sections),
+            "highlight": [int(p) for p in highlight],
+        }
+        return dict(await self._json("POST", f"/api/models/{_model_id(model)}/views", json=body))
+
+    async def delete_model_view(self, model: str | ModelInfo, view_id: str) -> None:
+        await self._json("DELETE", f"/api/models/{_model_id(model)}/views/{view_id}")
+
     async def review(self, review_id: str) -> dict[str, Any]:
         """A review: its model, who is in it now, where its shared view is (`view`),
         annotations and saved views."""

@@ -27,7 +27,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from vastray.client.api import Plane, VastrayError, section_planes
 from vastray.client.frames import Frame, decode_frame
 from vastray.protocol import FLAG_SCREENSHOT, PROTOCOL_VERSION, CameraState, StreamQuality, Viewport
-from vastray.schemas import PickHit, section_box
+from vastray.schemas import PickHit, SectionPlane, section_box
 
 log = logging.getLogger("vastray.client")
 
@@ -352,6 +352,15 @@ class AsyncView:
         around it. Six section planes (`vastray.schemas.section_box`); they replace the
         view's planes, and `set_sections([])` takes them away."""
         await self.set_sections(section_box(*bounds, margin=margin))
+
+    async def show(self, saved: dict[str, Any]) -> int:
+        """Goes to a view saved with the model (one of `Client.model_views`): its section
+        planes, highlighted parts and camera. Returns the seq that frames of it carry."""
+        await self.set_sections([SectionPlane(**p) for p in saved.get("sections", [])])
+        await self.set_highlight(list(saved.get("highlight", [])))
+        c = saved["camera"]
+        projection = c.get("projection", "perspective")
+        return await self.set_camera(c["eye"], c["target"], c["up"], c["fov"], projection)
 
     async def set_highlight(self, parts: list[int]) -> None:
         """Parts to highlight (ids of the model's part table; `Client.parts` lists them)."""

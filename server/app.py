@@ -142,9 +142,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, limit=settings.max_message_bytes, exempt=("/api/uploads",))
 
     from vastray.server import stream
-    from vastray.server.routes import health, jobs, models, render, reviews
+    from vastray.server.routes import health, jobs, model_views, models, render, reviews
 
-    for module in (health, models, jobs, render, reviews, stream):
+    for module in (health, models, model_views, jobs, render, reviews, stream):
         app.include_router(module.router)
     # The viewer page's scripts and styles (the page itself is "/").
     app.mount("/ui", StaticFiles(directory=health.WEB), name="ui")

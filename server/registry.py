@@ -109,6 +109,17 @@ MIGRATIONS: tuple[str, ...] = (
     """
     ALTER TABLE models ADD COLUMN up TEXT;
     """,
+    # 4: views saved with a model (camera, sections, highlight), outside any review.
+    """
+    CREATE TABLE model_views (
+        id TEXT PRIMARY KEY,
+        model_id TEXT NOT NULL REFERENCES models (id) ON DELETE CASCADE,
+        name TEXT NOT NULL,
+        state TEXT NOT NULL,
+        created_at REAL NOT NULL
+    );
+    CREATE INDEX model_views_by_model ON model_views (model_id, created_at);
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 JOB_LOG_KEEP = 200  # lines kept per job
@@ -481,6 +492,32 @@ class Registry:
     def saved_views(self, review_id: str) -> list[dict[str, Any]]:
         rows = self._query("SELECT * FROM saved_views WHERE review_id = ? ORDER BY created_at", (review_id,))
         return [{**dict(r), "state": json.loads(r["state"])} for r in rows]
+
+    # -- views saved with a model ----------------------------------------------------------
+
+    def add_model_view(
+        self, view_id: str, model_id: str, name: str, state: dict[str, Any], most: int
+    ) -> bool:
+        """False (and nothing saved) when the model has `most` views already."""
+        with self._tx() as db:
+            count_sql = "SELECT COUNT(*) FROM model_views WHERE model_id = ?"
+            count = db.execute(count_sql, (model_id,)).fetchone()[0]
+            if count >= most:
+                return False
+            db.execute(
+                "INSERT INTO model_views (id, model_id, name, state, created_at) VALUES (?, ?, ?, ?, ?)",
+                (view_id, model_id, name, json.dumps(state), time.time()),
+            )
+        return True
+
+    def model_views(self, model_id: str) -> list[dict[str, Any]]:
+        rows = self._query("SELECT * FROM model_views WHERE model_id = ? ORDER BY created_at", (model_id,))
+        return [{**dict(r), "state": json.loads(r["state"])} for r in rows]
+
+    def delete_model_view(self, model_id: str, view_id: str) -> bool:
+        with self._tx() as db:
+            gone = db.execute("DELETE FROM model_views WHERE model_id = ? AND id = ?", (model_id, view_id))
+            return gone.rowcount > 0
 
     # -- start-up checks -------------------------------------------------------------------
 

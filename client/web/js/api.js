@@ -48,6 +48,11 @@ export class Api {
   parts(id, query, limit = 500) {
     return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams({ q: query, limit })}`);
   }
+  // Views saved with a model (`{ name, camera, sections, highlight }`); saving and
+  // deleting need the API key.
+  modelViews(id) { return this.request("GET", `/api/models/${id}/views`); }
+  saveModelView(id, view) { return this.request("POST", `/api/models/${id}/views`, view); }
+  deleteModelView(id, viewId) { return this.request("DELETE", `/api/models/${id}/views/${viewId}`); }
   review(id) { return this.request("GET", `/api/reviews/${id}`); }
   // `view`: where the shared view starts (camera, quality, sections, highlight), or null.
   createReview(model, title, view = null) {

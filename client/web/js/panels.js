@@ -95,6 +95,8 @@ export class Panels {
   // What the page can offer with its credential: uploads and starting reviews need the
   // API key (a token only views).
   access({ hasKey, review, storedKey }) {
+    this.hasKey = hasKey;
+    $("model-view-save-row").hidden = !hasKey; // (saving a view with the model needs the key)
     $("upload-button").hidden = !hasKey;
     $("upload-layout").hidden = !hasKey;
     $("review-start").disabled = !hasKey;
@@ -128,6 +130,7 @@ export class Panels {
     this.lastHighlight = (w.highlight ?? []).join(",");
     if (!reconnected || w.review) this.highlight = new Set(w.highlight ?? []);
     this.#renderParts();
+    if (!reconnected) this.loadModelViews();
     if (reconnected && !w.review && !w.sections?.length && this.sections.length) {
       // The server lost the planes with the connection (a restart): give them back.
       this.#sendSections();
@@ -294,6 +297,8 @@ export class Panels {
     $("section-view").addEventListener("click", () => this.addSection(null));
     $("section-box").addEventListener("click", () => this.addSectionBox());
     $("pick-part-box").addEventListener("click", () => this.boxPart(this.lastPick));
+    $("model-view-save").addEventListener("click", () => this.saveModelView());
+    $("model-view-name").addEventListener("keydown", (e) => e.key === "Enter" && this.saveModelView());
     $("section-clear").addEventListener("click", () => {
       this.sections = [];
       this.#renderSections();
@@ -570,6 +575,79 @@ export class Panels {
       return div;
     }));
     this.#syncDriving();
+  }
+
+  // -- views saved with the model ----------------------------------------------------------
+
+  async loadModelViews() {
+    const modelId = this.app.modelId;
+    let views;
+    try {
+      views = (await this.app.api.modelViews(modelId)).views;
+    } catch (e) {
+      $("model-views").replaceChildren(li(`saved views could not be read: ${e.message}`, {}));
+      return;
+    }
+    if (modelId !== this.app.modelId) return; // another model opened meanwhile
+    this.modelViews = views;
+    $("model-views").replaceChildren(...(views.length ? views.map((v) => {
+      const item = li(v.name, { title: "click: go to this view", onClick: () => this.showModelView(v) });
+      if (this.hasKey) {
+        const remove = document.createElement("button");
+        remove.textContent = "×";
+        remove.title = "Delete this view";
+        remove.setAttribute("aria-label", `delete the view ${v.name}`);
+        remove.addEventListener("click", (e) => {
+          e.stopPropagation();
+          this.#deleteModelView(v);
+        });
+        item.append(remove);
+      }
+      return item;
+    }) : [li("no views saved with this model yet", {})]));
+  }
+
+  // Goes to a saved view: its camera, section planes and highlighted parts.
+  showModelView(view) {
+    if (!this.mayDrive()) {
+      this.app.notice("You follow the presenter: stop following to go to a view of your own.");
+      return;
+    }
+    this.sections = view.sections.map((p) => ({ ...p }));
+    this.#renderSections();
+    this.#sendSections();
+    this.highlight = new Set(view.highlight);
+    $("parts-search").value = "";
+    this.#renderParts();
+    this.#sendHighlight([...this.highlight]);
+    this.app.setCamera(view.camera);
+  }
+
+  async saveModelView() {
+    const camera = this.app.camera;
+    if (!camera || !this.app.modelId) return;
+    const name = $("model-view-name").value.trim() || `view ${(this.modelViews?.length ?? 0) + 1}`;
+    try {
+      await this.app.api.saveModelView(this.app.modelId, {
+        name, camera: camera.toMessage(0), sections: this.sections,
+        highlight: (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number),
+      });
+    } catch (e) {
+      this.app.notice(`The view was not saved: ${e.message}`);
+      return;
+    }
+    $("model-view-name").value = "";
+    this.app.notice(`Saved "${name}" with the model.`);
+    await this.loadModelViews();
+  }
+
+  async #deleteModelView(view) {
+    try {
+      await this.app.api.deleteModelView(this.app.modelId, view.id);
+    } catch (e) {
+      this.app.notice(`The view was not deleted: ${e.message}`);
+    }
+    await this.loadModelViews();
   }
 
   // -- review ----------------------------------------------------------------------------
