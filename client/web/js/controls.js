@@ -26,9 +26,8 @@ const KEY_ZOOM = 0.8;
 
 export class Controls {
   constructor(element, { camera, onChange, onClick, onDoubleClick, onFrameAll, onToggleProjection, flySpeed }) {
-    // onClick(point), onDoubleClick(point): at CSS pixels of the element. With
-    // onDoubleClick, a click waits DOUBLE_CLICK_MS for a second one, so that a double
-    // click is not two clicks as well.
+    // onClick(point), onDoubleClick(point): at CSS pixels of the element; a double click
+    // comes after the click of its first press.
     // onFrameAll(view): the model framed from a standard view (F: "iso")
     // onToggleProjection(): perspective <-> orthographic (O)
     this.element = element;
@@ -36,7 +35,7 @@ export class Controls {
     this.onChange = onChange;
     this.onClick = onClick;
     this.onDoubleClick = onDoubleClick;
-    this.pendingClick = null;
+    this.lastClick = null;
     this.onFrameAll = onFrameAll;
     this.onToggleProjection = onToggleProjection;
     this.flySpeed = flySpeed; // () => world units per second
@@ -53,6 +52,10 @@ export class Controls {
     window.addEventListener("keydown", (e) => this.#key(e, true));
     window.addEventListener("keyup", (e) => this.#key(e, false));
     window.addEventListener("blur", () => this.keys.clear()); // keys released elsewhere
+    // Two clicks on the view with a click elsewhere between them are not a double click.
+    window.addEventListener("pointerdown", (e) => {
+      if (e.target !== element) this.lastClick = null;
+    }, true);
   }
 
   size() {
@@ -112,25 +115,20 @@ export class Controls {
     }
   }
 
+  // A click is a click at once (a pick's answer within the 0.25 s that selection
+  // feedback has); a second one close by in time and place makes it a double click,
+  // which takes the first one's place (onDoubleClick undoes what it did).
   #clicked(at) {
-    if (!this.onDoubleClick) {
-      this.onClick(at);
-      return;
-    }
-    const first = this.pendingClick;
-    this.pendingClick = null;
-    if (first) clearTimeout(first.timer);
-    if (first && performance.now() - first.time < DOUBLE_CLICK_MS &&
+    const first = this.lastClick;
+    const now = performance.now();
+    if (this.onDoubleClick && first && now - first.time < DOUBLE_CLICK_MS &&
         Math.hypot(at.x - first.at.x, at.y - first.at.y) <= DOUBLE_CLICK_SLOP) {
+      this.lastClick = null;
       this.onDoubleClick(at);
       return;
     }
-    if (first) this.onClick(first.at); // a click elsewhere: the one before was a click
-    const timer = setTimeout(() => {
-      this.pendingClick = null;
-      this.onClick(at);
-    }, DOUBLE_CLICK_MS);
-    this.pendingClick = { at, time: performance.now(), timer };
+    this.lastClick = { at, time: now };
+    this.onClick(at);
   }
 
   // Zooms towards the cursor, as CAD viewers do: about the point at the target's depth

@@ -66,7 +66,10 @@ class App {
       camera: () => this.#driveCamera(),
       onChange: () => this.cameraChanged(),
       onClick: (p) => this.#click(p),
-      onDoubleClick: (p) => this.#click(p, "focus"),
+      onDoubleClick: (p) => {
+        this.#undoClick(); // (its first press was a click)
+        this.#click(p, "focus");
+      },
       onFrameAll: (name) => this.frameAll(name),
       onToggleProjection: () => this.toggleProjection(),
       flySpeed: () => (this.model ? 0.25 * length(sub(this.model.bounds[1], this.model.bounds[0])) : 1),
@@ -520,12 +523,27 @@ class App {
     const id = `p${this.pickCounter}`;
     // Each answer is handled as its click asked, whatever was clicked since.
     this.picking.set(id, { mode, at: performance.now() });
+    // What a double click's first press undoes: the measurement as it was before.
+    this.lastClick = { id, mode, picks: [...this.picks], shown: this.panels.lastPickResult };
     const sent = this.stream.send({ type: "pick", id, points: [[px, py]],
       camera: camera.toMessage(header.cameraSeq), width: Math.round(rect.fullW), height: Math.round(rect.fullH) });
     if (!sent) {
       this.picking.delete(id);
       this.notice("Not connected: pick again once the status says connected.");
     }
+  }
+
+  // Takes back the last click (the first press of a double click): its pick's answer,
+  // if still to come, changes nothing, and a measurement is as it was before it.
+  #undoClick() {
+    const last = this.lastClick;
+    this.lastClick = null;
+    if (!last) return;
+    this.picking.delete(last.id);
+    if (last.mode !== "measure") return; // (a pointer may stay where the first press put it)
+    this.picks = last.picks;
+    this.panels.pickResult(...(last.shown ?? [null]));
+    this.redrawOverlay();
   }
 
   #picked(result) {

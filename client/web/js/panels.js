@@ -241,6 +241,7 @@ export class Panels {
   // distance, its components along the axes, and the angle between the two surfaces
   // (between their planes, 0-90°, since a triangle's normal may face either way).
   pickResult(hit, elapsedMs = 0, serverMs = 0, measured = null) {
+    this.lastPickResult = [hit, elapsedMs, serverMs, measured]; // (what a double click puts back)
     const out = $("pick");
     if (!hit) {
       out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
