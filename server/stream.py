@@ -115,6 +115,12 @@ class StreamHub:
             if frame is not None:
                 sub.offer(frame)
 
+    def announce(self, model_id: str, message: dict[str, Any]) -> None:
+        """An event for every connection viewing a model (on the event loop's thread)."""
+        for conn in list(self.connections):
+            if conn.view is not None and conn.view.model_id == model_id:
+                conn.event(message)
+
     def remember(self, session_id: str, view: View) -> None:
         """Keeps a closed connection's view settings for a reconnect to resume."""
         now = time.time()

@@ -5,6 +5,7 @@ goes to them; saving and deleting need the API key. A review keeps its own saved
 
 from __future__ import annotations
 
+import asyncio
 import secrets
 from typing import Any
 
@@ -55,7 +56,7 @@ def list_views(model_id: str, request: Request) -> ModelViewList:
 
 
 @router.post("", status_code=201, summary="Save a view with a model: name, camera, sections, highlight")
-def save_view(model_id: str, body: ModelViewRequest, request: Request, _: Admin) -> ModelView:
+async def save_view(model_id: str, body: ModelViewRequest, request: Request, _: Admin) -> ModelView:
     state = state_of(request)
     state.store.row(model_id, ready=True)
     problem = camera_problem(body.camera)
@@ -64,16 +65,26 @@ def save_view(model_id: str, body: ModelViewRequest, request: Request, _: Admin)
     view_id = f"view-{secrets.token_hex(6)}"
     kept = body.model_dump(exclude={"name"})
     kept["camera"]["seq"] = 0  # (a stream's sequence number means nothing once saved)
-    if not state.registry.add_model_view(view_id, model_id, body.name, kept, MAX_VIEWS_PER_MODEL):
+    added = await asyncio.to_thread(
+        state.registry.add_model_view, view_id, model_id, body.name, kept, MAX_VIEWS_PER_MODEL
+    )
+    if not added:
         message = f"model {model_id} has {MAX_VIEWS_PER_MODEL} saved views: delete some first"
         raise ApiError(409, "too_many_views", message)
+    _announce(request, model_id)
     return _view(next(r for r in state.registry.model_views(model_id) if r["id"] == view_id))
 
 
 @router.delete("/{view_id}", status_code=204, summary="Delete a view saved with a model")
-def delete_view(model_id: str, view_id: str, request: Request, _: Admin) -> Response:
+async def delete_view(model_id: str, view_id: str, request: Request, _: Admin) -> Response:
     state = state_of(request)
     state.store.row(model_id)
-    if not state.registry.delete_model_view(model_id, view_id):
+    if not await asyncio.to_thread(state.registry.delete_model_view, model_id, view_id):
         raise ApiError(404, "view_not_found", f"model {model_id} has no saved view {view_id!r}")
+    _announce(request, model_id)
     return Response(status_code=204)
+
+
+def _announce(request: Request, model_id: str) -> None:
+    """Every page viewing the model lists its views again (the stream's `model_views`)."""
+    state_of(request).streams.announce(model_id, {"type": "model_views", "model": model_id})

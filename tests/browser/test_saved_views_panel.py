@@ -1,7 +1,7 @@
 """The Views panel in a real Chromium: a view saved with the model (camera, section
-planes) is listed, a click on it brings them back after the user moved on, it is still
-there in a new page, and "×" deletes it; a page opened with a viewing token lists the
-views and has no way to save one."""
+planes) is listed, a click on it brings them back after the user moved on, and "×"
+deletes it; a page of the same model opened with a viewing token sees the list change
+as views are saved and deleted, and has no way to save or delete one."""
 
 from __future__ import annotations
 
@@ -18,6 +18,14 @@ def test_a_view_saved_with_the_model_comes_back(
     v = open_viewer(server.open_url)
     n = v.wait_final()
     page = v.page
+    # A page of the same model opened with a viewing token, open all along: it hears of
+    # the views saved and deleted (the stream's model_views event) and cannot save one.
+    token = api.post(f"/api/models/{model['id']}/tokens", json={"ttl_seconds": 600}).json()["token"]
+    guest = open_viewer(f"{server.url}/?token={token}&model={model['id']}", role="guest")
+    guest.wait_final()
+    guest.page.locator("#views-panel summary").click()
+    guest.wait_for("() => document.getElementById('model-views').innerText.includes('no views saved')")
+    assert not guest.page.locator("#model-view-save").is_visible()
     page.locator("#views-panel summary").click()
     v.wait_for("() => document.getElementById('model-views').innerText.includes('no views saved')")
 
@@ -47,16 +55,12 @@ def test_a_view_saved_with_the_model_comes_back(
     assert [plane(p) for p in sent] == [plane(p) for p in saved["sections"]]
     v.shot("back-at-the-saved-view")
 
-    # A new page lists it; a viewing token's page lists it and cannot save.
-    token = api.post(f"/api/models/{model['id']}/tokens", json={"ttl_seconds": 600}).json()["token"]
-    guest = open_viewer(f"{server.url}/?token={token}&model={model['id']}", role="guest")
-    guest.wait_final()
-    guest.page.locator("#views-panel summary").click()
+    # The guest's list got it as it was saved, without a way to delete it.
     guest.wait_for("() => document.getElementById('model-views').innerText.includes('cut across x')")
-    assert not guest.page.locator("#model-view-save").is_visible()
     assert guest.page.locator("#model-views button").count() == 0
 
     page.get_by_role("button", name="delete the view cut across x").click()
     v.wait_for("() => document.getElementById('model-views').innerText.includes('no views saved')")
+    guest.wait_for("() => document.getElementById('model-views').innerText.includes('no views saved')")
     assert api.get(f"/api/models/{model['id']}/views").json()["views"] == []
     assert not v.errors_received() and not guest.errors_received()

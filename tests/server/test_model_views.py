@@ -1,11 +1,13 @@
 """Views saved with a model (/api/models/{id}/views), against a real server and its
 SQLite registry: saved with the API key, listed for anyone who may view the model (a
 viewing token too, which may not save or delete), refused with the field named when
-bad (and nothing saved), at most MAX_VIEWS_PER_MODEL of them, gone with the model, kept
-across a restart; the Python client saves one and a live view goes to it."""
+bad (and nothing saved), at most MAX_VIEWS_PER_MODEL of them, announced to live views
+of the model, gone with the model, kept across a restart; the Python client saves one
+and a live view goes to it."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +60,31 @@ def test_views_are_saved_listed_and_deleted(server: ServerProcess, api: httpx.Cl
     assert api.delete(f"/api/models/{model}/views/{saved['id']}").status_code == 204
     assert error_of(api.delete(f"/api/models/{model}/views/{saved['id']}"), 404)["code"] == "view_not_found"
     assert [v["name"] for v in api.get(f"/api/models/{model}/views").json()["views"]] == ["top"]
+
+
+def test_live_views_of_the_model_hear_of_saved_and_deleted_views(
+    server: ServerProcess, api: httpx.Client
+) -> None:
+    """A `model_views` event reaches every stream viewing the model (the page lists its
+    views again), and not the streams of other models."""
+    model, other = register(server, api, "heard"), register(server, api, "not-heard")
+
+    def heard(view: Any, count: int) -> None:
+        deadline = time.monotonic() + 30
+        while sum(e.get("type") == "model_views" for e in view.events) < count:
+            assert time.monotonic() < deadline, view.events
+            time.sleep(0.02)
+
+    with Client(server.open_url) as vr, vr.view(model) as watching, vr.view(other) as elsewhere:
+        watching.next_frame()
+        elsewhere.next_frame()
+        saved = api.post(f"/api/models/{model}/views", json={"name": "v", "camera": CAMERA}).json()
+        heard(watching, 1)
+        news = [e for e in watching.events if e["type"] == "model_views"]
+        assert news == [{"type": "model_views", "model": model}]
+        api.delete(f"/api/models/{model}/views/{saved['id']}").raise_for_status()
+        heard(watching, 2)
+        assert not any(e.get("type") == "model_views" for e in elsewhere.events)
 
 
 def test_bad_views_are_refused_and_nothing_is_saved(server: ServerProcess, api: httpx.Client) -> None:

@@ -783,6 +783,9 @@ export class Panels {
         this.views = m.views;
         $("views").replaceChildren(...m.views.map((v) => li(v.name, { title: "click: go to this view", onClick: () => this.#jump(v) })));
         break;
+      case "model_views": // saved or deleted (by this page or another): list them again
+        if (m.model === this.app.modelId) this.loadModelViews();
+        break;
       case "sections":
         // The presenter's own planes, echoed: re-rendering would break a drag of a slider.
         if (this.review?.role === "presenter") break;
