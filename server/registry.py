@@ -497,18 +497,19 @@ class Registry:
 
     def add_model_view(
         self, view_id: str, model_id: str, name: str, state: dict[str, Any], most: int
-    ) -> bool:
-        """False (and nothing saved) when the model has `most` views already."""
+    ) -> dict[str, Any] | None:
+        """The view as `model_views` lists it; None (and nothing saved) when the model has
+        `most` views already."""
+        row = {"id": view_id, "model_id": model_id, "name": name, "state": state, "created_at": time.time()}
         with self._tx() as db:
             count_sql = "SELECT COUNT(*) FROM model_views WHERE model_id = ?"
-            count = db.execute(count_sql, (model_id,)).fetchone()[0]
-            if count >= most:
-                return False
+            if db.execute(count_sql, (model_id,)).fetchone()[0] >= most:
+                return None
             db.execute(
                 "INSERT INTO model_views (id, model_id, name, state, created_at) VALUES (?, ?, ?, ?, ?)",
-                (view_id, model_id, name, json.dumps(state), time.time()),
+                (view_id, model_id, name, json.dumps(state), row["created_at"]),
             )
-        return True
+        return row
 
     def model_views(self, model_id: str) -> list[dict[str, Any]]:
         rows = self._query("SELECT * FROM model_views WHERE model_id = ? ORDER BY created_at", (model_id,))

@@ -68,11 +68,11 @@ async def save_view(model_id: str, body: ModelViewRequest, request: Request, _: 
     added = await asyncio.to_thread(
         state.registry.add_model_view, view_id, model_id, body.name, kept, MAX_VIEWS_PER_MODEL
     )
-    if not added:
+    if added is None:
         message = f"model {model_id} has {MAX_VIEWS_PER_MODEL} saved views: delete some first"
         raise ApiError(409, "too_many_views", message)
     _announce(request, model_id)
-    return _view(next(r for r in state.registry.model_views(model_id) if r["id"] == view_id))
+    return _view(added)
 
 
 @router.delete("/{view_id}", status_code=204, summary="Delete a view saved with a model")

@@ -1,5 +1,5 @@
 """Helpers of the server tests: a real `vastray serve` (vastray.server.process) with a
-fixed test key, and waiting for build jobs."""
+fixed test key, waiting for build jobs, and reading an error answer."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import httpx
 from vastray.server import process
 from vastray.server.process import URL_LINE, VASTRAY
 
-__all__ = ["KEY", "URL_LINE", "VASTRAY", "ServerProcess", "wait_for_job"]
+__all__ = ["KEY", "URL_LINE", "VASTRAY", "ServerProcess", "error", "wait_for_job"]
 
 KEY = "test-key-0123456789abcdef"
 
@@ -35,3 +35,14 @@ def wait_for_job(
             return job
         time.sleep(0.1)
     raise AssertionError(f"job {job_id} not in {states} after {timeout} s: {job}")
+
+
+def error(r: httpx.Response, status: int, code: str | None = None) -> str:
+    """The message of an error answer (docs/API.md's form), after checking its status and,
+    if given, its code."""
+    assert r.status_code == status, (r.status_code, r.text)
+    body = r.json()["error"]
+    if code is not None:
+        assert body["code"] == code, body
+    assert body["message"]
+    return str(body["message"])

@@ -12,7 +12,7 @@ from typing import Any
 
 import httpx
 import pytest
-from serverproc import ServerProcess, wait_for_job
+from serverproc import ServerProcess, error, wait_for_job
 
 
 @pytest.fixture(scope="module")
@@ -24,15 +24,6 @@ def models(api: httpx.Client) -> tuple[str, str]:
         assert wait_for_job(api, job["id"])["state"] == "succeeded"
         ids.append(job["model_id"])
     return ids[0], ids[1]
-
-
-def error(r: httpx.Response, status: int, code: str | None = None) -> str:
-    assert r.status_code == status, (r.status_code, r.text)
-    body = r.json()["error"]
-    if code is not None:
-        assert body["code"] == code, body
-    assert body["message"]
-    return str(body["message"])
 
 
 def test_write_endpoints_need_the_key(server: ServerProcess, models: tuple[str, str]) -> None:

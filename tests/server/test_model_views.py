@@ -14,7 +14,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from serverproc import ServerProcess
+from serverproc import ServerProcess, error
 
 from vastray.build import BuildOptions, build_model
 from vastray.client import Client, VastrayError
@@ -28,11 +28,6 @@ def register(server: ServerProcess, api: httpx.Client, name: str) -> str:
     r = api.post("/api/models", json={"path": f"{name}.vast", "name": name})
     assert r.status_code == 201, r.text
     return str(r.json()["model"]["id"])
-
-
-def error_of(r: httpx.Response, status: int) -> dict[str, Any]:
-    assert r.status_code == status, r.text
-    return dict(r.json()["error"])
 
 
 def test_views_are_saved_listed_and_deleted(server: ServerProcess, api: httpx.Client) -> None:
@@ -54,11 +49,11 @@ def test_views_are_saved_listed_and_deleted(server: ServerProcess, api: httpx.Cl
     token = api.post(f"/api/models/{model}/tokens", json={"ttl_seconds": 600}).json()["token"]
     with httpx.Client(base_url=server.url, headers={"Authorization": f"Bearer {token}"}) as viewer:
         assert len(viewer.get(f"/api/models/{model}/views").json()["views"]) == 2
-        assert error_of(viewer.post(f"/api/models/{model}/views", json=body), 403)["code"] == "forbidden"
-        assert error_of(viewer.delete(f"/api/models/{model}/views/{saved['id']}"), 403)["code"] == "forbidden"
+        error(viewer.post(f"/api/models/{model}/views", json=body), 403, "forbidden")
+        error(viewer.delete(f"/api/models/{model}/views/{saved['id']}"), 403, "forbidden")
 
     assert api.delete(f"/api/models/{model}/views/{saved['id']}").status_code == 204
-    assert error_of(api.delete(f"/api/models/{model}/views/{saved['id']}"), 404)["code"] == "view_not_found"
+    error(api.delete(f"/api/models/{model}/views/{saved['id']}"), 404, "view_not_found")
     assert [v["name"] for v in api.get(f"/api/models/{model}/views").json()["views"]] == ["top"]
 
 
@@ -99,11 +94,11 @@ def test_bad_views_are_refused_and_nothing_is_saved(server: ServerProcess, api: 
         ({**base, "colour": "red"}, 422, "colour"),
     ]
     for body, status, named in cases:
-        message = error_of(api.post(f"/api/models/{model}/views", json=body), status)["message"]
+        message = error(api.post(f"/api/models/{model}/views", json=body), status)
         assert named in message, (named, message)
     missing = "/api/models/mdl-nosuchmodel/views"
-    assert error_of(api.get(missing), 404)["code"] == "model_not_found"
-    assert error_of(api.post(missing, json=base), 404)["code"] == "model_not_found"
+    error(api.get(missing), 404, "model_not_found")
+    error(api.post(missing, json=base), 404, "model_not_found")
     assert api.get(f"/api/models/{model}/views").json()["views"] == []
 
 
@@ -115,7 +110,7 @@ def test_a_model_keeps_at_most_so_many_views(server: ServerProcess, api: httpx.C
         r = api.post(f"/api/models/{model}/views", json={"name": f"v{k}", "camera": CAMERA})
         assert r.status_code == 201, r.text
     r = api.post(f"/api/models/{model}/views", json={"name": "one more", "camera": CAMERA})
-    assert error_of(r, 409)["code"] == "too_many_views"
+    error(r, 409, "too_many_views")
     assert len(api.get(f"/api/models/{model}/views").json()["views"]) == MAX_VIEWS_PER_MODEL
 
 
@@ -123,7 +118,7 @@ def test_views_go_with_their_model(server: ServerProcess, api: httpx.Client) -> 
     model = register(server, api, "doomed")
     api.post(f"/api/models/{model}/views", json={"name": "v", "camera": CAMERA}).raise_for_status()
     assert api.delete(f"/api/models/{model}").status_code == 204
-    assert error_of(api.get(f"/api/models/{model}/views"), 404)["code"] == "model_not_found"
+    error(api.get(f"/api/models/{model}/views"), 404, "model_not_found")
     from vastray.server.registry import Registry
 
     registry = Registry(server.data_dir)

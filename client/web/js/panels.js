@@ -243,10 +243,10 @@ export class Panels {
   pickResult(hit, elapsedMs = 0, serverMs = 0, measured = null) {
     this.lastPickResult = [hit, elapsedMs, serverMs, measured]; // (what a double click puts back)
     const out = $("pick");
+    for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
+    $("pick-part-box").hidden = hit?.part_id == null;
     if (!hit) {
       out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
-      for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
-      $("pick-part-box").hidden = true;
       return;
     }
     const p = hit.position.map((x) => formatLength(x)).join(", ");
@@ -264,12 +264,9 @@ export class Panels {
       out.dataset.distance = String(length(d));
       out.dataset.delta = d.join(",");
       out.dataset.angle = String(angle);
-    } else {
-      for (const k of ["distance", "delta", "angle"]) delete out.dataset[k];
     }
     out.textContent = text;
     this.lastPick = hit;
-    $("pick-part-box").hidden = hit.part_id == null;
   }
 
   #wireTools() {
@@ -394,6 +391,14 @@ export class Panels {
     this.#renderParts();
   }
 
+  // Highlights these parts and no others: the search is cleared, since the list would
+  // highlight what a search finds instead (#showParts), and the list sends the set.
+  #highlightOnly(ids) {
+    this.highlight = new Set(ids);
+    $("parts-search").value = "";
+    this.#renderParts();
+  }
+
   #sendHighlight(ids) {
     const key = ids.join(",");
     if (key === (this.lastHighlight ?? "") || !this.mayDrive()) return;
@@ -478,9 +483,7 @@ export class Panels {
       bounds = this.partBounds.get(hit.part_id);
       if (!bounds) return;
     }
-    this.highlight = new Set([hit.part_id]);
-    $("parts-search").value = ""; // (a search would highlight what it finds instead)
-    this.#renderParts();
+    this.#highlightOnly([hit.part_id]);
     this.addSectionBox([bounds]);
   }
 
@@ -617,10 +620,7 @@ export class Panels {
     this.sections = view.sections.map((p) => ({ ...p }));
     this.#renderSections();
     this.#sendSections();
-    this.highlight = new Set(view.highlight);
-    $("parts-search").value = "";
-    this.#renderParts();
-    this.#sendHighlight([...this.highlight]);
+    this.#highlightOnly(view.highlight);
     this.app.setCamera(view.camera);
   }
 
@@ -639,7 +639,7 @@ export class Panels {
     }
     $("model-view-name").value = "";
     this.app.notice(`Saved "${name}" with the model.`);
-    await this.loadModelViews();
+    if (!this.app.stream?.connected) await this.loadModelViews(); // (else the model_views event lists them)
   }
 
   async #deleteModelView(view) {
@@ -648,7 +648,7 @@ export class Panels {
     } catch (e) {
       this.app.notice(`The view was not deleted: ${e.message}`);
     }
-    await this.loadModelViews();
+    if (!this.app.stream?.connected) await this.loadModelViews(); // (else the model_views event lists them)
   }
 
   // -- review ----------------------------------------------------------------------------
