@@ -323,6 +323,13 @@ public:
         return false;
     }
     const std::uint8_t* block() const { return block_; }
+    // Starts loading the input id and colour of triangle `local` of a plain block, which
+    // a closest hit needs once the walk is over (resolve_triangle_ids, the shading).
+    void prefetch_hit(std::uint32_t local) const {
+        if (lane_.compact_triangles) return;
+        prefetch_line(block_ + layout_.ids + 4 * std::size_t{local});
+        if (lane_.has_colours) prefetch_line(block_ + layout_.colours + 4 * std::size_t{local});
+    }
     // The input id of triangle `local` of the current block, read only when needed: the
     // ids live in their own section, a cache line away from the vertices.
     std::uint32_t id(std::uint32_t local) const {
@@ -407,6 +414,38 @@ private:
     mutable format::CompactTriangleBlock::Group group_;
     mutable std::uint32_t group_index_ = ~0u;
 };
+
+}  // namespace lod_detail
+
+namespace lod_detail {
+
+// The input id of triangle `local` of the triangle block at tb (LeafTriangles::id
+// without a leaf open), kNoHit for a damaged compact block. The packet walks record a
+// closest hit as its block and index and read the id once, when the walk is over: the
+// ids lie a cache line away from the vertices, and reading them at every closer hit
+// cost a miss per leaf that held one.
+inline std::uint32_t triangle_id(const LodLane& lane, const std::uint8_t* tb, std::uint32_t local) {
+    if (lane.compact_triangles) {
+        format::CompactTriangleBlock b;
+        format::CompactTriangleBlock::Group g;
+        if (!format::CompactTriangleBlock::parse(tb, format::kBlockSize, lane.has_colours, lane.quantized_vertices, b) ||
+            !b.group(local / format::compact::kGroup, g)) {
+            return kNoHit;
+        }
+        return b.id(g, local - g.first);
+    }
+    const auto layout = format::TriangleBlockLayout::read(tb, lane.has_colours, lane.quantized_vertices);
+    return load<std::uint32_t>(tb + layout.ids + 4 * std::size_t{local});
+}
+
+// Hits whose prim is still a triangle's index in its block (the packet walks' closest
+// hits) get the triangle's input id.
+inline void resolve_triangle_ids(const LodLane& lane, LodHit* hits, int n) {
+    for (int i = 0; i < n; ++i) {
+        LodHit& h = hits[i];
+        if (h.tri_block && h.prim != kNoHit && h.prim != kVoxelPrim) h.prim = triangle_id(lane, h.tri_block, h.local);
+    }
+}
 
 }  // namespace lod_detail
 
@@ -742,10 +781,16 @@ public:
                     if (skip_ != kNoHit && triangles.id(local) == skip_) continue;
                     ++lane.triangle_tests;
                     if (intersect_triangle(ray, sheared_, v0, v1, v2, hit)) {
-                        hit.prim = triangles.id(local);
                         hit.tri_block = triangles.block();
                         hit.local = local;
-                        if (AnyHit) goto done;
+                        if (AnyHit) {
+                            hit.prim = triangles.id(local);
+                            goto done;
+                        }
+                        // The input id is read once, at the end (resolve_triangle_ids says why).
+                        hit.prim = local;
+                        provisional_ = true;
+                        triangles.prefetch_hit(local);
                     }
                 }
                 if (triangles.missing()) {
@@ -786,6 +831,7 @@ public:
             if (tmin < hit.t) hit_voxel(stand_in, entry_axis, ray, tmin, hit);
             ++lane.voxel_hits;
         }
+        if (provisional_ && hit.prim != kVoxelPrim) hit.prim = triangle_id(lane, hit.tri_block, hit.local);
         lane.node_visits += node_visits;
         return finished;
     }
@@ -804,6 +850,7 @@ private:
     ShearedRay sheared_;
     LodHit* hit_ = nullptr;
     std::uint32_t skip_ = kNoHit;
+    bool provisional_ = false;  // the hit's prim is its triangle's index in tri_block
     float org_[3], inv_[3];
     bool dir_negative_[3];
     Entry stack_[kStack];

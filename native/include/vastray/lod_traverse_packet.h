@@ -340,7 +340,9 @@ public:
                 Vec3f v0, v1, v2;
                 std::uint32_t local;
                 while (triangles.next(v0, v1, v2, local)) {
-                    // The input id is read only when a lane needs it (a skip test or a hit).
+                    // The input id is read here only for a skip test. A hit records the
+                    // triangle's index in its block as its prim (never kNoHit), and the
+                    // id is read when the walk is over (resolve_triangle_ids).
                     std::uint32_t id = kNoHit;
                     for (int v = 0; v < K; ++v) {
                         int lanes = act[v];
@@ -351,12 +353,9 @@ public:
                         if (!lanes) continue;
                         lane.triangle_tests += static_cast<std::uint64_t>(__builtin_popcount(static_cast<unsigned>(lanes)));
                         const int changed = intersect_triangle_v<W>(sheared_v[v], rays + W * v, sheared + W * v, v0, v1,
-                                                                    v2, id, vm::from_bits(static_cast<unsigned>(lanes)),
+                                                                    v2, local, vm::from_bits(static_cast<unsigned>(lanes)),
                                                                     hv[v]);
-                        if (changed) {
-                            if (id == kNoHit) id = triangles.id(local);
-                            hv[v].prim = select(vm::from_bits(static_cast<unsigned>(changed)), vf::bits(id), hv[v].prim);
-                        }
+                        if (!AnyHit && changed) triangles.prefetch_hit(local);
                         if (AnyHit) {
                             // Retired at their first hit.
                             occluded |= static_cast<std::uint32_t>(changed) << (W * v);
@@ -489,6 +488,9 @@ private:
         if (AnyHit) {
             if (h.prim != prim_before) occluded |= 1u << i;
         } else {
+            // The single walk writes input ids; the packet's hits hold block indices
+            // until the walk is over (resolve_triangle_ids).
+            if (h.tri_block && h.prim != kNoHit && h.prim != kVoxelPrim) h.prim = h.local;
             hit_t[v] = HitV<W>::load(hits + W * v).t;
         }
         if (finished) live[v] = andnot(vm::from_bits(1u << k), live[v]);
@@ -524,6 +526,7 @@ inline std::uint32_t packet_walk(LodLane& lane, const Box3f& root_cell, const Lo
     PacketWalker<N, AnyHit, Order, Quantized, false> walker;
     if (!walker.start(lane, root_cell, rays, hits, skip, mask)) return 0;
     walker.run(lane);
+    if constexpr (!AnyHit) resolve_triangle_ids(lane, hits, N);
     return walker.occluded_rays();
 }
 
@@ -538,17 +541,18 @@ public:
         hits_out_ = hits_out;
         for (int i = 0; i < N; ++i) rays_[packet_lane<N, W>(i)] = rays_in[i];
         if (walker_.start(lane, root_cell, rays_, hits_, nullptr, N == 32 ? ~0u : (1u << N) - 1)) return true;
-        finish();
+        finish(lane);
         return false;
     }
     bool run(LodLane& lane) {
         if (!walker_.run(lane)) return false;
-        finish();
+        finish(lane);
         return true;
     }
 
 private:
-    void finish() {
+    void finish(const LodLane& lane) {
+        resolve_triangle_ids(lane, hits_, N);
         for (int i = 0; i < N; ++i) hits_out_[i] = hits_[packet_lane<N, W>(i)];
     }
     LodRay rays_[N];
