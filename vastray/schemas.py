@@ -61,7 +61,9 @@ def describe_errors(errors: list[Any]) -> str:
 
 class Strict(BaseModel):
     # Unknown fields are an error, not silently dropped: a misspelt setting should say so.
-    model_config = ConfigDict(extra="forbid")
+    # No number a client sends may be NaN or infinite, and saying so names the reason (a
+    # NaN field of view would otherwise be 'Input should be less than 180').
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class CameraSpec(Strict):

@@ -142,6 +142,8 @@ def test_oversized_uploads_are_refused(tmp_path: Path) -> None:
         ({"eye": [0, 10, 0], "target": [0, 0, 0], "up": [0, 1, 0]}, "parallel"),
         ({"fov": 0}, "fov"),
         ({"fov": 180}, "fov"),
+        ({"fov": math.nan}, "fov: Input should be a finite number"),
+        ({"fov": math.inf}, "fov: Input should be a finite number"),
         ({"width": 100_000, "height": 100_000}, "16384"),
         ({"width": 10_000, "height": 10_000}, "pixel budget"),
         ({"width": 0}, "width"),
