@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlsplit, urlunsplit
@@ -128,11 +128,23 @@ class AsyncClient:
     async def model(self, model: str | ModelInfo) -> ModelInfo:
         return ModelInfo(**await self._json("GET", f"/api/models/{_model_id(model)}"))
 
-    async def parts(self, model: str | ModelInfo, query: str = "", *, limit: int = 20_000) -> list[PartInfo]:
-        """The model's parts whose name contains `query` (ignoring case)."""
-        found = await self._json(
-            "GET", f"/api/models/{_model_id(model)}/parts", params={"q": query, "limit": limit}
-        )
+    async def parts(
+        self,
+        model: str | ModelInfo,
+        query: str = "",
+        *,
+        ids: Iterable[int] | None = None,
+        limit: int = 20_000,
+    ) -> list[PartInfo]:
+        """The model's parts whose name contains `query` (ignoring case); with `ids`, only
+        those of the parts with these ids (unknown ids are left out)."""
+        params: dict[str, Any] = {"q": query, "limit": limit}
+        if ids is not None:
+            wanted = sorted({int(i) for i in ids})
+            if not wanted:
+                return []
+            params["ids"] = ",".join(map(str, wanted))
+        found = await self._json("GET", f"/api/models/{_model_id(model)}/parts", params=params)
         return [PartInfo(**p) for p in found["parts"]]
 
     async def upload(

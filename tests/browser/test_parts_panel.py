@@ -174,4 +174,13 @@ def test_a_section_box_keeps_the_highlighted_part(
     v.wait_for("() => !document.querySelector('#overlay path.section-box')")
     assert [m for m in v.sent if m["type"] == "sections"][-1]["planes"] == []
     assert all(h["hit"] for h in v.stream_pick(beside))
+    # A highlighted part whose bounds the page was not sent (as past the welcome's list)
+    # gets the same box: "box" asks the server for them by id.
+    v.js("() => window.vastray.panels.partBounds.clear()")
+    page.locator("#section-box").click()
+    v.wait_for("() => window.vastray.panels.sections.length === 6")
+    again = [m for m in v.sent if m["type"] == "sections"][-1]["planes"]
+    assert [(p["normal"], pytest.approx(p["offset"])) for p in again] == [
+        (p["normal"], p["offset"]) for p in sent
+    ]
     assert not v.errors_received()

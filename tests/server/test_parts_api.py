@@ -46,6 +46,26 @@ def test_the_model_lists_its_parts_as_the_obj_has_them(api: httpx.Client, model:
     }
 
 
+def test_parts_are_found_by_id(api: httpx.Client, client: Client, model: dict) -> None:
+    """`ids` gives exactly the parts asked for (what a page needs to box highlighted parts
+    it was not sent), with a name search too; unknown ids are left out, and a list that
+    is not one of ids is refused with the parameter named."""
+    url = f"/api/models/{model['id']}/parts"
+    every = {p["id"]: p for p in api.get(url).json()["parts"]}
+    some = sorted(every)[1::2]
+    found = api.get(url, params={"ids": ",".join(map(str, [*some, 10_000]))}).json()
+    assert found["total"] == len(some) and [p["id"] for p in found["parts"]] == some
+    assert found["parts"] == [every[i] for i in some]
+    pumps = [i for i in every if every[i]["name"].startswith("pump")]
+    both = api.get(url, params={"q": "pump", "ids": ",".join(map(str, every))}).json()
+    assert sorted(p["id"] for p in both["parts"]) == sorted(pumps)
+    assert [p.id for p in client.parts(model["id"], ids=reversed(some))] == some
+    assert client.parts(model["id"], ids=[]) == []
+    for bad in ("1,,2", "-1", "a", "1;2"):
+        r = api.get(url, params={"ids": bad})
+        assert r.status_code == 422 and "ids" in r.json()["error"]["message"], (bad, r.text)
+
+
 def test_a_pick_names_the_part_it_hits(client: Client, model: dict) -> None:
     parts = {p.name: p.id for p in client.parts(model["id"])}
     rays = [((lo[0] + side / 2, 0.5, 5.0), (0.0, 0.0, -1.0)) for _, lo, side in BOXES]

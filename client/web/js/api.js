@@ -45,8 +45,12 @@ export class Api {
   model(id) { return this.request("GET", `/api/models/${id}`); }
   // Renames a model or says which way is up in it (`{ name, up }`); needs the API key.
   updateModel(id, changes) { return this.request("PATCH", `/api/models/${id}`, changes); }
-  parts(id, query, limit = 500) {
-    return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams({ q: query, limit })}`);
+  // `ids`: only the parts with these ids (e.g. the highlighted ones whose bounds the
+  // page has not been sent).
+  parts(id, query, limit = 500, ids = null) {
+    const params = { q: query, limit };
+    if (ids) params.ids = ids.join(",");
+    return this.request("GET", `/api/models/${id}/parts?${new URLSearchParams(params)}`);
   }
   // Views saved with a model (`{ name, camera, sections, highlight }`); saving and
   // deleting need the API key.

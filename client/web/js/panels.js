@@ -440,12 +440,26 @@ export class Panels {
   // bounds of the parts the view highlights (the whole model when it highlights none),
   // grown by a fiftieth of their diagonal on every side so the parts' own faces stay
   // whole. It replaces the planes there were (a view takes six at most); each face's
-  // slider then moves that face. vastray.schemas.section_box is the same box.
-  addSectionBox(boxes = null) {
+  // slider then moves that face. vastray.schemas.section_box is the same box. The bounds
+  // of highlighted parts the page has not been sent (a saved view's, a review's, past
+  // the welcome's list) come from the server first.
+  async addSectionBox(boxes = null) {
     const m = this.app.model;
     if (!m) return;
     if (!boxes) {
       const ids = (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
+      const unknown = ids.filter((id) => !this.partBounds.has(id));
+      try {
+        for (let i = 0; i < unknown.length; i += 1000) {
+          const chunk = unknown.slice(i, i + 1000);
+          const found = await this.app.api.parts(this.app.modelId, "", chunk.length, chunk);
+          for (const p of found.parts) this.partBounds.set(p.id, p.bounds);
+        }
+      } catch (e) {
+        this.app.notice(`The highlighted parts' bounds could not be read: ${e.message}`);
+        return;
+      }
+      if (this.app.model !== m) return; // another model opened meanwhile
       boxes = ids.map((id) => this.partBounds.get(id)).filter(Boolean);
     }
     const lo = [0, 1, 2].map((k) => Math.min(...(boxes.length ? boxes : [m.bounds]).map((b) => b[0][k])));
