@@ -151,7 +151,7 @@ def list_parts(
     ids: str = Query(
         "",
         max_length=20_000,
-        pattern=r"^[0-9]*(,[0-9]+)*$",
+        pattern=r"^([0-9]+(,[0-9]+)*)?$",
         description="comma-separated part ids: only these parts (unknown ids are left out), in table order",
     ),
     offset: int = Query(0, ge=0),
