@@ -192,10 +192,12 @@ class AsyncClient:
         *,
         name: str | None = None,
         up: tuple[float, float, float] | None = None,
+        units: str | None = None,
     ) -> ModelInfo:
-        """Renames a model, or says which way is up in it (views opened after this start
-        upright: a z-up scan takes `up=(0, 0, 1)`)."""
-        body = {k: v for k, v in (("name", name), ("up", up)) if v is not None}
+        """Renames a model, says which way is up in it (views opened after this start
+        upright: a z-up scan takes `up=(0, 0, 1)`), or the length unit of its coordinates
+        ("mm", "cm", "m", "km", "in", "ft"; "" for none)."""
+        body = {k: v for k, v in (("name", name), ("up", up), ("units", units)) if v is not None}
         return ModelInfo(**await self._json("PATCH", f"/api/models/{_model_id(model)}", json=body))
 
     async def delete(self, model: str | ModelInfo) -> bool:

@@ -98,6 +98,7 @@ class ModelStore:
             build=i.get("build"),
             in_use=in_use,
             up=row.up or Y_UP,
+            units=row.units,
         )
 
     def row(self, model_id: str, *, ready: bool = False) -> ModelRow:
@@ -184,11 +185,15 @@ class ModelStore:
         log.info("model %s (%s): registered, %s triangles", model_id, name, f"{info['triangles']:,}")
         return row
 
-    def patch(self, model_id: str, *, name: str | None = None, up: Vec3 | None = None) -> ModelRow:
-        """A model renamed or given its up (a model being built may be, too: the build
-        does not touch either)."""
+    def patch(
+        self, model_id: str, *, name: str | None = None, up: Vec3 | None = None, units: str | None = None
+    ) -> ModelRow:
+        """A model renamed, given its up or its units ("" for none; a model being built
+        may be, too: the build touches none of them)."""
         self.row(model_id)
-        fields = {k: v for k, v in (("name", name), ("up", up)) if v is not None}
+        fields: dict[str, Any] = {k: v for k, v in (("name", name), ("up", up)) if v is not None}
+        if units is not None:
+            fields["units"] = units or None
         if fields:
             self.registry.update_model(model_id, **fields)
             log.info("model %s: %s", model_id, ", ".join(f"{k} set to {v}" for k, v in fields.items()))

@@ -120,6 +120,10 @@ MIGRATIONS: tuple[str, ...] = (
     );
     CREATE INDEX model_views_by_model ON model_views (model_id, created_at);
     """,
+    # 5: the length unit of a model's coordinates (NULL: not said), set by PATCH.
+    """
+    ALTER TABLE models ADD COLUMN units TEXT;
+    """,
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 JOB_LOG_KEEP = 200  # lines kept per job
@@ -140,6 +144,7 @@ class ModelRow:
     created_at: float
     info: dict[str, Any]
     up: tuple[float, float, float] | None = None  # None: +y
+    units: str | None = None  # None: not said
 
 
 @dataclass

@@ -45,6 +45,8 @@ assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of mod
 StandardViewName = Literal["iso", "front", "back", "left", "right", "top", "bottom"]
 assert list(StandardViewName.__args__) == list(STANDARD_VIEWS)  # one list of views
 ProjectionName = Literal["perspective", "orthographic"]
+# The length units a model's coordinates may be said to be in (meshes do not say).
+UnitName = Literal["mm", "cm", "m", "km", "in", "ft"]
 assert list(ProjectionName.__args__) == list(PROJECTIONS)
 
 
@@ -288,6 +290,9 @@ class ModelInfo(BaseModel):
     # Which way is up in the model (a unit vector): default cameras, framing and orbits
     # turn about it. Meshes come either way (CAD and scans are often z-up).
     up: Vec3 = (0.0, 1.0, 0.0)
+    # The length unit of its coordinates, when someone has said (PATCH): measurements
+    # are given in it. None: not said (most mesh formats do not store one).
+    units: UnitName | None = None
 
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled", "interrupted"]
@@ -406,11 +411,15 @@ class ModelRequest(Strict):
 
 
 class ModelPatch(Strict):
-    """What an admin may change on a model: its name, and which way is up (stored as a
-    unit vector; views opened after the change start from it)."""
+    """What an admin may change on a model: its name, which way is up (stored as a
+    unit vector; views opened after the change start from it), and the length unit of
+    its coordinates."""
 
     name: str | None = Field(None, min_length=1, max_length=200)
     up: UnitVec3 | None = Field(None, description=UP_DESCRIPTION)
+    units: Literal[UnitName, ""] | None = Field(
+        None, description='the length unit of the model\'s coordinates; "" to say none'
+    )
 
 
 class ModelCreated(BaseModel):

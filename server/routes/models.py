@@ -137,10 +137,10 @@ def get_model(model_id: str, request: Request) -> ModelInfo:
     return state.store.info(state.store.row(model_id))
 
 
-@router.patch("/models/{model_id}", summary="Rename a model, or say which way is up in it")
+@router.patch("/models/{model_id}", summary="Rename a model, or say which way is up in it or its units")
 def patch_model(model_id: str, body: ModelPatch, request: Request, _: Admin) -> ModelInfo:
     state = state_of(request)
-    return state.store.info(state.store.patch(model_id, name=body.name, up=body.up))
+    return state.store.info(state.store.patch(model_id, name=body.name, up=body.up, units=body.units))
 
 
 @router.get("/models/{model_id}/parts", summary="Parts (name, bounds, triangles), searched by name")

@@ -141,8 +141,26 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     angle = np.degrees(np.arccos(min(1.0, abs(float(normals[0] @ normals[1])))))
     assert float(v.page.locator("#pick").get_attribute("data-angle")) == pytest.approx(angle, abs=1e-6)
     assert text.splitlines()[2] == f"angle between the surfaces: {angle:.1f}°"
-    # Overlays: two markers and the measured line, pinned to the points as the camera moves.
     overlay = v.page.locator("#overlay")
+    # Units: the model says none, so lengths go bare. Said on the page (with the API key),
+    # every length gives them, the overlay's label too, and the model keeps them.
+    model_url = f"/api/models/{model['id']}"
+    assert api.get(model_url).json()["units"] is None
+    v.page.select_option("#model-units", "mm")
+    v.wait_for("() => document.getElementById('pick').innerText.split('\\n')[0].endsWith(' mm')")
+    lines = v.page.locator("#pick").inner_text().splitlines()
+    assert float(lines[0].removeprefix("A → B: ").removesuffix(" mm")) == pytest.approx(expected, rel=1e-3)
+    assert [c[-3:] for c in lines[1].split(", ")] == [" mm"] * 3, lines[1]
+    assert lines[3].startswith("point: ") and lines[3].endswith(" (mm)"), lines[3]
+    assert lines[4].startswith("distance from the eye: ") and lines[4].endswith(" mm"), lines[4]
+    assert (overlay.locator("text.distance").text_content() or "").endswith(" mm")
+    v.wait_for("() => document.body.innerText.includes('its lengths are in mm')")
+    assert api.get(model_url).json()["units"] == "mm"
+    v.page.select_option("#model-units", "")
+    v.wait_for("() => document.body.innerText.includes('its units are not said')")
+    assert not v.page.locator("#pick").inner_text().splitlines()[0].endswith(" mm")
+    assert api.get(model_url).json()["units"] is None
+    # Overlays: two markers and the measured line, pinned to the points as the camera moves.
     assert overlay.locator("circle.marker").count() == 2 and overlay.locator("line").count() == 1
     x0 = float(overlay.locator("circle.marker").first.get_attribute("cx"))
     n = v.frames()

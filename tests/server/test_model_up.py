@@ -21,6 +21,7 @@ from serverproc import ServerProcess, wait_for_job
 
 from vastray import scenes
 from vastray.build import BuildOptions, build_model
+from vastray.client import Client
 from vastray.modelfile import ModelFile
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -125,6 +126,8 @@ def test_bad_patches_are_refused_and_change_nothing(
         ({"up": [0, 1]}, "up"),
         ({"upp": [0, 0, 1]}, "upp: Extra inputs are not permitted"),
         ({"name": ""}, "name"),
+        ({"units": "furlong"}, "units: Input should be 'mm', 'cm', 'm', 'km', 'in', 'ft' or ''"),
+        ({"units": 1}, "units"),
     ]:
         r = api.patch(f"/api/models/{model_id}", json=body)
         assert r.status_code == 422, (body, r.text)
@@ -142,7 +145,7 @@ def test_bad_patches_are_refused_and_change_nothing(
     )
     assert r.status_code in (401, 403), r.text
     after = api.get(f"/api/models/{model_id}").json()
-    assert (after["up"], after["name"]) == (before["up"], before["name"])
+    assert (after["up"], after["name"], after["units"]) == (before["up"], before["name"], before["units"])
 
 
 def test_up_given_when_a_model_is_registered_uploaded_or_built(
@@ -197,19 +200,28 @@ def test_up_given_when_a_model_is_registered_uploaded_or_built(
     assert r.status_code == 422 and "up: up vector has zero length" in r.json()["error"]["message"]
 
 
-def test_up_and_name_outlive_a_restart(tmp_path: Path) -> None:
+def test_up_name_and_units_outlive_a_restart(tmp_path: Path) -> None:
     s = ServerProcess(tmp_path / "data", "--no-demo").start()
     try:
         with s.client() as api:
             build_model("scene:spheres:3000:1", s.data_dir / "s.vast", BuildOptions(memory=64 << 20))
             model_id = api.post("/api/models", json={"path": "s.vast"}).json()["model"]["id"]
+            assert api.get(f"/api/models/{model_id}").json()["units"] is None  # not said
             # (Any length will do: even one whose squares overflow a double.)
             r = api.patch(f"/api/models/{model_id}", json={"up": [-1e300, 0, 0], "name": "on its side"})
             assert r.status_code == 200 and r.json()["up"] == [-1.0, 0.0, 0.0], r.text
+            r = api.patch(f"/api/models/{model_id}", json={"units": "mm"})
+            assert r.status_code == 200 and r.json()["units"] == "mm" and r.json()["name"] == "on its side"
         s.stop()
         s.start()
         with s.client() as api:
             info = api.get(f"/api/models/{model_id}").json()
-            assert info["up"] == [-1.0, 0.0, 0.0] and info["name"] == "on its side"
+            assert info["up"] == [-1.0, 0.0, 0.0] and info["name"] == "on its side" and info["units"] == "mm"
+            # The Python client says them too, and "" says none.
+            with Client(s.url, key=s.key) as vr:
+                assert vr.update_model(model_id, units="ft").units == "ft"
+                assert vr.model(model_id).units == "ft"
+                assert vr.update_model(model_id, units="").units is None
+            assert api.get(f"/api/models/{model_id}").json()["units"] is None
     finally:
         s.stop()

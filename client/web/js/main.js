@@ -352,16 +352,39 @@ class App {
     const model = this.model;
     model.up = up;
     this.frameAll();
+    const saved = await this.#saveWithModel(model, { up }, "Up is");
+    if (!saved) return;
+    model.up = saved.up;
+    this.notice(`Saved with ${saved.name}: views of it start with this side up.`);
+  }
+
+  // The length unit of the model's coordinates ("" for none): measurements are given in
+  // it, and with the API key it is saved with the model for everyone's next view.
+  async setUnits(units) {
+    if (!this.model) return;
+    const model = this.model;
+    model.units = units || null;
+    this.panels.unitsChanged();
+    this.redrawOverlay();
+    const saved = await this.#saveWithModel(model, { units }, "Units are");
+    if (!saved) return;
+    model.units = saved.units;
+    this.notice(saved.units ? `Saved with ${saved.name}: its lengths are in ${saved.units}.`
+      : `Saved with ${saved.name}: its units are not said.`);
+  }
+
+  // A model setting saved with the model (PATCH), which needs the API key: the saved
+  // model, or null when it holds on this page only (and a notice says why).
+  async #saveWithModel(model, changes, what) {
     if (!hasKey) {
-      this.notice("Up is changed on this page only: saving it with the model needs the API key.");
-      return;
+      this.notice(`${what} changed on this page only: saving with the model needs the API key.`);
+      return null;
     }
     try {
-      const saved = await this.api.updateModel(model.id, { up });
-      model.up = saved.up;
-      this.notice(`Saved with ${saved.name}: views of it start with this side up.`);
+      return await this.api.updateModel(model.id, changes);
     } catch (e) {
-      this.notice(`Up is changed on this page only: ${e.message}`);
+      this.notice(`${what} changed on this page only: ${e.message}`);
+      return null;
     }
   }
 
@@ -479,7 +502,7 @@ class App {
       return p && q ? [p, q] : null;
     };
     this.overlay.draw(project, { picks: this.picks, pointers: this.panels.pointers, notes: this.panels.annotations,
-      box: this.panels.sectionBox(), segment });
+      box: this.panels.sectionBox(), segment, units: this.model?.units });
   }
 
   #resize() {

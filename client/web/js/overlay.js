@@ -47,7 +47,7 @@ export class Overlay {
 
   // `box`: [lo, hi] of a section box, drawn as its twelve edges; `segment(a, b)`: the
   // screen points of the part of a 3D segment in view, or null.
-  draw(project, { picks = [], pointers = new Map(), notes = [], box = null, segment = null }) {
+  draw(project, { picks = [], pointers = new Map(), notes = [], box = null, segment = null, units = null }) {
     this.clear();
     if (box && segment) this.#box(box, segment);
     const points = picks.map((p) => project(p.position));
@@ -56,7 +56,7 @@ export class Overlay {
       this.#el("line", { x1: a.x, y1: a.y, x2: b.x, y2: b.y });
       const mid = project(lerp(picks[0].position, picks[1].position, 0.5));
       if (mid) this.#el("text", { x: mid.x + 6, y: mid.y - 6, class: "distance" },
-        formatLength(distance(picks[0].position, picks[1].position)));
+        formatLength(distance(picks[0].position, picks[1].position)) + (units ? ` ${units}` : ""));
     }
     points.forEach((p, i) => {
       if (!p) return;

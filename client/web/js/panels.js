@@ -49,6 +49,7 @@ export class Panels {
     this.#wireQuality();
     this.#wireTools();
     $("model-up").addEventListener("change", (e) => this.app.setUp(e.target.value.split(",").map(Number)));
+    $("model-units").addEventListener("change", (e) => this.app.setUnits(e.target.value));
     for (const b of document.querySelectorAll("#standard-views button[data-view]")) {
       b.addEventListener("click", () => this.app.frameAll(b.dataset.view));
     }
@@ -110,6 +111,7 @@ export class Panels {
   welcome(w, { reconnected = false } = {}) {
     this.#welcomeReview(w.review);
     this.showUp(w.model.up);
+    $("model-units").value = w.model.units ?? "";
     const q = w.quality;
     $("shading").value = q.shading;
     $("poe").value = q.pixels_of_error;
@@ -249,17 +251,18 @@ export class Panels {
       out.textContent = elapsedMs ? "Nothing there (the ray missed the model)." : "Click the model to pick a point; click again to measure.";
       return;
     }
+    const u = this.#unit();
     const p = hit.position.map((x) => formatLength(x)).join(", ");
     const part = hit.part != null ? `\npart: ${hit.part}` : "";
-    let text = `point: ${p}\ndistance from the eye: ${formatLength(hit.distance)}\ntriangle: ${hit.triangle}${part}` +
-      `\nanswered in ${elapsedMs.toFixed(0)} ms (server ${serverMs.toFixed(0)} ms)`;
+    let text = `point: ${p}${u && ` (${u.trim()})`}\ndistance from the eye: ${formatLength(hit.distance)}${u}` +
+      `\ntriangle: ${hit.triangle}${part}\nanswered in ${elapsedMs.toFixed(0)} ms (server ${serverMs.toFixed(0)} ms)`;
     if (measured != null) {
       const [a, b] = measured;
       const d = sub(b.position, a.position);
       const cos = Math.min(1, Math.abs(dot(normalize(a.normal), normalize(b.normal))));
       const angle = (Math.acos(cos) * 180) / Math.PI;
-      text = `A → B: ${formatLength(length(d))}\n` +
-        `Δx ${formatLength(d[0])}, Δy ${formatLength(d[1])}, Δz ${formatLength(d[2])}\n` +
+      text = `A → B: ${formatLength(length(d))}${u}\n` +
+        `Δx ${formatLength(d[0])}${u}, Δy ${formatLength(d[1])}${u}, Δz ${formatLength(d[2])}${u}\n` +
         `angle between the surfaces: ${angle.toFixed(1)}°\n` + text;
       out.dataset.distance = String(length(d));
       out.dataset.delta = d.join(",");
@@ -267,6 +270,18 @@ export class Panels {
     }
     out.textContent = text;
     this.lastPick = hit;
+  }
+
+  // The model's units changed: the lengths shown say them.
+  unitsChanged() {
+    if (this.lastPickResult) this.pickResult(...this.lastPickResult);
+    this.#renderSections();
+  }
+
+  // " mm" after a length when the model says its units, else nothing.
+  #unit() {
+    const units = this.app.model?.units;
+    return units ? ` ${units}` : "";
   }
 
   #wireTools() {
@@ -549,7 +564,7 @@ export class Panels {
       on.addEventListener("change", () => { plane.enabled = on.checked; this.#sendSections(); });
       const readout = document.createElement("span");
       const describe = () => {
-        const at = formatLength(position());
+        const at = formatLength(position()) + this.#unit();
         readout.textContent = axis >= 0
           ? ` ${name} plane at ${at}: cuts ${name.toLowerCase()} ${sign < 0 ? ">" : "<"} ${at}`
           : ` view plane: cuts the ${this.#facesAway(plane.normal) ? "near" : "far"} side`;
