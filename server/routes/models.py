@@ -3,6 +3,8 @@ inspect, delete (deferred while in use), and viewing tokens."""
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
@@ -138,9 +140,15 @@ def get_model(model_id: str, request: Request) -> ModelInfo:
 
 
 @router.patch("/models/{model_id}", summary="Rename a model, or say which way is up in it or its units")
-def patch_model(model_id: str, body: ModelPatch, request: Request, _: Admin) -> ModelInfo:
+async def patch_model(model_id: str, body: ModelPatch, request: Request, _: Admin) -> ModelInfo:
     state = state_of(request)
-    return state.store.info(state.store.patch(model_id, name=body.name, up=body.up, units=body.units))
+    row = await asyncio.to_thread(state.store.patch, model_id, name=body.name, up=body.up, units=body.units)
+    info = state.store.info(row)
+    # Pages open on the model take the new name, up and units at once (a review's
+    # followers see the presenter's units); the stream's `model` event.
+    event = {"type": "model", "model": model_id, "name": info.name, "up": list(info.up), "units": info.units}
+    state.streams.announce(model_id, event)
+    return info
 
 
 @router.get("/models/{model_id}/parts", summary="Parts (name, bounds, triangles), searched by name")

@@ -160,6 +160,12 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     v.wait_for("() => document.body.innerText.includes('its units are not said')")
     assert not v.page.locator("#pick").inner_text().splitlines()[0].endswith(" mm")
     assert api.get(model_url).json()["units"] is None
+    # Units said elsewhere (here over the API) reach the open page at once.
+    api.patch(model_url, json={"units": "ft"}).raise_for_status()
+    v.wait_for("() => document.getElementById('pick').innerText.split('\\n')[0].endsWith(' ft')")
+    assert v.page.locator("#model-units").input_value() == "ft"
+    api.patch(model_url, json={"units": ""}).raise_for_status()
+    v.wait_for("() => document.getElementById('model-units').value === ''")
     # Overlays: two markers and the measured line, pinned to the points as the camera moves.
     assert overlay.locator("circle.marker").count() == 2 and overlay.locator("line").count() == 1
     x0 = float(overlay.locator("circle.marker").first.get_attribute("cx"))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -198,6 +199,31 @@ def test_up_given_when_a_model_is_registered_uploaded_or_built(
             assert built.up == tuple(up)
     r = api.post("/api/jobs", json={"source": "scene:spheres:3000:4", "up": [0, 0, 0]})
     assert r.status_code == 422 and "up: up vector has zero length" in r.json()["error"]["message"]
+
+
+def test_open_views_of_the_model_hear_a_patch(
+    server: ServerProcess, api: httpx.Client, pair: dict[str, str]
+) -> None:
+    """A patch goes to every live view of the model as a `model` event (its name, up and
+    units: a page shows them at once), and to no view of another model."""
+    model, other = pair["plant"], pair["plant-z"]
+    with Client(server.open_url) as vr, vr.view(model) as watching, vr.view(other) as elsewhere:
+        watching.next_frame()
+        elsewhere.next_frame()
+        info = api.patch(f"/api/models/{model}", json={"units": "in"}).json()
+        deadline = time.monotonic() + 30
+        while not any(e.get("type") == "model" for e in watching.events):
+            assert time.monotonic() < deadline, watching.events
+            time.sleep(0.02)
+        news = [e for e in watching.events if e["type"] == "model"]
+        said = {"type": "model", "model": model, "name": info["name"], "up": info["up"], "units": "in"}
+        assert news == [said]
+        api.patch(f"/api/models/{model}", json={"units": ""}).raise_for_status()
+        while sum(e.get("type") == "model" for e in watching.events) < 2:
+            assert time.monotonic() < deadline, watching.events
+            time.sleep(0.02)
+        assert [e for e in watching.events if e["type"] == "model"][-1]["units"] is None
+        assert not any(e.get("type") == "model" for e in elsewhere.events)
 
 
 def test_up_name_and_units_outlive_a_restart(tmp_path: Path) -> None:

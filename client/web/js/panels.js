@@ -815,6 +815,15 @@ export class Panels {
       case "model_views": // saved or deleted (by this page or another): list them again
         if (m.model === this.app.modelId) this.loadModelViews();
         break;
+      case "model": // its name, up or units changed (PATCH, by this page or another)
+        if (m.model === this.app.modelId && this.app.model) {
+          Object.assign(this.app.model, { name: m.name, up: m.up, units: m.units });
+          this.showUp(m.up);
+          $("model-units").value = m.units ?? "";
+          this.unitsChanged();
+          this.app.redrawOverlay();
+        }
+        break;
       case "sections":
         // The presenter's own planes, echoed: re-rendering would break a drag of a slider.
         if (this.review?.role === "presenter") break;
