@@ -93,6 +93,8 @@ def test_parts_are_listed_searched_highlighted_framed_and_picked(
     v.click_image(w / 2, h / 2)
     v.wait_for("() => document.getElementById('pick').innerText.includes('part:')")
     assert "part: Valve" in page.locator("#pick").inner_text()
+    # and gives its size along the axes (the valve is a unit cube: BOXES).
+    assert "part size: 1.000 × 1.000 × 1.000" in page.locator("#pick").inner_text()
 
     # "Box this part" highlights the picked part and boxes it, its bounds found on the
     # server when the page has not been sent them.

@@ -253,7 +253,11 @@ export class Panels {
     }
     const u = this.#unit();
     const p = hit.position.map((x) => formatLength(x)).join(", ");
-    const part = hit.part != null ? `\npart: ${hit.part}` : "";
+    // The part, and its size along the axes when the page knows its bounds.
+    const bounds = hit.part_id != null ? this.partBounds.get(hit.part_id) : null;
+    const extent = bounds && [0, 1, 2].map((k) => formatLength(bounds[1][k] - bounds[0][k])).join(" × ");
+    const size = bounds ? `\npart size: ${extent}${u}` : "";
+    const part = hit.part != null ? `\npart: ${hit.part}${size}` : "";
     let text = `point: ${p}${u && ` (${u.trim()})`}\ndistance from the eye: ${formatLength(hit.distance)}${u}` +
       `\ntriangle: ${hit.triangle}${part}\nanswered in ${elapsedMs.toFixed(0)} ms (server ${serverMs.toFixed(0)} ms)`;
     if (measured != null) {
