@@ -166,6 +166,13 @@ def test_a_pick_measures_a_distance(open_viewer: Any, server: Any, api: Any, mod
     assert v.page.locator("#model-units").input_value() == "ft"
     api.patch(model_url, json={"units": ""}).raise_for_status()
     v.wait_for("() => document.getElementById('model-units').value === ''")
+    # A rename reaches the model picker the same way.
+    name = api.get(model_url).json()["name"]
+    picked = "() => document.getElementById('model-select').selectedOptions[0].text"
+    api.patch(model_url, json={"name": "renamed for the test"}).raise_for_status()
+    v.wait_for(f"() => ({picked})().startsWith('renamed for the test (')")
+    api.patch(model_url, json={"name": name}).raise_for_status()
+    v.wait_for(f"() => ({picked})().startsWith({name + ' ('!r})")
     # Overlays: two markers and the measured line, pinned to the points as the camera moves.
     assert overlay.locator("circle.marker").count() == 2 and overlay.locator("line").count() == 1
     x0 = float(overlay.locator("circle.marker").first.get_attribute("cx"))

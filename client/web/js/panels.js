@@ -821,7 +821,10 @@ export class Panels {
         break;
       case "model": // its name, up or units changed (PATCH, by this page or another)
         if (m.model === this.app.modelId && this.app.model) {
+          const renamed = m.name !== this.app.model.name;
           Object.assign(this.app.model, { name: m.name, up: m.up, units: m.units });
+          if (renamed && !this.review) this.app.refreshModels().catch(() => {}); // the picker's name
+
           this.showUp(m.up);
           $("model-units").value = m.units ?? "";
           this.unitsChanged();
