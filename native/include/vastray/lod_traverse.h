@@ -420,10 +420,10 @@ private:
 namespace lod_detail {
 
 // The input id of triangle `local` of the triangle block at tb (LeafTriangles::id
-// without a leaf open), kNoHit for a damaged compact block. The packet walks record a
-// closest hit as its block and index and read the id once, when the walk is over: the
-// ids lie a cache line away from the vertices, and reading them at every closer hit
-// cost a miss per leaf that held one.
+// without a leaf open), kNoHit for a damaged compact block. The walks record a closest
+// hit as its block and index and read the id once, when the walk is over: the ids lie
+// a cache line away from the vertices, and reading them at every closer hit cost a
+// miss per leaf that held one.
 inline std::uint32_t triangle_id(const LodLane& lane, const std::uint8_t* tb, std::uint32_t local) {
     if (lane.compact_triangles) {
         format::CompactTriangleBlock b;
@@ -446,10 +446,6 @@ inline void resolve_triangle_ids(const LodLane& lane, LodHit* hits, int n) {
         if (h.tri_block && h.prim != kNoHit && h.prim != kVoxelPrim) h.prim = triangle_id(lane, h.tri_block, h.local);
     }
 }
-
-}  // namespace lod_detail
-
-namespace lod_detail {
 
 // A leaf's triangles asked for from memory, one wait at a time, by a walk that stops
 // for memory and runs other walks meanwhile (PacketWalker). Each wait asks for
