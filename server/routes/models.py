@@ -165,10 +165,10 @@ def list_parts(
     limit: int = Query(1000, ge=1, le=20_000),
 ) -> PartList:
     state = state_of(request)
+    state.auth.require_model_view(request, model_id)
     # The bounds of parts a view highlights that a page has not been sent (a welcome
     # lists the first WELCOME_PARTS), e.g. for a section box around them.
     wanted = _part_ids(ids) if ids else None
-    state.auth.require_model_view(request, model_id)
     with state.store.lease(model_id) as model:
         found = model.part_table.search(q)
     if wanted is not None:

@@ -66,6 +66,8 @@ def test_parts_are_found_by_id(api: httpx.Client, client: Client, model: dict) -
         message = r.json()["error"]["message"]
         assert r.status_code == 422 and message.startswith("ids: part ids are whole numbers"), (bad, r.text)
     assert api.get(url, params={"ids": f" {some[0]}, 10000"}).json()["parts"] == [every[some[0]]]
+    # Without a credential, a bad list is still a 401: who asks comes first.
+    assert httpx.get(f"{api.base_url}{url}", params={"ids": ",5"}).status_code == 401
 
 
 def test_a_pick_names_the_part_it_hits(client: Client, model: dict) -> None:
