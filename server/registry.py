@@ -186,6 +186,11 @@ def _model(row: sqlite3.Row) -> ModelRow:
     return ModelRow(**d)
 
 
+def _saved_view(row: sqlite3.Row) -> dict[str, Any]:
+    """A review's or a model's saved view, its state decoded."""
+    return {**dict(row), "state": json.loads(row["state"])}
+
+
 def _job(row: sqlite3.Row) -> JobRow:
     d = dict(row)
     d["options"] = json.loads(d["options"] or "{}")
@@ -496,7 +501,7 @@ class Registry:
 
     def saved_views(self, review_id: str) -> list[dict[str, Any]]:
         rows = self._query("SELECT * FROM saved_views WHERE review_id = ? ORDER BY created_at", (review_id,))
-        return [{**dict(r), "state": json.loads(r["state"])} for r in rows]
+        return [_saved_view(r) for r in rows]
 
     # -- views saved with a model ----------------------------------------------------------
 
@@ -518,7 +523,7 @@ class Registry:
 
     def model_views(self, model_id: str) -> list[dict[str, Any]]:
         rows = self._query("SELECT * FROM model_views WHERE model_id = ? ORDER BY created_at", (model_id,))
-        return [{**dict(r), "state": json.loads(r["state"])} for r in rows]
+        return [_saved_view(r) for r in rows]
 
     def delete_model_view(self, model_id: str, view_id: str) -> bool:
         with self._tx() as db:

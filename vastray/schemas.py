@@ -45,9 +45,9 @@ assert set(ShadingName.__args__) == set(native.SHADING_MODES)  # one list of mod
 StandardViewName = Literal["iso", "front", "back", "left", "right", "top", "bottom"]
 assert list(StandardViewName.__args__) == list(STANDARD_VIEWS)  # one list of views
 ProjectionName = Literal["perspective", "orthographic"]
+assert list(ProjectionName.__args__) == list(PROJECTIONS)
 # The length units a model's coordinates may be said to be in (meshes do not say).
 UnitName = Literal["mm", "cm", "m", "km", "in", "ft"]
-assert list(ProjectionName.__args__) == list(PROJECTIONS)
 
 
 def describe_errors(errors: list[Any]) -> str:

@@ -58,7 +58,7 @@ def list_views(model_id: str, request: Request) -> ModelViewList:
 @router.post("", status_code=201, summary="Save a view with a model: name, camera, sections, highlight")
 async def save_view(model_id: str, body: ModelViewRequest, request: Request, _: Admin) -> ModelView:
     state = state_of(request)
-    state.store.row(model_id, ready=True)
+    await asyncio.to_thread(state.store.row, model_id, ready=True)
     problem = camera_problem(body.camera)
     if problem:
         raise ApiError(422, "invalid_camera", problem)
@@ -78,7 +78,7 @@ async def save_view(model_id: str, body: ModelViewRequest, request: Request, _: 
 @router.delete("/{view_id}", status_code=204, summary="Delete a view saved with a model")
 async def delete_view(model_id: str, view_id: str, request: Request, _: Admin) -> Response:
     state = state_of(request)
-    state.store.row(model_id)
+    await asyncio.to_thread(state.store.row, model_id)
     if not await asyncio.to_thread(state.registry.delete_model_view, model_id, view_id):
         raise ApiError(404, "view_not_found", f"model {model_id} has no saved view {view_id!r}")
     _announce(request, model_id)

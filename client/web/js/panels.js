@@ -418,6 +418,11 @@ export class Panels {
     this.#renderParts();
   }
 
+  // The part ids the view highlights (as last sent).
+  #highlighted() {
+    return (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
+  }
+
   #sendHighlight(ids) {
     const key = ids.join(",");
     if (key === (this.lastHighlight ?? "") || !this.mayDrive()) return;
@@ -466,7 +471,7 @@ export class Panels {
     const m = this.app.model;
     if (!m) return;
     if (!boxes) {
-      const ids = (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number);
+      const ids = this.#highlighted();
       const unknown = ids.filter((id) => !this.partBounds.has(id));
       try {
         for (let i = 0; i < unknown.length; i += 1000) {
@@ -664,7 +669,7 @@ export class Panels {
     try {
       await this.app.api.saveModelView(this.app.modelId, {
         name, camera: camera.toMessage(0), sections: this.sections,
-        highlight: (this.lastHighlight ?? "").split(",").filter(Boolean).map(Number),
+        highlight: this.#highlighted(),
       });
     } catch (e) {
       this.app.notice(`The view was not saved: ${e.message}`);
@@ -824,7 +829,6 @@ export class Panels {
           const renamed = m.name !== this.app.model.name;
           Object.assign(this.app.model, { name: m.name, up: m.up, units: m.units });
           if (renamed && !this.review) this.app.refreshModels().catch(() => {}); // the picker's name
-
           this.showUp(m.up);
           $("model-units").value = m.units ?? "";
           this.unitsChanged();
